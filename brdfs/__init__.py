@@ -1,0 +1,1 @@
+"""brdfs: analytic reflectance models as pure, differentiable JAX functions (being built)."""

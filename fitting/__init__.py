@@ -1,0 +1,1 @@
+"""Recovering BRDF parameters from target renders (see issue: fitting). Not implemented yet."""

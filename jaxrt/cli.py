@@ -1,0 +1,58 @@
+"""The `jaxrt` command line.
+
+Each subcommand lives in its own module that defines `configure(parser)` and `run(args) -> int`;
+this file only wires them together, so modules are imported only when their command runs.
+Bad input raises `InputError` (or `ValueError`/`FileNotFoundError` from validation) and is printed
+as one line with exit code 2; set JAXRT_DEBUG=1 for the full traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from jaxrt.errors import InputError
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "render": ("jaxrt.cli_render", "render a scene file to EXR/PNG"),
+    "brdf-report": ("brdfs.report", "print each BRDF model's albedo table and write a lobe plot PNG"),
+}
+
+
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
+    """The full parser; only the `selected` command's module is imported and configured."""
+    parser = argparse.ArgumentParser(
+        prog="jaxrt", description="jaxrt: a JAX array ray tracer for analysing and fitting BRDFs."
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        if name == selected:
+            mod = importlib.import_module(module)
+            mod.configure(p)
+            p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    selected = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(selected if selected in COMMANDS else None)
+    args = parser.parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except (InputError, ValueError, FileNotFoundError) as e:
+        if os.environ.get("JAXRT_DEBUG"):
+            raise
+        print(f"jaxrt {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jaxrt: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

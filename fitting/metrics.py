@@ -1,0 +1,39 @@
+"""Image error metrics for fits: RMSE and CIEDE2000 colour differences (through colour-science)."""
+
+from __future__ import annotations
+
+import colour
+import numpy as np
+
+# Renders are linear radiance with no natural white, so ΔE needs a reference: both images are divided
+# by the target's 99th-percentile luminance (over the compared pixels) before sRGB-primaries RGB ->
+# XYZ -> CIELAB (D65), i.e. the target's highlights sit at L* ≈ 100.
+WHITE_PERCENTILE = 99.0
+
+
+def rmse(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Root-mean-square difference over the (masked) pixels and channels of (…, 3) images."""
+    d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
+    if mask is not None:
+        d = d[np.asarray(mask, bool)]
+    return float(np.sqrt(np.mean(d**2))) if d.size else 0.0
+
+
+def _lab(rgb: np.ndarray, white: float) -> np.ndarray:
+    rgb = np.clip(np.asarray(rgb, np.float64) / white, 0.0, None)
+    xyz = colour.RGB_to_XYZ(rgb, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_decoding=False)
+    return colour.XYZ_to_Lab(xyz, colour.RGB_COLOURSPACES["sRGB"].whitepoint)
+
+
+def delta_e_2000(fit: np.ndarray, target: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Per-pixel CIEDE2000 ΔE between two linear-RGB images (…, 3); returns the masked pixels' values."""
+    fit = np.asarray(fit, np.float64).reshape(-1, 3)
+    target = np.asarray(target, np.float64).reshape(-1, 3)
+    if mask is not None:
+        m = np.asarray(mask, bool).reshape(-1)
+        fit, target = fit[m], target[m]
+    if not len(target):
+        return np.zeros(0)
+    lum = target @ np.array([0.2126, 0.7152, 0.0722])
+    white = max(float(np.percentile(lum, WHITE_PERCENTILE)), 1e-12)
+    return np.asarray(colour.delta_E(_lab(fit, white), _lab(target, white), method="CIE 2000"))

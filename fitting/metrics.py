@@ -20,7 +20,7 @@ def rmse(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
 
 
 def _lab(rgb: np.ndarray, white: float) -> np.ndarray:
-    rgb = np.clip(np.asarray(rgb, np.float64) / white, 0.0, None)
+    rgb = np.asarray(rgb, np.float64) / white
     xyz = colour.RGB_to_XYZ(rgb, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_decoding=False)
     return colour.XYZ_to_Lab(xyz, colour.RGB_COLOURSPACES["sRGB"].whitepoint)
 

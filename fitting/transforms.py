@@ -41,7 +41,8 @@ def denormalise(p: Param, t) -> Float[Array, "..."]:
     """Position in [0, 1] along the natural scale -> parameter value."""
     lo, hi = _span(p)
     v = lo + (hi - lo) * jnp.asarray(t)
-    return jnp.exp(v) if p.scale == "log" else v
+    # exp(log hi) can round past hi in float32; a value outside the declared bounds is never valid.
+    return jnp.clip(jnp.exp(v) if p.scale == "log" else v, p.lo, p.hi)
 
 
 def to_unconstrained(p: Param, x) -> Float[Array, "..."]:

@@ -1,0 +1,135 @@
+"""The renderer-independent fitting core: transforms, metrics, least squares, standard errors.
+
+A synthetic G-buffer (random direction pairs) and a small Blinn-Phong-like model declared here keep
+these checks independent of the BRDF library and the renderer; the end-to-end bars (bunny scene,
+real models) are in test_fit_scene.py.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from brdfs.base import Model, Param
+from fitting import fit_images, metrics
+from fitting.transforms import from_unconstrained, to_unconstrained
+
+
+def _eval(p, wi, wo):
+    h = wi + wo
+    h = h / jnp.linalg.norm(h, axis=-1, keepdims=True)
+    lobe = (p["s"] + 8) / (8 * jnp.pi) * jnp.clip(h[..., 2], 0.0, 1.0)[..., None] ** p["s"]
+    return p["rho_d"] / jnp.pi + p["rho_s"][..., None] * lobe
+
+
+TOY = Model(
+    "toy",
+    (
+        Param("rho_d", 0.5, 0.0, 1.0, rgb=True),
+        Param("rho_s", 0.5, 0.0, 1.0),
+        Param("s", 10.0, 1.0, 1000.0, scale="log"),
+    ),
+    _eval,
+    None,
+    None,
+)
+
+
+def _dirs(key, n):
+    v = jax.random.normal(key, (n, 3))
+    v = v.at[:, 2].set(jnp.abs(v[:, 2]) + 0.05)
+    return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
+
+
+@pytest.fixture(scope="module")
+def gbuffer():
+    k1, k2 = jax.random.split(jax.random.PRNGKey(1))
+    n = 64 * 64
+    return {"wi": _dirs(k1, n).reshape(1, 64, 64, 3), "wo": _dirs(k2, n).reshape(1, 64, 64, 3)}
+
+
+def shade(p, g):
+    return _eval(p, g["wi"], g["wo"]) * g["wi"][..., 2:3]
+
+
+@pytest.mark.parametrize("p", TOY.spec, ids=lambda p: p.name)
+def test_transform_round_trip_and_bounds(p):
+    xs = np.linspace(p.lo, p.hi, 7)[1:-1] if p.scale == "linear" else np.geomspace(p.lo, p.hi, 7)[1:-1]
+    back = np.asarray(from_unconstrained(p, to_unconstrained(p, xs)))
+    np.testing.assert_allclose(back, xs, rtol=2e-5)
+    extreme = np.asarray(from_unconstrained(p, jnp.array([-1e4, -30.0, 30.0, 1e4])))
+    assert np.all(extreme >= p.lo) and np.all(extreme <= p.hi) and np.all(np.isfinite(extreme))
+
+
+def test_delta_e_zero_for_equal_and_grows_with_difference():
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0.05, 1.0, (50, 3))
+    assert metrics.delta_e_2000(a, a).max() == 0.0
+    d1 = metrics.delta_e_2000(a * 1.02, a).mean()
+    d2 = metrics.delta_e_2000(a * 1.2, a).mean()
+    assert 0 < d1 < d2
+
+
+def test_delta_e_matches_cie_reference_pair():
+    # Sharma, Wu & Dalal (2005), Table 1 pair 1: Lab (50, 2.6772, -79.7751) vs (50, 0, -82.7485) -> 2.0425.
+    import colour
+
+    lab1 = np.array([50.0, 2.6772, -79.7751])
+    lab2 = np.array([50.0, 0.0, -82.7485])
+    wp = colour.RGB_COLOURSPACES["sRGB"].whitepoint
+    to_rgb = lambda lab: colour.XYZ_to_RGB(colour.Lab_to_XYZ(lab, wp), colour.RGB_COLOURSPACES["sRGB"])
+    # The target's 99th-percentile luminance is its white: pad with white pixels so the scale is 1.
+    fit = np.concatenate([to_rgb(lab1)[None], np.ones((300, 3))])
+    tgt = np.concatenate([to_rgb(lab2)[None], np.ones((300, 3))])
+    np.testing.assert_allclose(metrics.delta_e_2000(fit, tgt)[0], 2.0425, atol=2e-3)
+
+
+def test_recovers_parameters_noise_free(gbuffer):
+    truth = TOY.params(rho_d=[0.2, 0.5, 0.7], rho_s=0.3, s=120.0)
+    target = shade(truth, gbuffer)
+    r = fit_images(shade, gbuffer, target, TOY, starts=4, progress=False)
+    np.testing.assert_allclose(r.params["rho_d"], [0.2, 0.5, 0.7], rtol=1e-3)
+    np.testing.assert_allclose(r.params["rho_s"], 0.3, rtol=1e-3)
+    np.testing.assert_allclose(r.params["s"], 120.0, rtol=1e-3)
+    assert r.rmse < 1e-4 and r.delta_e_max < 0.05
+    assert 1 <= r.starts_at_best <= r.starts == 4
+
+
+def test_fixed_parameter_is_held_and_validated(gbuffer):
+    truth = TOY.params(rho_d=0.4, rho_s=0.6, s=30.0)
+    target = shade(truth, gbuffer)
+    r = fit_images(shade, gbuffer, target, TOY, fix={"s": 30.0}, rgb=False, starts=1, progress=False)
+    assert r.params["s"] == pytest.approx(30.0) and "s" not in r.stderr
+    np.testing.assert_allclose(r.params["rho_s"], 0.6, rtol=1e-3)
+    with pytest.raises(ValueError, match=r"s.*\[1, 1000\]"):
+        fit_images(shade, gbuffer, target, TOY, fix={"s": 5000.0}, progress=False)
+    with pytest.raises(ValueError, match="unknown parameter"):
+        fit_images(shade, gbuffer, target, TOY, fix={"roughness": 0.1}, progress=False)
+
+
+def test_mask_ignores_corrupted_pixels(gbuffer):
+    truth = TOY.params(rho_d=0.3, rho_s=0.5, s=60.0)
+    target = np.array(shade(truth, gbuffer))
+    target[0, :8] = 5.0  # garbage rows the mask excludes
+    mask = np.ones(target.shape[:-1], np.float32)
+    mask[0, :8] = 0.0
+    r = fit_images(shade, gbuffer, target, TOY, mask=mask, rgb=False, starts=2, progress=False)
+    np.testing.assert_allclose(r.params["s"], 60.0, rtol=1e-3)
+
+
+def test_standard_errors_cover_truth_under_noise(gbuffer):
+    """With Gaussian pixel noise, |estimate - truth| / stderr behaves like a standard normal."""
+    truth = TOY.params(rho_d=0.4, rho_s=0.5, s=80.0)
+    clean = np.asarray(shade(truth, gbuffer))
+    sigma = 0.01 * float(clean.mean())
+    rng = np.random.default_rng(3)
+    z = []
+    for _ in range(12):
+        noisy = clean + rng.normal(0, sigma, clean.shape).astype(np.float32)
+        r = fit_images(shade, gbuffer, noisy, TOY, rgb=False, starts=1, progress=False)
+        for name in ("rho_d", "rho_s", "s"):
+            est = np.mean(r.params[name])
+            z.append((est - float(np.mean(truth[name]))) / float(np.mean(r.stderr[name])))
+    z = np.abs(np.array(z))
+    # For a correct standard error ~68% of |z| fall below 1 and ~95% below 2; 36 draws, loose bounds.
+    assert 0.45 < np.mean(z < 1) and np.mean(z < 2.5) > 0.85, z

@@ -1,1 +1,42 @@
-"""brdfs: analytic reflectance models as pure, differentiable JAX functions (being built)."""
+"""brdfs: analytic reflectance models as pure, differentiable JAX functions.
+
+    import brdfs
+    brdfs.names()        # ('lambert', 'phong', 'blinn_phong', 'cook_torrance', 'ward', 'ashikhmin_shirley', 'glass')
+    model = brdfs.get("cook_torrance")
+    p = model.params(rho_d=0.2, rho_s=0.8, m=0.3, eta=1.5)
+    f = model.eval(p, wi, wo)           # (..., 3) linear RGB [1/sr]
+    brdfs.albedo(model, p, wo)          # (..., 3) directional albedo
+
+Each model module (brdfs/<name>.py) defines `MODEL`, a `brdfs.base.Model`; its docstring gives the
+formula, the paper, and the measured energy/reciprocity properties.
+"""
+
+from __future__ import annotations
+
+from brdfs import ashikhmin_shirley, blinn_phong, cook_torrance, glass, lambert, phong, ward
+from brdfs.analysis import albedo, lobe_slice, plot_lobe, reciprocity_error
+from brdfs.base import Model, Param, Params
+
+_MODULES = (lambert, phong, blinn_phong, cook_torrance, ward, ashikhmin_shirley, glass)
+MODELS: dict[str, Model] = {m.MODEL.name: m.MODEL for m in _MODULES}
+
+
+def names() -> tuple[str, ...]:
+    """The registered model names, in the seed's order."""
+    return tuple(MODELS)
+
+
+def get(name: str) -> Model:
+    """The model called `name`; ValueError listing the known names otherwise."""
+    try:
+        return MODELS[name]
+    except (KeyError, TypeError):
+        from jaxrt.errors import InputError
+
+        raise InputError(f"unknown BRDF model {name!r}; allowed: {', '.join(MODELS)}") from None
+
+
+__all__ = [
+    "Model", "Param", "Params", "MODELS", "names", "get",
+    "albedo", "lobe_slice", "reciprocity_error", "plot_lobe",
+]

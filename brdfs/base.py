@@ -18,6 +18,8 @@ from typing import Literal
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrt.errors import InputError
+
 Params = dict  # dict[str, jax.Array]; see module docstring
 
 
@@ -50,16 +52,16 @@ class Param:
         try:
             arr = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError):
-            raise ValueError(f"{where}: expected a number{' or RGB triple' if self.rgb else ''}, got {value!r}")
+            raise InputError(f"{where}: expected a number{' or RGB triple' if self.rgb else ''}, got {value!r}")
         if self.rgb:
             if arr.shape == ():
                 arr = np.broadcast_to(arr, (3,))
             elif arr.shape[-1:] != (3,):
-                raise ValueError(f"{where}: expected a scalar or an RGB triple, got shape {arr.shape}")
+                raise InputError(f"{where}: expected a scalar or an RGB triple, got shape {arr.shape}")
         if not np.all(np.isfinite(arr)):
-            raise ValueError(f"{where}: value {value!r} is not finite; allowed range is [{self.lo:g}, {self.hi:g}]")
+            raise InputError(f"{where}: value {value!r} is not finite; allowed range is [{self.lo:g}, {self.hi:g}]")
         if np.any(arr < self.lo) or np.any(arr > self.hi):
-            raise ValueError(f"{where}: value {value!r} is outside the allowed range [{self.lo:g}, {self.hi:g}]")
+            raise InputError(f"{where}: value {value!r} is outside the allowed range [{self.lo:g}, {self.hi:g}]")
         return arr.astype(np.float32)
 
 
@@ -102,17 +104,17 @@ class Model:
         for p in self.spec:
             if p.name == name:
                 return p
-        raise ValueError(f"{self.name}: unknown parameter {name!r}; allowed: {', '.join(self.param_names)}")
+        raise InputError(f"{self.name}: unknown parameter {name!r}; allowed: {', '.join(self.param_names)}")
 
     def params(self, **values) -> Params:
         """Build a validated parameter pytree; unset fields take their defaults.
 
-        Raises ValueError naming the parameter and its allowed range for an unknown name or an
+        Raises InputError (a ValueError) naming the parameter and its allowed range for an unknown name or an
         out-of-bounds value.
         """
         unknown = set(values) - set(self.param_names)
         if unknown:
-            raise ValueError(
+            raise InputError(
                 f"{self.name}: unknown parameter(s) {', '.join(sorted(unknown))}; allowed: {', '.join(self.param_names)}"
             )
         out = {}

@@ -1,0 +1,45 @@
+"""Lambertian (ideal diffuse) reflection.
+
+    f(wi, wo) = rho_d / pi                       for cos(theta_i), cos(theta_o) > 0, else 0
+
+J. H. Lambert, *Photometria*, 1760. Albedo is exactly rho_d at every view angle, so the model is
+energy conserving for rho_d <= 1 and trivially reciprocal. Sampling is cosine-weighted
+(density cos(theta_i)/pi), which makes every sample's weight exactly rho_d.
+
+Parameters: rho_d (RGB, 0-1) diffuse albedo.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from brdfs import _common as C
+from brdfs.base import Model, Param, Params
+
+SPEC = (Param("rho_d", 0.8, 0.0, 1.0, rgb=True, doc="diffuse albedo"),)
+
+
+def eval(p: Params, wi: Float[Array, "... 3"], wo: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """BRDF value [1/sr], (..., 3); 0 when either direction is at or below the horizon."""
+    ok = C.upper(wi, wo)
+    return jnp.where(ok[..., None], p["rho_d"] * C.INV_PI, 0.0)
+
+
+def _ps(p: Params) -> Float[Array, "..."]:
+    return jnp.zeros_like(p["rho_d"][..., 0])
+
+
+sample, pdf = C.mixture(_ps, lambda p, wo, u: C.cosine_sample(u), lambda p, wo, wi: C.cosine_pdf(wi), eval)
+
+MODEL = Model(
+    name="lambert",
+    spec=SPEC,
+    eval=eval,
+    sample=sample,
+    pdf=pdf,
+    energy_conserving=True,
+    reciprocal=True,
+    extras={"lobe_prob": _ps, "sample_specular": lambda p, wo, u: C.cosine_sample(u)},
+    doc=__doc__,
+)

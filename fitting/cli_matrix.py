@@ -1,0 +1,52 @@
+"""`jaxrt fit-matrix`: fit every model to targets rendered by every other model (Ngan et al. 2005 style)."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from fitting.cli import DEMO_OBJECT, DEMO_OVERRIDES, DEMO_SCENE, _add_common, _check_outputs, _model, _write_json, hidden_params
+
+
+MATRIX_MODELS = ("lambert", "phong", "blinn_phong", "cook_torrance", "ward", "ashikhmin_shirley")
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", default=DEMO_SCENE, help=f"scene (default {DEMO_SCENE}, framed on --object)")
+    parser.add_argument("--object", default=DEMO_OBJECT, help=f"object to re-material (default {DEMO_OBJECT})")
+    parser.add_argument("--models", default=",".join(MATRIX_MODELS), help="comma-separated models")
+    parser.add_argument("-o", "--output", default="fit_matrix.png", help="heat-map PNG (default fit_matrix.png)")
+    parser.add_argument("--out", metavar="MATRIX.json", help="also write the matrix as JSON")
+    _add_common(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    import brdfs
+    from fitting import report, scene_fit
+
+    names = [n.strip() for n in args.models.split(",") if n.strip()]
+    models = [_model(n) for n in names]
+    _check_outputs((args.output, ".png", "-o"), (args.out, ".json", "--out"))
+    overrides = [DEMO_OVERRIDES] if args.scene == DEMO_SCENE else None
+    setups = {m.name: scene_fit.prepare(args.scene, m, object=args.object, overrides=overrides) for m in models}
+    mat = np.zeros((len(models), len(models)))
+    for i, src in enumerate(models):
+        truth = src.params(**hidden_params(src, seed=7 + i))
+        target = np.asarray(scene_fit.render_with(setups[src.name], truth))
+        scale = float(np.sqrt(np.mean(target[setups[src.name].mask > 0] ** 2))) or 1.0
+        for j, dst in enumerate(models):
+            r, _ = scene_fit.fit(None, target, dst, setup=setups[dst.name], rgb=not args.grey, solver=args.solver,
+                                 starts=args.starts, max_steps=args.max_steps, progress=not args.quiet)
+            mat[i, j] = r.rmse / scale
+    width = max(len(n) for n in names) + 2
+    print("relative RMSE of the best fit (rows: target model, columns: fitted model)")
+    print(" " * width + "".join(f"{n[:10]:>11}" for n in names))
+    for i, n in enumerate(names):
+        print(f"{n:<{width}}" + "".join(f"{mat[i, j]:>11.3g}" for j in range(len(names))))
+    report.matrix_png(args.output, names, mat, f"cross-model fit residuals ({args.scene}, {args.object})")
+    print(f"wrote {args.output}")
+    if args.out:
+        _write_json(args.out, {"models": names, "relative_rmse": mat.tolist()})
+    return 0
+

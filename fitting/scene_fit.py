@@ -26,6 +26,7 @@ from jaxtyping import Array, Float
 
 import brdfs
 from brdfs.base import Model
+from fitting import compact
 from fitting.solve import FitResult, fit_images
 from jaxrt import integrators
 from jaxrt import scene as _scene
@@ -40,7 +41,8 @@ class Setup:
 
     scenes: one built Scene per target (identical structure); gbuffers: their traces;
     material: index of the fitted material; model_index/row: where its parameters live in
-    `Scene.materials.params`; mask: (K, H, W) float32 pixels that see the material.
+    `Scene.materials.params`; mask: (K, H, W) float32 pixels that see the material; fitbuffer:
+    the nodes that see the material (`fitting.compact`), which is what the solver re-shades.
     """
 
     scenes: tuple
@@ -51,6 +53,7 @@ class Setup:
     mask: np.ndarray
     model: Model
     object: str
+    fitbuffer: "compact.FitBuffer"
 
 
 def _spec(source, overrides=None) -> _scene.SceneSpec:
@@ -130,15 +133,18 @@ def prepare(
     mask = np.stack(masks)
     if not mask.any():
         raise InputError(f"object {obj_name!r} is not visible in any view; nothing to fit")
+    model_index, row = int(sc.materials.model_id[mi]), int(sc.materials.row[mi])
+    fb = compact.build(gbs, built, model_index, row, mi, model.params())
     return Setup(
         scenes=tuple(built),
         gbuffers=tuple(gbs),
         material=mi,
-        model_index=int(sc.materials.model_id[mi]),
-        row=int(sc.materials.row[mi]),
+        model_index=model_index,
+        row=row,
         mask=mask,
         model=model,
         object=obj_name,
+        fitbuffer=fb,
     )
 
 
@@ -205,8 +211,6 @@ def fit(
     if not np.all(np.isfinite(targets)):
         raise InputError("targets contain NaN or Inf pixels")
     m = setup.mask if mask is None else setup.mask * np.asarray(mask, np.float32)
-    result = fit_images(
-        shader(setup.model_index, setup.row), (setup.gbuffers, setup.scenes), targets, setup.model, mask=m,
-        **solver_options,
-    )
+    result = fit_images(compact.shader(setup.model.name), setup.fitbuffer, targets, setup.model, mask=m,
+                        **solver_options)
     return result, setup

@@ -114,21 +114,20 @@ def _compiled_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, 
     """A jitted single-start solve; cached so repeated fits with new targets/starts never recompile."""
 
     def residuals(z, args):
-        gbuffer, target, sqrt_w, fixed = args
-        img = shade(_params_from_z(free, z, fixed), gbuffer)
-        return ((img - target) * sqrt_w).reshape(-1)
+        gbuffer, pixels, fixed = args
+        return _residuals(shade(_params_from_z(free, z, fixed), gbuffer), pixels)
 
     @jax.jit
-    def solve(z0, gbuffer, target, sqrt_w, fixed):
+    def solve(z0, gbuffer, pixels, fixed):
         sol = optx.least_squares(
             residuals,
             SOLVERS[solver](rtol, atol),
             z0,
-            args=(gbuffer, target, sqrt_w, fixed),
+            args=(gbuffer, pixels, fixed),
             max_steps=max_steps,
             throw=False,
         )
-        r = residuals(sol.value, (gbuffer, target, sqrt_w, fixed))
+        r = residuals(sol.value, (gbuffer, pixels, fixed))
         return sol.value, 0.5 * jnp.sum(r**2), sol.stats["num_steps"], sol.result == optx.RESULTS.successful
 
     return solve
@@ -187,7 +186,7 @@ def fit_images(
     targets = jnp.asarray(targets, jnp.float32)
     if mask is None:
         mask = jnp.ones(targets.shape[:-1], jnp.float32)
-    sqrt_w = jnp.sqrt(jnp.asarray(mask, jnp.float32))[..., None]
+    pixels = _pixels(targets, mask)
 
     # Start points: init/defaults first, then Halton points on the natural scale.
     z_starts = [{fp.param.name: to_unconstrained(fp.param, _shaped(start_vals[fp.param.name], fp)) for fp in free}]
@@ -205,7 +204,7 @@ def fit_images(
     t0 = time.perf_counter()
     bar = _progress(len(z_starts), f"fit {model.name}", progress)
     for z0 in z_starts:
-        z, loss, steps, ok = solve(z0, gbuffer, targets, sqrt_w, fixed)
+        z, loss, steps, ok = solve(z0, gbuffer, pixels, fixed)
         loss = float(loss)
         total_steps += int(steps)
         finals.append((loss, z))
@@ -234,7 +233,7 @@ def fit_images(
     tgt = np.asarray(targets)
     m = np.asarray(mask) > 0
     de = metrics.delta_e_2000(fitted, tgt, m)
-    se, cond, corr = _standard_errors(shade, gbuffer, targets, sqrt_w, free, params, m)
+    se, cond, corr = _standard_errors(shade, gbuffer, pixels, free, params)
     names = [fp.param.name for fp in free]
     return FitResult(
         model=model.name,
@@ -257,6 +256,25 @@ def fit_images(
     )
 
 
+def _pixels(targets, mask):
+    """The compared pixels only: (flat indices (P,), targets (P, 3), √weights (P, 1)).
+
+    Residuals over just these keep the Jacobian (P·3 × parameters) and its QR small when the
+    fitted object covers part of the frame.
+    """
+    m = np.asarray(mask, np.float32).reshape(-1)
+    idx = np.nonzero(m > 0)[0]
+    if idx.size == 0:
+        raise ValueError("the mask selects no pixels; nothing to fit")
+    t = np.asarray(targets, np.float32).reshape(-1, 3)[idx]
+    return jnp.asarray(idx, jnp.int32), jnp.asarray(t), jnp.sqrt(jnp.asarray(m[idx]))[:, None]
+
+
+def _residuals(images, pixels):
+    idx, target, sqrt_w = pixels
+    return ((images.reshape(-1, 3)[idx] - target) * sqrt_w).reshape(-1)
+
+
 def _shaped(v, fp: FreeParam):
     v = jnp.asarray(v, jnp.float32)
     if fp.size == 1:
@@ -264,7 +282,29 @@ def _shaped(v, fp: FreeParam):
     return jnp.broadcast_to(v, (3,))
 
 
-def _standard_errors(shade, gbuffer, targets, sqrt_w, free, params, mask):
+@functools.lru_cache(maxsize=32)
+def _compiled_jacobian(shade: Callable, free: tuple[FreeParam, ...]):
+    """Residuals and their Jacobian w.r.t. the free parameters in their own units (jitted, cached)."""
+    sizes = [fp.size for fp in free]
+
+    def resid(theta, params, gbuffer, pixels):
+        p = dict(params)
+        i = 0
+        for fp, n in zip(free, sizes):
+            v = theta[i : i + n]
+            p[fp.param.name] = jnp.broadcast_to(v, (3,)) if fp.param.rgb else v[0]
+            i += n
+        return _residuals(shade(p, gbuffer), pixels)
+
+    @jax.jit
+    def both(theta, params, gbuffer, pixels):
+        args = (params, gbuffer, pixels)
+        return resid(theta, *args), jax.jacfwd(resid)(theta, *args)
+
+    return both
+
+
+def _standard_errors(shade, gbuffer, pixels, free, params):
     """Standard errors from the Jacobian at the optimum: cov = s² (JᵀJ)⁻¹, s² = RSS / (n − p).
 
     J is taken with respect to the parameters in their own units (not z), so the errors are in those
@@ -273,19 +313,9 @@ def _standard_errors(shade, gbuffer, targets, sqrt_w, free, params, mask):
     """
     sizes = [fp.size for fp in free]
     theta0 = jnp.concatenate([jnp.ravel(_shaped(params[fp.param.name], fp)) for fp in free])
-
-    def resid(theta):
-        p = dict(params)
-        i = 0
-        for fp, n in zip(free, sizes):
-            v = theta[i : i + n]
-            p[fp.param.name] = jnp.broadcast_to(v, (3,)) if fp.param.rgb else v[0]
-            i += n
-        return ((shade(p, gbuffer) - targets) * sqrt_w).reshape(-1)
-
-    r = np.asarray(resid(theta0), np.float64)
-    J = np.asarray(jax.jacfwd(resid)(theta0), np.float64)
-    n = int(np.count_nonzero(np.broadcast_to(mask[..., None], targets.shape)))
+    r, J = _compiled_jacobian(shade, free)(theta0, params, gbuffer, pixels)
+    r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
+    n = r.size
     p = theta0.size
     s2 = float(r @ r) / max(n - p, 1)
     jtj = J.T @ J

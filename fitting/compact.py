@@ -1,0 +1,107 @@
+"""A fit-specific G-buffer: only the ray-tree nodes that see the fitted material.
+
+With the fitted material opaque and its δ held fixed, the ray tree, every path throughput and
+every other surface's contribution are constant during a fit. The image is therefore
+
+    image = constant + Σ_nodes w_node · Σ_lights f(params; wi_l, wo) · cosθ_l · I_l / d_l² · V_l
+
+over the tree nodes (any depth: seen directly or in mirrors/glass) whose surface has the fitted
+material, with w_node = path throughput · (1 − δ) / spp. `build` gathers those nodes once (local
+directions and light weights, from the same `jaxrt.integrators` functions the renderer shades
+with); `shade` is then one BRDF evaluation per node and light plus a segment sum — about as
+little work as a fit iteration can do. `tests/test_fit_compact.py` checks it against the full
+renderer's `shade` for random parameters.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+import brdfs
+from jaxrt import integrators
+
+
+class FitBuffer(eqx.Module):
+    """Nodes of all K views that see the fitted material.
+
+    pixel: (N,) flat index into the (K·H·W) images; weight: (N,) path throughput·(1 − δ)/spp;
+    wi: (N, L, 3) local directions to the lights; wo: (N, 3) local direction to the viewer;
+    light: (N, L, 3) cosθ·I/d²·V per light; constant: (K, H, W, 3) everything else.
+    """
+
+    pixel: Int[Array, "N"]
+    weight: Float[Array, "N"]
+    wi: Float[Array, "N L 3"]
+    wo: Float[Array, "N 3"]
+    light: Float[Array, "N L 3"]
+    constant: Float[Array, "K H W 3"]
+
+
+def _nodes(gb, scene, material: int):
+    """Per-view node data (numpy) for the nodes whose hit has `material`."""
+    st, cam = scene.settings, scene.camera
+    keep = np.asarray(gb.active & (gb.prim >= 0))
+    mat = np.asarray(scene.geometry.material)[np.maximum(np.asarray(gb.prim), 0)]
+    sel = keep & (mat == material)
+    d_idx, b_idx = np.nonzero(sel)
+    prim, u, v = (jnp.asarray(np.asarray(x)[d_idx, b_idx]) for x in (gb.prim, gb.u, gb.v))
+    d = jnp.asarray(np.asarray(gb.direction)[d_idx, b_idx])
+    vis = jnp.asarray(np.asarray(gb.visible)[d_idx, b_idx])
+    s = integrators.surface(scene.geometry, prim, u, v)
+    wi, wo, light = integrators.direct_terms(scene, s, d, vis)
+    delta = np.asarray(scene.materials.delta)[material]
+    weight = np.asarray(gb.weight)[d_idx, b_idx] * (1.0 - delta) / st.spp
+    pixel = np.asarray(gb.pixel)[d_idx, b_idx]
+    return pixel, weight, np.asarray(wi), np.asarray(wo)[:, 0], np.asarray(light)
+
+
+def build(gbuffers, scenes, model_index: int, row: int, material: int, params0) -> FitBuffer:
+    """Gather the fitted material's nodes from every view's G-buffer (done once per fit setup).
+
+    `params0` is the parameter set the scenes currently hold for the material; the constant image
+    is each view's full render minus that material's contribution at `params0`.
+    """
+    from fitting.scene_fit import inject
+
+    parts, consts = [], []
+    for k, (gb, sc) in enumerate(zip(gbuffers, scenes)):
+        pixel, weight, wi, wo, light = _nodes(gb, sc, material)
+        parts.append((pixel + k * sc.camera.num_pixels, weight, wi, wo, light))
+        consts.append(integrators.shade(gb, inject(sc, model_index, row, params0)))
+    cat = lambda i: np.concatenate([p[i] for p in parts])
+    fb = FitBuffer(
+        pixel=jnp.asarray(cat(0), jnp.int32), weight=jnp.asarray(cat(1), jnp.float32),
+        wi=jnp.asarray(cat(2)), wo=jnp.asarray(cat(3)), light=jnp.asarray(cat(4)),
+        constant=jnp.stack(consts),
+    )
+    model = brdfs.get(scenes[0].materials.models[model_index])
+    own = contribution(model, params0, fb)
+    return eqx.tree_at(lambda f: f.constant, fb, fb.constant - own)
+
+
+def contribution(model, params, fb: FitBuffer) -> Float[Array, "K H W 3"]:
+    """The fitted material's share of the images for `params`."""
+    p = {k: jnp.asarray(v)[None, None] if jnp.ndim(v) == 0 else jnp.asarray(v)[None, None, :] for k, v in params.items()}
+    f = model.eval(p, fb.wi, fb.wo[:, None, :])  # (N, L, 3)
+    per_node = fb.weight[:, None] * jnp.sum(f * fb.light, axis=1)
+    shape = fb.constant.shape
+    flat = jax.ops.segment_sum(per_node, fb.pixel, num_segments=shape[0] * shape[1] * shape[2])
+    return flat.reshape(shape)
+
+
+@functools.lru_cache(maxsize=None)
+def shader(model_name: str):
+    """`shade(params, fb) -> (K, H, W, 3)` for the solver; cached so the same function object (and
+    so the same compiled solver) is reused."""
+    model = brdfs.get(model_name)
+
+    def shade(params, fb: FitBuffer):
+        return fb.constant + contribution(model, params, fb)
+
+    return shade

@@ -1,0 +1,206 @@
+"""Bounding volume hierarchy: build (numpy, host) and stackless traversal (JAX, jit-able).
+
+    tree = bvh.build(mesh.vertices, mesh.faces)          # BVH pytree of jnp arrays
+    hit = bvh.intersect(tree, origins, directions, tmin=0.0, tmax=jnp.inf)
+    hit.t (N,), hit.prim (N,) int32, hit.u (N,), hit.v (N,)
+    blocked = bvh.occluded(tree, origins, directions, tmax)   # (N,) bool
+    bvh.stats(tree)  (or tree.stats)                     # node count, depth, SAH cost, leaf sizes
+
+`intersect` returns the closest hit with t in [tmin, tmax]: `prim` indexes the ORIGINAL face order
+(the `faces` given to `build`), a miss has prim -1, t = inf and u = v = 0. Barycentrics: the hit
+point is (1-u-v)*v0 + u*v1 + v*v2 for face (v0, v1, v2). `occluded` is any-hit with early exit:
+True where some triangle is hit with t in [tmin, tmax]. tmin/tmax are scalars or (N,) arrays;
+origins/directions are (N,3) float32 (directions need not be unit; t is in units of |direction|).
+
+Both work on CPU and GPU unchanged, can be called inside another jitted function with `tree` as a
+traced argument, and are not differentiable: their inputs pass through `lax.stop_gradient`, and a
+renderer recomputes the differentiable hit point from `prim` (DESIGN.md: trace once, shade many).
+Triangle tests are watertight (see `jaxrt.bvh_traverse`): a ray aimed at an edge or vertex shared
+by two triangles of a closed mesh always hits one of them. Build and traversal details are in
+`jaxrt.bvh_build` and `jaxrt.bvh_traverse`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, Bool, Float, Int
+
+from jaxrt import bvh_build, bvh_traverse
+from jaxrt.errors import InputError
+
+
+class BVH(eqx.Module):
+    """Flat BVH arrays (nn nodes, F triangles), ready for jit.
+
+    node_box  (nn, 6) float32   [lo_x, lo_y, lo_z, hi_x, hi_y, hi_z], padded outward by a few ulps
+    node_leaf (nn, 2) int32     [first triangle (leaf order), count]; count 0 for interior nodes
+    links     (6*nn, 2) int32   per ray class c (dominant axis*2 + negative): row c*nn + node holds
+                                (next node if the box is hit, next node if missed); -1 ends
+    triangles (F, 9) float32    v0, v1, v2 of each triangle in leaf order
+    prim_ids  (F,) int32        original face index of each leaf-order triangle
+    leaf_size: static, the largest leaf
+    """
+
+    node_box: Float[Array, "nn 6"]
+    node_leaf: Int[Array, "nn 2"]
+    links: Int[Array, "nn6 2"]
+    triangles: Float[Array, "F 9"]
+    prim_ids: Int[Array, " F"]
+    leaf_size: int = eqx.field(static=True)
+
+    @property
+    def stats(self) -> "BVHStats":
+        return stats(self)
+
+
+class Hit(NamedTuple):
+    """Closest-hit result per ray: t (N,) float32 (inf on a miss), prim (N,) int32 (original face
+    index, -1 on a miss), u, v (N,) float32 barycentrics of v1 and v2 (0 on a miss)."""
+
+    t: Float[Array, " N"]
+    prim: Int[Array, " N"]
+    u: Float[Array, " N"]
+    v: Float[Array, " N"]
+
+
+@dataclasses.dataclass(frozen=True)
+class BVHStats:
+    """Build statistics. sah_cost uses C_trav = C_isect = 1 and surface areas relative to the root."""
+
+    nodes: int
+    leaves: int
+    depth: int
+    sah_cost: float
+    leaf_size_min: int
+    leaf_size_max: int
+    leaf_size_mean: float
+    triangles: int
+
+
+def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, leaf_size: int = 1) -> BVH:
+    """Build a BVH over triangles `vertices[faces]` (host numpy, vectorised LBVH; see bvh_build).
+
+    vertices (V,3) float, faces (F,3) int in [0, V). Raises InputError on NaN/Inf vertices,
+    out-of-range indices or no faces. Zero-area faces are kept (they are never hit).
+    """
+    a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size)
+    put = jax.device_put
+    return BVH(node_box=put(a["node_box"]), node_leaf=put(a["node_leaf"]), links=put(a["links"]),
+               triangles=put(a["triangles"]), prim_ids=put(a["prim_ids"]), leaf_size=leaf_size)
+
+
+def stats(tree: BVH) -> BVHStats:
+    """Node count, depth, SAH cost and leaf sizes of a built tree (host-side)."""
+    box = np.asarray(tree.node_box, np.float64)
+    leaf = np.asarray(tree.node_leaf)
+    links = np.asarray(tree.links)
+    nn = box.shape[0]
+    is_leaf = leaf[:, 1] > 0
+    first = links[:nn, 0]  # class 0: first child (interior)
+    second = links[np.where(is_leaf, 0, first), 1]  # the first child's miss link is its sibling
+    depth = np.zeros(nn, np.int64)
+    frontier = np.array([0])
+    d = 0
+    while len(frontier):
+        depth[frontier] = d
+        inner = frontier[~is_leaf[frontier]]
+        frontier = np.concatenate([first[inner], second[inner]])
+        d += 1
+    ext = box[:, 3:] - box[:, :3]
+    area = ext[:, 0] * ext[:, 1] + ext[:, 1] * ext[:, 2] + ext[:, 2] * ext[:, 0]
+    rel = area / max(area[0], 1e-300)
+    counts = leaf[is_leaf, 1]
+    sah = float(np.sum(rel[~is_leaf]) + np.sum(rel[is_leaf] * leaf[is_leaf, 1]))
+    return BVHStats(nodes=nn, leaves=int(is_leaf.sum()), depth=int(depth.max()), sah_cost=sah,
+                    leaf_size_min=int(counts.min()), leaf_size_max=int(counts.max()),
+                    leaf_size_mean=float(counts.mean()), triangles=int(tree.prim_ids.shape[0]))
+
+
+def _default_lanes() -> int:
+    # CPU: a lane pool whose state stays in cache; GPU: enough lanes to fill the device.
+    return 1024 if jax.default_backend() == "cpu" else 1 << 17
+
+
+def _default_steps() -> int:
+    return 2 if jax.default_backend() == "cpu" else 16
+
+
+def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_iter, count_steps=False):
+    origins = lax.stop_gradient(jnp.asarray(origins, jnp.float32))
+    directions = lax.stop_gradient(jnp.asarray(directions, jnp.float32))
+    if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
+        raise InputError(f"bvh: origins and directions must both be (N,3); got {origins.shape} and {directions.shape}")
+    n = origins.shape[0]
+    tmin = jnp.broadcast_to(lax.stop_gradient(jnp.asarray(tmin, jnp.float32)), (n,))
+    tmax = jnp.broadcast_to(lax.stop_gradient(jnp.asarray(tmax, jnp.float32)), (n,))
+    if n == 0:
+        z = jnp.zeros(0, jnp.float32)
+        return jnp.zeros(0, bool), z, jnp.zeros(0, jnp.int32), z, z, jnp.zeros(0, jnp.int32)
+    arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
+    return bvh_traverse.traverse(arrays, origins, directions, tmin, tmax, any_hit=any_hit, leaf_size=tree.leaf_size,
+                                 steps_per_iter=steps_per_iter or _default_steps(), lanes=lanes or _default_lanes(),
+                                 count_steps=count_steps)
+
+
+def intersect(
+    tree: BVH,
+    origins: Float[Array, "N 3"],
+    directions: Float[Array, "N 3"],
+    tmin: Float[Array, " N"] | float = 0.0,
+    tmax: Float[Array, " N"] | float = jnp.inf,
+    *,
+    lanes: int | None = None,
+    steps_per_iter: int | None = None,
+) -> Hit:
+    """Closest hit of each ray with t in [tmin, tmax] (see the module docstring).
+
+    lanes: rays in flight at once (default 1024 on CPU, 2**17 on GPU; finished lanes refill from
+    the queue); steps_per_iter: traversal steps per loop iteration (default 2 on CPU, 16 on GPU).
+    Both only affect speed, never results.
+    """
+    found, t, best, u, v, _ = _run(tree, origins, directions, tmin, tmax, any_hit=False, lanes=lanes,
+                                   steps_per_iter=steps_per_iter)
+    best = jnp.maximum(best, 0)
+    prim = jnp.where(found, tree.prim_ids[best], -1)
+    # Once per ray: t of the chosen triangle in double-float, so grazing hits keep ~1e-7 relative
+    # accuracy (the float32 test's t degrades as eps / cos(angle)); clamped to the valid interval.
+    o32 = jnp.asarray(origins, jnp.float32)
+    d32 = jnp.asarray(directions, jnp.float32)
+    t = bvh_traverse.refine_t(tree.triangles[best], lax.stop_gradient(o32), lax.stop_gradient(d32), t)
+    t = jnp.clip(t, jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32))
+    return Hit(t=jnp.where(found, t, jnp.inf), prim=prim, u=jnp.where(found, u, 0.0), v=jnp.where(found, v, 0.0))
+
+
+def occluded(
+    tree: BVH,
+    origins: Float[Array, "N 3"],
+    directions: Float[Array, "N 3"],
+    tmax: Float[Array, " N"] | float = jnp.inf,
+    tmin: Float[Array, " N"] | float = 0.0,
+    *,
+    lanes: int | None = None,
+    steps_per_iter: int | None = None,
+) -> Bool[Array, " N"]:
+    """True where any triangle is hit with t in [tmin, tmax] (any-hit, stops at the first hit).
+
+    For a shadow ray from p towards a light at distance L along unit d, pass tmax = L*(1-eps)
+    and tmin (or an offset origin) to skip the surface the ray starts on.
+    """
+    found, *_ = _run(tree, origins, directions, tmin, tmax, any_hit=True, lanes=lanes,
+                     steps_per_iter=steps_per_iter)
+    return found
+
+
+def node_visits(tree: BVH, origins, directions, tmin=0.0, tmax=jnp.inf, *, any_hit: bool = False,
+                lanes: int | None = None, steps_per_iter: int | None = None) -> Int[Array, " N"]:
+    """Traversal steps (nodes visited) per ray; for benchmarks and diagnostics."""
+    *_, steps = _run(tree, origins, directions, tmin, tmax, any_hit=any_hit, lanes=lanes,
+                     steps_per_iter=steps_per_iter, count_steps=True)
+    return steps

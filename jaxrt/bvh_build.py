@@ -1,0 +1,165 @@
+"""BVH construction in vectorised numpy (host side). Public entry point: `jaxrt.bvh.build`.
+
+The builder is a top-down LBVH (Lauterbach et al. 2009; Karras 2012's split rule): triangle
+centroids are quantised to 17 bits per axis and sorted by 51-bit Morton code; a node covering the
+sorted range [s, e) splits where the highest Morton bit that differs between its first and last
+code flips (a binary search), or at the middle where all codes are equal. Every node of a level is
+split at once, so a level costs a handful of numpy calls and the whole build is dominated by the
+sort. Leaves hold at most `leaf_size` triangles, which are contiguous in the sorted order, so the
+triangles are stored in leaf order with `prim_ids` mapping back to the original face index.
+
+For stackless traversal the tree is threaded six times, once per ray class (dominant direction
+axis x/y/z and its sign): in class c, an interior node's children are ordered near-to-far along
+that axis, and each node stores `links[c, node] = (hit, miss)`: where to go after its box is hit
+(the first child; for a leaf, the same as miss) and where to go after its box is missed or its
+leaf is done (the next node in that class's pre-order after the subtree, -1 at the end). This is
+the multiple-threaded BVH of Hachisuka (2015) in flat-array form.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxrt.errors import InputError
+
+NUM_RAY_CLASSES = 6  # (dominant axis, sign)
+
+
+def _spread_bits(x: np.ndarray) -> np.ndarray:
+    """Insert two zero bits between each of the low 21 bits of x (uint64)."""
+    x = x & np.uint64(0x1FFFFF)
+    x = (x | (x << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+    x = (x | (x << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+    x = (x | (x << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+    x = (x | (x << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    x = (x | (x << np.uint64(2))) & np.uint64(0x1249249249249249)
+    return x
+
+
+def morton_codes(points: np.ndarray, bits: int = 17) -> np.ndarray:
+    """51-bit Morton codes (uint64) of points (P,3), quantised to `bits` bits per axis in their bounds."""
+    lo = points.min(axis=0)
+    ext = points.max(axis=0) - lo
+    scale = np.where(ext > 0, ((1 << bits) - 1) / np.where(ext > 0, ext, 1.0), 0.0)
+    q = np.clip(((points - lo) * scale).astype(np.int64), 0, (1 << bits) - 1).astype(np.uint64)
+    return (_spread_bits(q[:, 0]) << np.uint64(2)) | (_spread_bits(q[:, 1]) << np.uint64(1)) | _spread_bits(q[:, 2])
+
+
+def _highest_bit(x: np.ndarray) -> np.ndarray:
+    """Index of the highest set bit of nonzero uint64 values below 2**53 (exact in float64)."""
+    return (np.frexp(x.astype(np.float64))[1] - 1).astype(np.uint64)
+
+
+def build_arrays(vertices, faces, leaf_size: int = 4) -> dict[str, np.ndarray]:
+    """Build the flat BVH arrays (see `jaxrt.bvh.BVH` for their layout). Host-side numpy."""
+    v = np.asarray(vertices)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
+        raise InputError(f"bvh.build: vertices must be (V,3) and faces (F,3); got {v.shape} and {f.shape}")
+    if len(f) == 0:
+        raise InputError("bvh.build: no triangles")
+    if not np.all(np.isfinite(v)):
+        raise InputError("bvh.build: vertices contain NaN or Inf")
+    if not np.issubdtype(f.dtype, np.integer) or f.min() < 0 or f.max() >= len(v):
+        raise InputError(f"bvh.build: face indices must be integers in [0, {len(v) - 1}]")
+    if not 1 <= leaf_size <= 16:
+        raise InputError(f"bvh.build: leaf_size must be in 1..16, got {leaf_size}")
+    v = v.astype(np.float32)
+    tri = v[f]  # (F, 3, 3)
+    nf = len(f)
+    tmin = np.minimum(np.minimum(tri[:, 0], tri[:, 1]), tri[:, 2])
+    tmax = np.maximum(np.maximum(tri[:, 0], tri[:, 1]), tri[:, 2])
+    cent = tmin + tmax  # twice the box centre; Morton quantisation is scale-free
+    codes = morton_codes(cent)
+    order = np.argsort(codes, kind="stable")
+    cs = codes[order]
+
+    # --- topology, one level at a time (breadth-first numbering: children > parent) ---------------
+    cap = 2 * nf
+    left = np.full(cap, -1, np.int64)
+    start = np.zeros(cap, np.int64)
+    count = np.zeros(cap, np.int64)
+    parent = np.full(cap, -1, np.int64)
+    levels = []
+    ids, s, e = np.array([0]), np.array([0]), np.array([nf])
+    nn = 1
+    while len(ids):
+        levels.append(ids)
+        start[ids], count[ids] = s, e - s
+        inner = (e - s) > leaf_size
+        ids, s, e = ids[inner], s[inner], e[inner]
+        if not len(ids):
+            break
+        x = cs[s] ^ cs[e - 1]
+        same = x == 0
+        b = _highest_bit(np.where(same, np.uint64(1), x))
+        target = (cs[e - 1] >> b) << b
+        split = np.where(same, (s + e) // 2, np.searchsorted(cs, target, side="left"))
+        k = len(ids)
+        lid = nn + 2 * np.arange(k)
+        left[ids] = lid
+        parent[lid], parent[lid + 1] = ids, ids
+        nn += 2 * k
+        ids = np.stack([lid, lid + 1], axis=1).ravel()
+        s, e = np.stack([s, split], axis=1).ravel(), np.stack([split, e], axis=1).ravel()
+    left, start, count, parent = left[:nn], start[:nn], count[:nn], parent[:nn]
+    is_leaf = left < 0
+    count = np.where(is_leaf, count, 0)
+
+    # --- bounds, bottom-up -------------------------------------------------------------------------
+    lo = np.empty((nn, 3), np.float32)
+    hi = np.empty((nn, 3), np.float32)
+    leaves = np.flatnonzero(is_leaf)
+    leaves = leaves[np.argsort(start[leaves])]
+    lo[leaves] = np.minimum.reduceat(tmin[order], start[leaves], axis=0)
+    hi[leaves] = np.maximum.reduceat(tmax[order], start[leaves], axis=0)
+    levels = [ids[~is_leaf[ids]] for ids in levels]  # interior nodes per level
+    for ids in reversed(levels):
+        if len(ids):
+            lo[ids] = np.minimum(lo[left[ids]], lo[left[ids] + 1])
+            hi[ids] = np.maximum(hi[left[ids]], hi[left[ids] + 1])
+    # Pad outward by a few ulps so that a triangle lying in a box face is never culled by the
+    # float32 slab test (the traversal also widens the far distance; see bvh_traverse).
+    lo_pad = lo - np.abs(lo) * np.float32(2.0**-20) - np.float32(1e-30)
+    hi_pad = hi + np.abs(hi) * np.float32(2.0**-20) + np.float32(1e-30)
+
+    # --- threading: one pre-order per ray class -----------------------------------------------------
+    size = np.ones(nn, np.int64)  # nodes in subtree
+    for ids in reversed(levels):
+        size[ids] = 1 + size[left[ids]] + size[left[ids] + 1]
+    # All six classes at once: row c of pre/first is class c (axis c // 2, negative if c odd).
+    ctr = lo.astype(np.float64) + hi  # twice the box centre
+    cls = np.arange(NUM_RAY_CLASSES)[:, None]
+    axis, negative = cls // 2, (cls % 2).astype(bool)
+    pre = np.zeros(NUM_RAY_CLASSES * nn, np.int64)  # flat (6, nn): pre-order index per class
+    first = np.full(NUM_RAY_CLASSES * nn, -1, np.int64)
+    off = (np.arange(NUM_RAY_CLASSES) * nn)[:, None]
+    for ids in levels:
+        if not len(ids):
+            continue
+        a = left[ids]
+        ca, cb = ctr[a].T, ctr[a + 1].T  # (3, k)
+        a_first = (ca[axis[:, 0]] <= cb[axis[:, 0]]) ^ negative  # (6, k)
+        n1 = np.where(a_first, a, a + 1)
+        n2 = (2 * a + 1) - n1
+        first[off + ids] = n1
+        p_par = pre[off + ids] + 1
+        pre[off + n1] = p_par
+        pre[off + n2] = p_par + size[n1]
+    pre = pre.reshape(NUM_RAY_CLASSES, nn)
+    at = np.full(NUM_RAY_CLASSES * (nn + 1), -1, np.int64)
+    off1 = (np.arange(NUM_RAY_CLASSES) * (nn + 1))[:, None]
+    at[off1 + pre] = np.arange(nn)[None]
+    miss = at[off1 + pre + size[None]]
+    first = first.reshape(NUM_RAY_CLASSES, nn)
+    links = np.stack([np.where(is_leaf[None], miss, first), miss], axis=-1).astype(np.int32)
+
+    tri_sorted = tri[order]
+    return dict(
+        node_box=np.concatenate([lo_pad, hi_pad], axis=1).astype(np.float32),  # (nn, 6)
+        node_leaf=np.stack([start, count], axis=1).astype(np.int32),  # (nn, 2)
+        links=links.reshape(NUM_RAY_CLASSES * nn, 2),
+        triangles=tri_sorted.reshape(nf, 9).astype(np.float32),
+        prim_ids=order.astype(np.int32),
+        unpadded_box=np.concatenate([lo, hi], axis=1),
+    )

@@ -1,0 +1,290 @@
+"""Stackless BVH traversal and watertight ray/triangle intersection (jit-able, device-agnostic).
+
+Per-ray state is five scalars: the current node, the closest t so far, the best triangle (leaf
+order) and its barycentrics. One traversal step tests the current node's box; a hit on a leaf also
+tests the leaf's (up to `leaf_size`) triangles; the next node is `links[class, node, hit ? 0 : 1]`
+(see bvh_build). A batch runs in a `lax.while_loop` whose body does `steps_per_iter` such steps,
+so the loop predicate (a device->host round trip on GPU) is paid once per several steps; rays
+that finish early idle (node = -1) until the slowest ray of their chunk ends. Rays are traced in
+chunks (`lax.map`) so that one slow ray only holds back its own chunk; callers that order rays
+coherently (image tiles) get chunks of similar length.
+
+Ray/triangle test: Woop, Benthin & Wald, "Watertight Ray/Triangle Intersection", JCGT 2013 —
+translate to the ray origin, permute so the dominant direction axis is z, shear, and evaluate the
+three 2D edge functions. Their signs are computed exactly in float32: for U = a*b - c*d, if the
+rounded products differ their order is the exact order (rounding is monotonic); if they are equal,
+the sign is that of the difference of the two products' exact rounding errors (Dekker's
+TwoProduct with a bit-mask split, exact whatever the compiler does with FMA contraction). This is
+the paper's double-precision fallback done in float32, so edges and vertices shared by two
+triangles are never missed by both.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+# Widening of the slab test's far distance (Ize 2013: 1 + 2*gamma(3) suffices; this is ~2x that).
+_FAR_SCALE = 1.0 + 2.0**-20
+
+
+def _opaque(x, zero):
+    """x, unchanged, but as a value the compiler cannot fuse into a later add (no FMA contraction).
+
+    `zero` is a traced uint32 0 the compiler cannot prove is 0. XLA's CPU and GPU backends may
+    contract a*b+c into one FMA in one fusion and not in another; exact predicates need every
+    rounded product to be the same number everywhere it is used.
+    """
+    return lax.bitcast_convert_type(lax.bitcast_convert_type(x, jnp.uint32) ^ zero, jnp.float32)
+
+
+def _split(a):
+    """a = hi + lo exactly, each with at most 12 significant bits (float32)."""
+    hi = lax.bitcast_convert_type(lax.bitcast_convert_type(a, jnp.uint32) & jnp.uint32(0xFFFFF000), jnp.float32)
+    return hi, a - hi
+
+
+def _product_error(a, b, p):
+    """Exact a*b - p for p = fl(a*b) (Dekker's TwoProduct), barring underflow."""
+    ah, al = _split(a)
+    bh, bl = _split(b)
+    return ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+# --- double-float (float32 pair) arithmetic, for re-evaluating t of the final hit -------------------
+# Error-free transforms that hold under FMA contraction (products of split halves are exact).
+
+
+def _two_sum(a, b):
+    s = a + b
+    bb = s - a
+    return s, (a - (s - bb)) + (b - bb)
+
+
+def _fast_two_sum(a, b):
+    s = a + b
+    return s, b - (s - a)
+
+
+def _df_add(x, y):
+    s, e = _two_sum(x[0], y[0])
+    return _fast_two_sum(s, e + (x[1] + y[1]))
+
+
+def _df_neg(x):
+    return -x[0], -x[1]
+
+
+def _df_mul(x, y, zero):
+    p = _opaque(x[0] * y[0], zero)
+    e = _product_error(x[0], y[0], p)
+    return _fast_two_sum(p, e + (x[0] * y[1] + x[1] * y[0]))
+
+
+def refine_t(tri, o, d, t32):
+    """t of the ray/plane intersection of each ray with its hit triangle, in double-float (~1e-13).
+
+    tri (N, 9) float32, o/d (N, 3), t32 (N,) the float32 t from traversal (kept where the
+    double-float evaluation is not finite). The plane equation is evaluated as
+    t = n.(v0 - o) / n.d with n = (v1 - v0) x (v2 - v0), all differences exact (TwoSum) and
+    products via Dekker's TwoProduct: float32 alone loses ~eps/cos(angle) relative accuracy for
+    grazing rays.
+    """
+    v0, v1, v2 = tri[:, 0:3], tri[:, 3:6], tri[:, 6:9]
+    zero = lax.shift_right_logical(jnp.argmax(jnp.abs(d), axis=-1).astype(jnp.uint32), jnp.uint32(8))
+    mul = lambda x, y: _df_mul(x, y, zero)  # noqa: E731
+    a = _two_sum(v0, -o)
+    e1 = _two_sum(v1, -v0)
+    e2 = _two_sum(v2, -v0)
+    comp = lambda x, i: (x[0][:, i], x[1][:, i])  # noqa: E731
+
+    def cross(i, j):
+        return _df_add(mul(comp(e1, i), comp(e2, j)), _df_neg(mul(comp(e1, j), comp(e2, i))))
+
+    n = [cross(1, 2), cross(2, 0), cross(0, 1)]
+    num = _df_add(_df_add(mul(n[0], comp(a, 0)), mul(n[1], comp(a, 1))), mul(n[2], comp(a, 2)))
+    z = jnp.zeros_like(t32)
+    den = _df_add(_df_add(mul(n[0], (d[:, 0], z)), mul(n[1], (d[:, 1], z))), mul(n[2], (d[:, 2], z)))
+    q1 = num[0] / den[0]
+    r = _df_add(num, _df_neg(mul((q1, z), den)))
+    t = q1 + r[0] / den[0]
+    good = jnp.isfinite(t) & (den[0] != 0) & (jnp.abs(t - t32) <= 1e-2 * jnp.abs(t32) + 1e-30)
+    return jnp.where(good, t, t32)
+
+
+def _edge_products(ax, ay, bx, by, zero):
+    """Rounded products (p1, p2) of the edge function ax*by - ay*bx (opaque: see `_opaque`)."""
+    return _opaque(ax * by, zero), _opaque(ay * bx, zero)
+
+
+def _edge_sign(ax, ay, bx, by, p1, p2, exact: bool):
+    """Sign of ax*by - ay*bx: exact (see module docstring) or from the rounded products only."""
+    s = jnp.where(p1 > p2, 1.0, jnp.where(p1 < p2, -1.0, 0.0))
+    if exact:
+        e = _product_error(ax, by, p1) - _product_error(ay, bx, p2)
+        s = jnp.where(p1 == p2, jnp.sign(e), s)
+    return s
+
+
+def precompute(origins, directions):
+    """Per-ray constants: slab inverse directions, ray class, and the Woop shear/permutation."""
+    d = directions
+    tiny = jnp.float32(1e-20)
+    d_safe = jnp.where(jnp.abs(d) < tiny, jnp.where(jnp.signbit(d), -tiny, tiny), d)
+    inv = 1.0 / d_safe
+    ad = jnp.abs(d)
+    kz = jnp.argmax(ad, axis=-1).astype(jnp.int32)
+    dz = jnp.take_along_axis(d, kz[:, None], axis=-1)[:, 0]
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    flip = dz < 0  # swap kx and ky to preserve the winding
+    kx, ky = jnp.where(flip, ky, kx), jnp.where(flip, kx, ky)
+    dx = jnp.take_along_axis(d, kx[:, None], axis=-1)[:, 0]
+    dy = jnp.take_along_axis(d, ky[:, None], axis=-1)[:, 0]
+    shear = jnp.stack([dx / dz, dy / dz, 1.0 / dz], axis=-1)
+    ray_class = 2 * kz + flip.astype(jnp.int32)
+    zero = lax.shift_right_logical(kz.astype(jnp.uint32), jnp.uint32(8))  # 0, unknown to the compiler
+    return dict(o=origins, inv=inv, kx=kx, ky=ky, kz=kz, shear=shear, ray_class=ray_class, zero=zero)
+
+
+def _pick(a, k):
+    """a[..., k] for per-ray k (leading axis matches), by exact selects."""
+    k = k.reshape(k.shape + (1,) * (a.ndim - 1 - k.ndim))
+    return jnp.where(k == 0, a[..., 0], jnp.where(k == 1, a[..., 1], a[..., 2]))
+
+
+def intersect_triangles(ray, tri, tmin, tmax, valid):
+    """Watertight test of each ray against L triangles.
+
+    ray: precompute() dict over N rays; tri (N, L, 9) float32 [v0, v1, v2]; tmin, tmax (N,);
+    valid (N, L) bool: which pairs to test (the exact-sign path runs only if a valid pair needs it).
+    Returns hit (N, L) bool (tmin <= t <= tmax), t, u, v (N, L) with p = (1-u-v) v0 + u v1 + v v2.
+    """
+    p = tri.reshape(tri.shape[:-1] + (3, 3)) - ray["o"][:, None, None, :]  # (N, L, 3 verts, 3)
+    kx, ky, kz = (ray[k][:, None, None] for k in ("kx", "ky", "kz"))
+    px, py, pz = _pick(p, kx), _pick(p, ky), _pick(p, kz)  # (N, L, 3)
+    sx, sy, sz = (ray["shear"][:, None, None, i] for i in range(3))
+    zero = ray["zero"][:, None, None]
+    # A vertex shared by two triangles must shear to the same 2D point in both: the products are
+    # made opaque so that no fusion computes px - sx*pz as a single FMA.
+    x = px - _opaque(sx * pz, zero)
+    y = py - _opaque(sy * pz, zero)
+    z = sz * pz
+    (ax, bx, cx), (ay, by, cy), (az, bz, cz) = ([w[..., i] for i in range(3)] for w in (x, y, z))
+    edges = ((cx, cy, bx, by), (ax, ay, cx, cy), (bx, by, ax, ay))
+    zero = zero[..., 0]
+    prods = [_edge_products(*e, zero) for e in edges]
+    # Rounded products that tie leave the sign open; that is rare, so the exact path (4x the
+    # arithmetic) runs only for batches where some valid ray/triangle pair needs it.
+    need_exact = jnp.any(valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1])
+                                  | (prods[2][0] == prods[2][1])))
+    signs = lax.cond(need_exact,
+                     lambda: [_edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)],
+                     lambda: [_edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods)])
+    su, sv, sw = signs
+    # |p1 - p2| carries the magnitude; the sign comes from the exact test (the subtraction may be
+    # FMA-contracted or round to zero).
+    U, V, W = (jnp.abs(p1 - p2) * sg for (p1, p2), sg in zip(prods, signs))
+    inside = ((su >= 0) & (sv >= 0) & (sw >= 0)) | ((su <= 0) & (sv <= 0) & (sw <= 0))
+    det = U + V + W
+    ok = inside & (det != 0)
+    det_safe = jnp.where(ok, det, 1.0)
+    t = (U * az + V * bz + W * cz) / det_safe
+    hit = valid & ok & (t >= tmin[:, None]) & (t <= tmax[:, None])
+    return hit, t, V / det_safe, W / det_safe
+
+
+def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_size: int, steps_per_iter: int,
+             lanes: int, count_steps: bool = False):
+    """Trace N rays with a pool of `lanes` lanes that refill from the ray queue.
+
+    Returns (found, t, tri_index_in_leaf_order, u, v, steps), each (N,).
+
+    A plain vmapped while loop runs every ray until the slowest one ends (measured: primary rays
+    on the bunny average 17 steps but the slowest take ~200, so >90% of lane-steps were idle).
+    Here a lane whose ray has finished writes its result and takes the next ray of the queue at
+    the end of each iteration (a prefix sum assigns queue positions), so lanes stay busy until the
+    queue runs dry and only the last `lanes` rays see the tail.
+    """
+    node_box, node_leaf, links, tris = (arrays[k] for k in ("node_box", "node_leaf", "links", "triangles"))
+    nn = node_box.shape[0]
+    nf = tris.shape[0]
+    n_rays = origins.shape[0]
+    w = min(lanes, n_rays)
+    ar = jnp.arange(leaf_size, dtype=jnp.int32)
+
+    def load(ray_idx):
+        i = jnp.minimum(ray_idx, n_rays - 1)
+        ray = precompute(origins[i], directions[i])
+        ray["base"] = ray.pop("ray_class") * nn
+        ray["tmin"] = tmin[i]
+        return ray
+
+    def step(ray, st):
+        node, t_best, best, bu, bv, steps = st
+        o, inv, t_lo = ray["o"], ray["inv"], ray["tmin"]
+        active = node >= 0
+        n = jnp.maximum(node, 0)
+        box = node_box[n]
+        t0 = (box[:, :3] - o) * inv
+        t1 = (box[:, 3:] - o) * inv
+        t_near = jnp.maximum(jnp.max(jnp.minimum(t0, t1), axis=-1), t_lo)
+        t_far = jnp.minimum(jnp.min(jnp.maximum(t0, t1), axis=-1) * _FAR_SCALE, t_best)
+        box_hit = active & (t_near <= t_far)
+        leaf = node_leaf[n]
+        leaf_hit = box_hit & (leaf[:, 1] > 0)
+        # Lanes not testing a leaf all read triangle 0, which stays in cache.
+        first = jnp.where(leaf_hit, leaf[:, 0], 0)
+        idx = jnp.minimum(first[:, None] + ar, nf - 1)
+        valid = leaf_hit[:, None] & (ar < leaf[:, 1:2])
+        h, t, u, v = intersect_triangles(ray, tris[idx], t_lo, t_best, valid)
+        t_m = jnp.where(h, t, jnp.inf)
+        j = jnp.argmin(t_m, axis=-1)[:, None]
+        any_h = jnp.any(h, axis=-1)
+        t_j = jnp.take_along_axis(t_m, j, axis=-1)[:, 0]
+        # Strict < keeps the earlier triangle on exact ties; a first hit at t == tmax still counts.
+        better = any_h & ((t_j < t_best) | (best < 0))
+        t_best = jnp.where(better, t_j, t_best)
+        best = jnp.where(better, jnp.take_along_axis(idx, j, axis=-1)[:, 0], best)
+        bu = jnp.where(better, jnp.take_along_axis(u, j, axis=-1)[:, 0], bu)
+        bv = jnp.where(better, jnp.take_along_axis(v, j, axis=-1)[:, 0], bv)
+        nxt = links[ray["base"] + n]
+        nxt = jnp.where(box_hit, nxt[:, 0], nxt[:, 1])
+        if any_hit:
+            nxt = jnp.where(any_h, -1, nxt)
+        node = jnp.where(active, nxt, -1)
+        if count_steps:
+            steps = steps + active.astype(jnp.int32)
+        return node, t_best, best, bu, bv, steps
+
+    def fresh(ray_idx):
+        ok = ray_idx < n_rays
+        i = jnp.minimum(ray_idx, n_rays - 1)
+        return (jnp.where(ok, 0, -1).astype(jnp.int32), tmax[i], jnp.full(ray_idx.shape, -1, jnp.int32),
+                jnp.zeros(ray_idx.shape, jnp.float32), jnp.zeros(ray_idx.shape, jnp.float32),
+                jnp.zeros(ray_idx.shape, jnp.int32))
+
+    def body(carry):
+        lane_ray, nxt_ray, ray, st, out = carry
+        for _ in range(steps_per_iter):
+            st = step(ray, st)
+        free = st[0] < 0
+        # Finished lanes write their ray's result (lanes without a ray write out of bounds: dropped).
+        dst = jnp.where(free, lane_ray, n_rays)
+        out = tuple(o_.at[dst].set(x, mode="drop") for o_, x in zip(out, st[1:]))
+        rank = jnp.cumsum(free.astype(jnp.int32)) - 1
+        new = jnp.where(free, jnp.minimum(nxt_ray + rank, n_rays), lane_ray)
+        nxt_ray = jnp.minimum(nxt_ray + jnp.sum(free.astype(jnp.int32)), n_rays)
+        new_ray = load(new)
+        ray = jax.tree.map(lambda a, b: jnp.where(free.reshape(free.shape + (1,) * (a.ndim - 1)), b, a), ray, new_ray)
+        st = jax.tree.map(lambda a, b: jnp.where(free, b, a), st, fresh(new))
+        return new, nxt_ray, ray, st, out
+
+    lane_ray = jnp.arange(w, dtype=jnp.int32)
+    out = (jnp.zeros(n_rays, jnp.float32), jnp.full(n_rays, -1, jnp.int32), jnp.zeros(n_rays, jnp.float32),
+           jnp.zeros(n_rays, jnp.float32), jnp.zeros(n_rays, jnp.int32))
+    carry = (lane_ray, jnp.int32(w), load(lane_ray), fresh(lane_ray), out)
+    carry = lax.while_loop(lambda c: jnp.any(c[0] < n_rays), body, carry)
+    t_best, best, bu, bv, steps = carry[4]
+    return best >= 0, t_best, best, bu, bv, steps

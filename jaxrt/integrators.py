@@ -1,0 +1,438 @@
+"""The Whitted integrator, split into a non-differentiable trace and a differentiable shade.
+
+Radiance (the seed's equations 2, 3 and 23), for a hit on an opaque material with mirror
+coefficient δ, and on glass with Fresnel reflectance R:
+
+    L(x, wo) = δ·L(x, ω_r) + (1 − δ)·Σ_lights f_r(wi, wo)·I·cosθ_i / d² · V(x, light)
+    L(x, wo) = R·L(x, ω_r) + (1 − R)·L(x, ω_t)                 (glass: Schlick R, Snell ω_t)
+
+Rays that escape return the background radiance.
+
+Trace once, shade many
+----------------------
+`trace(scene) -> GBuffer` follows the ray tree level by level and records, for every ray, only
+what does not depend on material values: hit primitive and barycentrics, direction, the parent ray
+and which branch (mirror / glass reflection / glass transmission) produced it, the pixel, and the
+shadow-ray visibility of every light. `shade(gbuffer, scene)` re-evaluates the hit surfaces from
+primitive ids (differentiably), evaluates the BRDFs and Fresnel terms and sums the tree into an
+image. Gradients flow to material parameters, δ, glass n_t (through R only: the traced paths stay
+fixed) and light positions/intensities (visibility stays fixed). Fitting caches the GBuffer and
+calls `shade` only.
+
+The ray tree in static shapes
+-----------------------------
+Each level of the tree is a fixed-width array of B = ray_budget · H·W·spp ray slots. A ray spawns
+at most two children (a mirror bounce, or glass reflection + transmission). Children are written
+densely into the next level's slots by a prefix sum, in parent order (which keeps rays of
+neighbouring pixels together). If a level would need more than B slots, the branches with the
+smallest path throughput are dropped first (every ray's dominant branch fits, since a level has
+at most B parents); the GBuffer counts dropped branches. Scenes without glass never branch, so
+ray_budget = 1 loses nothing; the default is 2 for scenes with glass. The levels are a
+`lax.while_loop` that stops as soon as no ray is alive, so a scene without mirrors traces one
+level whatever max_depth is. A child whose weight is zero at trace time (δ = 0) is not traced.
+
+Ray offsets
+-----------
+Secondary and shadow rays start at the hit point moved along the geometric normal to the side they
+leave towards, by 2^-16·(1 + max|p|): far above float32 rounding of the barycentric hit point
+(≈ 2^-23·max|p|) and far below any feature size, so there is no self-intersection acne and
+objects that touch or interpenetrate still occlude and reflect each other. Hit points are
+recomputed from barycentrics rather than o + t·d for the same reason. Surfaces are two-sided for
+opaque materials; glass decides inside/outside from the geometric normal of each hit (no nested
+media: glass inside glass is treated as glass in air). Glass casts opaque shadows (Whitted).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+import brdfs
+from jaxrt import bvh, camera, lights as _lights
+
+MIRROR, GLASS_R, GLASS_T = 0, 1, 2
+_OFFSET = 2.0**-16
+
+
+class GBuffer(eqx.Module):
+    """Everything shading needs that does not depend on material or light values.
+
+    Arrays are (D, B, ...) for D = max_depth levels of B ray slots (see module docstring).
+    active: ray exists; prim: hit face or -1 (escaped); u, v: barycentrics; t: hit distance;
+    direction: unit ray direction; parent: slot in the previous level (-1 on level 0);
+    branch: MIRROR / GLASS_R / GLASS_T; pixel: flat pixel index; visible: (D, B, L) shadow rays;
+    weight: path throughput reaching the ray (product of δ, R, 1 − R along its branches) for the
+    material values at trace time (`shade` recomputes it from the current values).
+    dropped: () number of branches dropped for lack of slots.
+    """
+
+    active: Bool[Array, "D B"]
+    prim: Int[Array, "D B"]
+    u: Float[Array, "D B"]
+    v: Float[Array, "D B"]
+    t: Float[Array, "D B"]
+    direction: Float[Array, "D B 3"]
+    parent: Int[Array, "D B"]
+    branch: Int[Array, "D B"]
+    pixel: Int[Array, "D B"]
+    visible: Bool[Array, "D B L"]
+    weight: Float[Array, "D B"]
+    dropped: Int[Array, ""]
+
+
+class Surface(eqx.Module):
+    """Differentiable re-evaluation of hit points (B,): position, geometric and shading normals
+    (outward, as the mesh is wound), tangent, material id."""
+
+    p: Float[Array, "B 3"]
+    ng: Float[Array, "B 3"]
+    ns: Float[Array, "B 3"]
+    tangent: Float[Array, "B 3"]
+    material: Int[Array, "B"]
+
+
+def _dot(a, b):
+    return jnp.sum(a * b, axis=-1)
+
+
+def _normalize(v):
+    n2 = _dot(v, v)
+    ok = n2 > 1e-30
+    return jnp.where(ok[..., None], v * jax.lax.rsqrt(jnp.where(ok, n2, 1.0))[..., None], 0.0)
+
+
+def surface(geometry, prim: Int[Array, "B"], u: Float[Array, "B"], v: Float[Array, "B"]) -> Surface:
+    """Hit point, normals and frame of faces `prim` at barycentrics (u, v); misses (-1) give face 0."""
+    f = geometry.faces[jnp.maximum(prim, 0)]  # (B, 3)
+    v0, v1, v2 = (geometry.vertices[f[:, k]] for k in range(3))
+    w = (1.0 - u - v)[:, None]
+    p = w * v0 + u[:, None] * v1 + v[:, None] * v2
+    ng = _normalize(jnp.cross(v1 - v0, v2 - v0))
+    n0, n1, n2 = (geometry.normals[f[:, k]] for k in range(3))
+    ns = _normalize(w * n0 + u[:, None] * n1 + v[:, None] * n2)
+    ns = jnp.where((_dot(ns, ns) > 0.5)[:, None], ns, ng)
+    t0, t1, t2 = (geometry.tangents[f[:, k]] for k in range(3))
+    tg = w * t0 + u[:, None] * t1 + v[:, None] * t2
+    return Surface(p, ng, ns, tg, geometry.material[jnp.maximum(prim, 0)])
+
+
+def _frame(n: Float[Array, "B 3"], t: Float[Array, "B 3"]):
+    """Orthonormal (t, b, n) with t as close to the mesh tangent as possible."""
+    t = t - _dot(t, n)[..., None] * n
+    ok = _dot(t, t) > 1e-12
+    # fallback basis (Duff et al. 2017) where the interpolated tangent degenerates
+    sign = jnp.where(n[..., 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[..., 2])
+    b = n[..., 0] * n[..., 1] * a
+    t_fb = jnp.stack([1.0 + sign * n[..., 0] ** 2 * a, sign * b, -sign * n[..., 0]], axis=-1)
+    t = jnp.where(ok[..., None], _normalize(t), t_fb)
+    return t, jnp.cross(n, t), n
+
+
+def _to_local(w, frame):
+    t, b, n = frame
+    return jnp.stack([_dot(w, t), _dot(w, b), _dot(w, n)], axis=-1)
+
+
+def _from_local(w, frame):
+    t, b, n = frame
+    return w[..., :1] * t + w[..., 1:2] * b + w[..., 2:] * n
+
+
+def _offset_scale(p):
+    return _OFFSET * (1.0 + jnp.max(jnp.abs(p), axis=-1, keepdims=True))
+
+
+def _gather_params(materials, mat: Int[Array, "B"], k: int) -> dict:
+    """Model k's parameters for every slot (rows of other models' materials point at row 0)."""
+    row = jnp.where(materials.model_id[mat] == k, materials.row[mat], 0)
+    return {name: table[row] for name, table in materials.params[k].items()}
+
+
+def _oriented(s: Surface, d: Float[Array, "B 3"]):
+    """Normals flipped to the side the ray arrives from (two-sided opaque surfaces)."""
+    back = _dot(d, s.ng) > 0
+    sign = jnp.where(back, -1.0, 1.0)[:, None]
+    ng = s.ng * sign
+    ns = s.ns * sign
+    ns = jnp.where((_dot(ns, ng) > 0)[:, None], ns, ng)  # shading normal never past the horizon
+    return ng, ns, back
+
+
+def _glass_frame(s: Surface, d):
+    """Local frame with +z the outward normal, as brdfs.glass expects; geometric normal wherever the
+    interpolated one disagrees about which side the ray is on."""
+    wo = -d
+    agree = jnp.sign(_dot(wo, s.ns)) == jnp.sign(_dot(wo, s.ng))
+    n = jnp.where(agree[:, None], s.ns, s.ng)
+    return _frame(n, s.tangent)
+
+
+def _glass_split(materials, s: Surface, d, k: int):
+    """(R, reflected dir, transmitted dir, transmission valid) for glass (model k) at every slot."""
+    glass = brdfs.get(materials.models[k])
+    p = _gather_params(materials, s.material, k)
+    frame = _glass_frame(s, d)
+    wo = _to_local(-d, frame)
+    entering = wo[:, 2] > 0
+    r = glass.extras["fresnel"](p, jnp.abs(wo[:, 2]), entering)
+    wt, ok = glass.extras["refract"](p, wo)
+    wr = glass.extras["reflect"](wo)
+    return r, _from_local(wr, frame), _from_local(wt, frame), ok & (r < 1.0)
+
+
+def _mirror_dir(d, ng, ns):
+    r = d - 2.0 * _dot(d, ns)[:, None] * ns
+    r_geo = d - 2.0 * _dot(d, ng)[:, None] * ng
+    return jnp.where((_dot(r, ng) > 0)[:, None], r, r_geo)
+
+
+def _model_masks(materials, mat):
+    mid = materials.model_id[mat]
+    return [(mid == k) for k in range(len(materials.models))]
+
+
+def _is_glass(materials, mat):
+    out = jnp.zeros(mat.shape, bool)
+    for k, name in enumerate(materials.models):
+        if brdfs.get(name).delta:
+            out = out | (materials.model_id[mat] == k)
+    return out
+
+
+def _intersect(tree, o, d, active):
+    # inactive slots get an empty interval so traversal rejects them at the root
+    tmax = jnp.where(active, jnp.inf, -1.0)
+    return bvh.intersect(tree, o, d, tmin=0.0, tmax=tmax)
+
+
+def trace(scene) -> GBuffer:
+    """Trace the Whitted ray tree of `scene` (non-differentiable; see module docstring)."""
+    scene = jax.lax.stop_gradient(scene)
+    geo, mats, cam, st = scene.geometry, scene.materials, scene.camera, scene.settings
+    D = st.max_depth
+    n = cam.num_pixels * st.spp
+    B = st.ray_budget * n
+    L = scene.lights.count
+
+    o0, d0 = camera.generate_rays(cam, st.spp, st.seed)
+    pad = B - n
+    o0 = jnp.pad(o0, ((0, pad), (0, 0)))
+    d0 = jnp.pad(d0, ((0, pad), (0, 0)), constant_values=1.0)
+    d0 = _normalize(d0)
+    act0 = jnp.arange(B) < n
+    pix0 = jnp.where(act0, jnp.arange(B) // st.spp, 0)
+
+    buf = GBuffer(
+        active=jnp.zeros((D, B), bool), prim=jnp.full((D, B), -1, jnp.int32),
+        u=jnp.zeros((D, B)), v=jnp.zeros((D, B)), t=jnp.zeros((D, B)),
+        direction=jnp.zeros((D, B, 3)), parent=jnp.full((D, B), -1, jnp.int32),
+        branch=jnp.zeros((D, B), jnp.int32), pixel=jnp.zeros((D, B), jnp.int32),
+        visible=jnp.zeros((D, B, L), bool), weight=jnp.zeros((D, B)), dropped=jnp.zeros((), jnp.int32),
+    )
+    ray0 = (o0, d0, act0, pix0, jnp.full((B,), -1, jnp.int32), jnp.zeros((B,), jnp.int32), act0.astype(jnp.float32))
+
+    def cond(carry):
+        k, ray, _ = carry
+        return (k < D) & jnp.any(ray[2])
+
+    def body(carry):
+        k, (o, d, act, pix, parent, branch, weight), buf = carry
+        hit = _intersect(geo.tree, o, d, act)
+        prim = jnp.where(act, hit.prim, -1)
+        found = prim >= 0
+        s = surface(geo, prim, hit.u, hit.v)
+        ng, ns, _ = _oriented(s, d)
+        eps = _offset_scale(s.p)
+        # shadow rays, one per (slot, light)
+        wi, dist, _ = _lights.incident(scene.lights, s.p)  # (B, L, 3), (B, L)
+        lit = found[:, None] & (_dot(wi, ng[:, None, :]) > 0) & ~_is_glass(mats, s.material)[:, None]
+        so = jnp.broadcast_to(s.p[:, None, :] + ng[:, None, :] * eps[:, None, :], wi.shape)
+        smax = jnp.where(lit, dist - 2.0 * eps, -1.0)
+        occ = bvh.occluded(geo.tree, so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1)).reshape(B, L)
+        visible = lit & ~occ
+        buf = GBuffer(
+            active=buf.active.at[k].set(act), prim=buf.prim.at[k].set(prim),
+            u=buf.u.at[k].set(jnp.where(found, hit.u, 0.0)), v=buf.v.at[k].set(jnp.where(found, hit.v, 0.0)),
+            t=buf.t.at[k].set(jnp.where(found, hit.t, 0.0)), direction=buf.direction.at[k].set(d),
+            parent=buf.parent.at[k].set(parent), branch=buf.branch.at[k].set(branch),
+            pixel=buf.pixel.at[k].set(pix), visible=buf.visible.at[k].set(visible),
+            weight=buf.weight.at[k].set(jnp.where(act, weight, 0.0)), dropped=buf.dropped,
+        )
+        # children: (primary, secondary) per parent
+        glass = found & _is_glass(mats, s.material)
+        delta = mats.delta[s.material]
+        w_mirror = weight * jnp.where(found & ~glass, delta, 0.0)
+        r = jnp.zeros(B)
+        dr = _mirror_dir(d, ng, ns)
+        dt = d
+        t_ok = jnp.zeros(B, bool)
+        for kk, name in enumerate(mats.models):
+            if brdfs.get(name).delta:
+                rk, drk, dtk, okk = _glass_split(mats, s, d, kk)
+                sel = glass & (mats.model_id[s.material] == kk)
+                r = jnp.where(sel, rk, r)
+                dr = jnp.where(sel[:, None], drk, dr)
+                dt = jnp.where(sel[:, None], dtk, dt)
+                t_ok = jnp.where(sel, okk, t_ok)
+        w_r = jnp.where(glass, weight * r, w_mirror)
+        w_t = jnp.where(glass & t_ok, weight * (1.0 - r), 0.0)
+        b_r = jnp.where(glass, GLASS_R, MIRROR)
+        refl_first = w_r >= w_t
+        cand_w = jnp.stack([jnp.where(refl_first, w_r, w_t), jnp.where(refl_first, w_t, w_r)], 1)  # (B, 2)
+        cand_d = jnp.stack([jnp.where(refl_first[:, None], dr, dt), jnp.where(refl_first[:, None], dt, dr)], 1)
+        refl_o = s.p + ng * eps
+        tran_o = s.p - ng * eps
+        cand_o = jnp.stack(
+            [jnp.where(refl_first[:, None], refl_o, tran_o), jnp.where(refl_first[:, None], tran_o, refl_o)], 1)
+        cand_b = jnp.stack([jnp.where(refl_first, b_r, GLASS_T), jnp.where(refl_first, GLASS_T, b_r)], 1)
+        alive = (cand_w > 0) & (k + 1 < D)
+        cw, cd, co, cb, ca = (x.reshape((2 * B,) + x.shape[2:]) for x in (cand_w, cand_d, cand_o, cand_b, alive))
+        cparent = jnp.repeat(jnp.arange(B, dtype=jnp.int32), 2)
+        cpix = jnp.repeat(pix, 2)
+        total = jnp.sum(ca)
+
+        def keep_best(ca):
+            # rank alive candidates by weight; keep the B heaviest
+            order = jnp.argsort(jnp.where(ca, -cw, jnp.inf))
+            rank = jnp.zeros(2 * B, jnp.int32).at[order].set(jnp.arange(2 * B, dtype=jnp.int32))
+            return ca & (rank < B)
+
+        keep = jax.lax.cond(total > B, keep_best, lambda ca: ca, ca)
+        slot = jnp.where(keep, jnp.cumsum(keep) - 1, B)  # B = dumped out of range
+        new = lambda x, fill: jnp.full((B,) + x.shape[1:], fill, x.dtype).at[slot].set(x, mode="drop")
+        ray = (
+            new(co, 0.0), _normalize(new(cd, 1.0)), new(keep, False), new(cpix, 0), new(cparent, -1),
+            new(cb, 0), new(cw, 0.0),
+        )
+        buf = eqx.tree_at(lambda g: g.dropped, buf, buf.dropped + total - jnp.sum(keep))
+        return k + 1, ray, buf
+
+    _, _, buf = jax.lax.while_loop(cond, body, (jnp.asarray(0), ray0, buf))
+    return buf
+
+
+def direct_terms(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Array, "B L"]):
+    """What the direct-lighting sum needs besides the BRDF, for hits `s` seen along rays `d`.
+
+    Returns:
+        wi: (B, L, 3) local-frame directions to the lights; wo: (B, 1, 3) local direction to the
+        viewer; light: (B, L, 3) cosθ_i·I/d²·V per light (0 behind the geometric surface or shadowed).
+        Σ_l f(wi, wo)·light is the (1 − δ)-less direct term of the seed's equation.
+    """
+    ng, ns, _ = _oriented(s, d)
+    frame = _frame(ns, s.tangent)
+    wi, _, scale = _lights.incident(scene.lights, s.p)  # (B, L, 3), (B, L, 3)
+    wo_l = _to_local(-d, frame)[:, None, :]
+    wi_l = _to_local(wi, tuple(x[:, None, :] for x in frame))
+    cos = jnp.maximum(wi_l[..., 2], 0.0)
+    above = _dot(wi, ng[:, None, :]) > 0
+    light = jnp.where(visible & above, cos, 0.0)[..., None] * scale
+    return wi_l, wo_l, light
+
+
+def _direct(scene, s: Surface, d, visible):
+    """Σ_l f_r·I·cosθ/d²·V for opaque models (without the 1 − δ), the albedo AOV and the shading
+    normal facing the viewer, each (B, 3)."""
+    mats = scene.materials
+    _, ns, _ = _oriented(s, d)
+    wi_l, wo_l, weight = direct_terms(scene, s, d, visible)
+    out = jnp.zeros(s.p.shape)
+    albedo = jnp.zeros(s.p.shape)
+    for k, name in enumerate(mats.models):
+        model = brdfs.get(name)
+        sel = mats.model_id[s.material] == k
+        p = _gather_params(mats, s.material, k)
+        if "rho_d" in p:
+            albedo = jnp.where(sel[:, None], p["rho_d"], albedo)
+        if model.delta:
+            albedo = jnp.where(sel[:, None], 1.0, albedo)
+            continue
+        f = model.eval({n_: x[:, None] for n_, x in p.items()}, wi_l, wo_l)  # (B, L, 3)
+        out = jnp.where(sel[:, None], jnp.sum(f * weight, axis=1), out)
+    return out, albedo, ns
+
+
+def _glass_r(scene, s, d):
+    mats = scene.materials
+    r = jnp.zeros(d.shape[0])
+    for k, name in enumerate(mats.models):
+        if brdfs.get(name).delta:
+            rk, *_ = _glass_split(mats, s, d, k)
+            r = jnp.where(mats.model_id[s.material] == k, rk, r)
+    return r
+
+
+def shade(gbuffer: GBuffer, scene, aovs: bool = False):
+    """Sum the traced ray tree into an image (differentiable in materials and lights).
+
+    Returns:
+        image (H, W, 3) linear radiance, or with `aovs=True` a pair (image, dict) where the dict has
+        depth (H, W) [scene units along the primary ray; 0 where nothing was hit], normal (H, W, 3)
+        (world shading normal facing the camera; 0 on misses), albedo (H, W, 3) (rho_d, 1 for glass,
+        0 for models without rho_d or misses) and object_id (H, W) int32 (-1 on misses), each from
+        the pixel's first sample.
+    """
+    mats, st, cam = scene.materials, scene.settings, scene.camera
+    npix = cam.num_pixels
+    B = gbuffer.active.shape[1]
+
+    def level(carry, g):
+        tput_prev, delta_prev, r_prev = carry
+        act, prim = g["active"], g["prim"]
+        par = jnp.maximum(g["parent"], 0)
+        factor = jnp.select(
+            [g["branch"] == MIRROR, g["branch"] == GLASS_R],
+            [delta_prev[par], r_prev[par]], 1.0 - r_prev[par],
+        )
+        tput = jnp.where(g["parent"] >= 0, tput_prev[par] * factor, 1.0)
+        tput = jnp.where(act, tput, 0.0)
+
+        def hit_terms(_):
+            s = surface(scene.geometry, prim, g["u"], g["v"])
+            direct, _, _ = _direct(scene, s, g["direction"], g["visible"])
+            found = prim >= 0
+            glass = _is_glass(mats, s.material)
+            delta = jnp.where(found & ~glass, mats.delta[s.material], 0.0)
+            r = jnp.where(found & glass, _glass_r(scene, s, g["direction"]), 0.0)
+            local = jnp.where(found[:, None], (1.0 - delta)[:, None] * direct, st.background)
+            local = jnp.where(glass[:, None], 0.0, local)
+            return local, delta, r
+
+        def empty(_):
+            return jnp.zeros((B, 3)), jnp.zeros(B), jnp.zeros(B)
+
+        local, delta, r = jax.lax.cond(jnp.any(act), hit_terms, empty, None)
+        contrib = tput[:, None] * local
+        img = jax.ops.segment_sum(jnp.where(act[:, None], contrib, 0.0), jnp.where(act, g["pixel"], npix),
+                                  num_segments=npix + 1)[:npix]
+        return (tput, delta, r), img
+
+    xs = {k: getattr(gbuffer, k) for k in ("active", "prim", "u", "v", "direction", "parent", "branch", "pixel",
+                                           "visible")}
+    zeros = jnp.zeros(B)
+    _, imgs = jax.lax.scan(level, (zeros, zeros, zeros), xs)
+    image = (jnp.sum(imgs, axis=0) / st.spp).reshape(cam.height, cam.width, 3)
+    if not aovs:
+        return image
+    first = jnp.arange(npix) * st.spp  # level-0 slot of each pixel's first sample
+    prim = gbuffer.prim[0, first]
+    found = prim >= 0
+    s = surface(scene.geometry, prim, gbuffer.u[0, first], gbuffer.v[0, first])
+    d = gbuffer.direction[0, first]
+    _, albedo, ns = _direct(scene, s, d, gbuffer.visible[0, first])
+    hw = (cam.height, cam.width)
+    out = {
+        "depth": jnp.where(found, gbuffer.t[0, first], 0.0).reshape(hw),
+        "normal": jnp.where(found[:, None], ns, 0.0).reshape(hw + (3,)),
+        "albedo": jnp.where(found[:, None], albedo, 0.0).reshape(hw + (3,)),
+        "object_id": jnp.where(found, scene.geometry.object_id[jnp.maximum(prim, 0)], -1).reshape(hw),
+    }
+    return image, out
+
+
+def whitted(scene, aovs: bool = False):
+    """trace + shade in one call: the image (H, W, 3), or (image, aovs) with `aovs=True`."""
+    return shade(trace(scene), scene, aovs=aovs)

@@ -1,0 +1,78 @@
+"""EXR/PNG output: round trips, sRGB encoding against the IEC 61966-2-1 formula, atomic writes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxrt import image
+from jaxrt.errors import InputError
+
+
+def test_exr_round_trips_bit_exactly_with_aovs(tmp_path):
+    rng = np.random.default_rng(1)
+    img = rng.uniform(0, 50, (7, 5, 3)).astype(np.float32)
+    depth = rng.uniform(0, 9, (7, 5)).astype(np.float32)
+    p = image.write_exr(tmp_path / "a.exr", img, {"depth": depth, "normal": -img})
+    assert np.array_equal(image.read_exr(p), img)
+    ch = image.read_exr(p, channels=True)
+    assert np.array_equal(ch["depth"], depth) and np.array_equal(ch["normal.RGB"], -img)
+
+
+def test_png_is_srgb_encoded_with_exposure(tmp_path):
+    from PIL import Image
+
+    lin = np.linspace(0, 1.2, 60, dtype=np.float32)
+    img = np.stack([lin, lin * 0.5, lin * 0.25], -1)[None]
+    p = image.write_png(tmp_path / "a.png", img, exposure=1.0)
+    got = np.asarray(Image.open(p)).astype(np.int64)
+    x = np.clip(img.astype(np.float64) * 2.0, 0, 1)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)  # IEC 61966-2-1
+    assert np.abs(got - np.round(srgb * 255)).max() <= 1
+
+
+def test_non_finite_images_are_refused_and_nothing_is_written(tmp_path):
+    img = np.zeros((2, 2, 3), np.float32)
+    img[0, 0, 1] = np.nan
+    for name in ("a.exr", "a.png"):
+        with pytest.raises(InputError, match="NaN or Inf"):
+            image.write(tmp_path / name, img)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch):
+    p = tmp_path / "keep.exr"
+    old = np.ones((2, 2, 3), np.float32)
+    image.write_exr(p, old)
+    import OpenEXR
+
+    class Boom:
+        def __init__(self, *a, **k):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *a):
+            return False
+
+        def write(self, path):
+            open(path, "wb").write(b"partial")
+            raise OSError("disk full")
+
+    monkeypatch.setattr(OpenEXR, "File", Boom)
+    with pytest.raises(OSError):
+        image.write_exr(p, np.zeros((2, 2, 3), np.float32))
+    monkeypatch.undo()
+    assert np.array_equal(image.read_exr(p), old)
+    assert [q.name for q in tmp_path.iterdir()] == ["keep.exr"]
+
+
+def test_read_errors(tmp_path):
+    with pytest.raises(InputError, match="no such EXR"):
+        image.read_exr(tmp_path / "missing.exr")
+    (tmp_path / "bad.exr").write_bytes(b"not an exr")
+    with pytest.raises(InputError, match="not a readable OpenEXR"):
+        image.read_exr(tmp_path / "bad.exr")
+    with pytest.raises(InputError, match="shape"):
+        image.write_exr(tmp_path / "x.exr", np.zeros((2, 2)))

@@ -24,7 +24,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 import brdfs
-from jaxrt import integrators
+from jaxrt import integrators, render
 
 
 class FitBuffer(eqx.Module):
@@ -73,7 +73,15 @@ def build(gbuffers, scenes, model_index: int, row: int, material: int, params0) 
     for k, (gb, sc) in enumerate(zip(gbuffers, scenes)):
         pixel, weight, wi, wo, light = _nodes(gb, sc, material)
         parts.append((pixel + k * sc.camera.num_pixels, weight, wi, wo, light))
-        consts.append(integrators.shade(gb, inject(sc, model_index, row, params0)))
+        consts.append(render.shade(gb, inject(sc, model_index, row, params0)))
+    # Views may have different numbers of lights: pad with unlit, straight-up dummy lights.
+    L = max(p[2].shape[1] for p in parts)
+    up = np.array([0.0, 0.0, 1.0], np.float32)
+    parts = [
+        (px, w, np.concatenate([wi, np.broadcast_to(up, (len(px), L - wi.shape[1], 3))], 1), wo,
+         np.concatenate([li, np.zeros((len(px), L - li.shape[1], 3), li.dtype)], 1))
+        for px, w, wi, wo, li in parts
+    ]
     cat = lambda i: np.concatenate([p[i] for p in parts])
     fb = FitBuffer(
         pixel=jnp.asarray(cat(0), jnp.int32), weight=jnp.asarray(cat(1), jnp.float32),

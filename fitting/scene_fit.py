@@ -29,6 +29,7 @@ from brdfs.base import Model
 from fitting import compact
 from fitting.solve import FitResult, fit_images
 from jaxrt import integrators
+from jaxrt import render as _render
 from jaxrt import scene as _scene
 from jaxrt.errors import InputError
 
@@ -62,6 +63,10 @@ def _spec(source, overrides=None) -> _scene.SceneSpec:
     if not isinstance(source, Mapping):
         source = _scene.find_scene(source)
     return _scene.parse(source, overrides=overrides)
+
+
+def _object(spec: _scene.SceneSpec, name: str):
+    return next(o for o in spec.objects if o.name == name)
 
 
 def _substitute(spec: _scene.SceneSpec, model: Model, obj: str | None) -> tuple[_scene.SceneSpec, str, str]:
@@ -114,9 +119,14 @@ def prepare(
     built, gbs, masks = [], [], []
     obj_name = None
     for src, ov in zip(scenes, overrides):
-        spec, mat_name, obj_name = _substitute(_spec(src, ov), model, object)
+        original = _spec(src, ov)
+        spec, mat_name, obj_name = _substitute(original, model, object)
         sc = _scene.build(spec)
-        gb = jax.jit(integrators.trace)(sc)
+        # The ray tree depends on geometry, δ and which materials are glass, not on the opaque
+        # model: trace the scene as given (one compilation per scene, whatever model is fitted)
+        # unless the object was glass, whose branches the substituted model no longer has.
+        was_glass = brdfs.get(original.materials[_object(original, obj_name).material].model).delta
+        gb = _render.trace(sc if was_glass else _scene.build(original))
         built.append(sc)
         gbs.append(gb)
     shapes = {(s.camera.height, s.camera.width, s.settings.spp) for s in built}
@@ -174,7 +184,12 @@ def shader(model_index: int, row: int):
 
 def render_with(setup: Setup, params: Mapping[str, Array]) -> Float[Array, "K H W 3"]:
     """Images of every view with the fitted material set to `params` (validated pytree)."""
-    return jax.jit(shader(setup.model_index, setup.row))(params, (setup.gbuffers, setup.scenes))
+    return _jitted_shader(setup.model_index, setup.row)(params, (setup.gbuffers, setup.scenes))
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted_shader(model_index: int, row: int):
+    return jax.jit(shader(model_index, row))
 
 
 def fit(

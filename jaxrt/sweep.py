@@ -60,6 +60,26 @@ def default_values(model: str | Model, name: str, steps: int = 7) -> np.ndarray:
     return np.clip(log_or_linear_grid(p, steps), p.lo, p.hi)  # exp(log(hi)) may round past hi
 
 
+def span(model: str | Model, name: str, start: float | None = None, stop: float | None = None,
+         steps: int = 7) -> np.ndarray:
+    """`steps` values from `start` to `stop` (defaults: the declared bounds) on the parameter's natural
+    scale (geometric for log-scale parameters); InputError naming --from/--to for out-of-range ends."""
+    m = _model(model)
+    p = param_spec(m, name)
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+        raise InputError(f"steps: expected a positive integer, got {steps!r}")
+    a = p.lo if start is None else float(start)
+    b = p.hi if stop is None else float(stop)
+    for flag, v in (("--from", a), ("--to", b)):
+        if not math.isfinite(v) or v < p.lo or v > p.hi:
+            raise InputError(f"{flag} {v:g}: {m.name}.{name} must lie in [{p.lo:g}, {p.hi:g}]")
+    if steps == 1:
+        return np.array([a])
+    if p.scale == "log":
+        return np.clip(np.geomspace(a, b, steps), p.lo, p.hi)
+    return np.linspace(a, b, steps)
+
+
 def check_values(model: str | Model, name: str, values: Sequence[float]) -> np.ndarray:
     """Validate sweep values against the parameter's declared bounds; (N,) float64."""
     p = param_spec(model, name)
@@ -171,7 +191,7 @@ def frame_object(scene, obj: str, margin: float = 1.15):
     v = np.asarray(g.vertices)[np.unique(faces)]
     lo, hi = v.min(0), v.max(0)
     centre = 0.5 * (lo + hi)
-    radius = 0.5 * float(np.linalg.norm(hi - lo))
+    radius = float(np.max(np.linalg.norm(v - centre, axis=-1)))  # bounding sphere about the box centre
     dist = float(np.linalg.norm(np.asarray(scene.camera.position) - centre))
     if dist <= radius:
         return scene.with_camera(look_at=centre)
@@ -266,10 +286,7 @@ def strip_png(
     exposure: float = 0.0,
 ) -> None:
     """Write the images side by side (sRGB via `jaxrt.image.to_srgb8`), each captioned, to a PNG, atomically."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # no pyplot: no backend switch, no global figure state
 
     from jaxrt.fsutil import atomic_path
     from jaxrt.image import to_srgb8

@@ -1,0 +1,377 @@
+"""`jaxrt view SCENE`: an interactive window with sliders for material, model, light and camera.
+
+    from jaxrt.viewer import Viewer
+    v = Viewer("spheres", object="phong", width=64, height=48)
+    v.set_param("s", 200.0); v.set_model("ward"); v.set_light(position=[2, 5, 3]); v.orbit(30, 20)
+    v.image            # (H, W, 3) linear RGB of the current state
+    fig = v.figure()   # matplotlib figure with the widgets (any backend; Agg for headless use)
+
+The selected object gets one material per registered model (`jaxrt.sweep.substitute`), each starting
+from the object's own material where parameter names agree, so a model switch is a value change
+(which material the object's faces wear) just like a parameter, light or camera change: the scene
+structure never changes and every update re-runs the one compiled `jaxrt.render.frame`. Slider
+ranges and log/linear scales come from each model's `Param` declarations; a log-scale parameter's
+slider moves over log10(value) and its label shows the value itself. RGB parameters are set grey.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import time
+from typing import Any
+
+import numpy as np
+from jaxtyping import Float
+
+import brdfs
+from jaxrt import sweep as _sweep
+from jaxrt.errors import InputError
+
+
+def orbit_position(look_at, distance: float, azimuth: float, elevation: float) -> np.ndarray:
+    """Camera position on a sphere about `look_at` (y up): azimuth [deg] from +z towards +x,
+    elevation [deg] above the horizontal plane; (3,) float32."""
+    az, el = math.radians(azimuth), math.radians(elevation)
+    d = np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+    return (np.asarray(look_at, np.float64) + distance * d).astype(np.float32)
+
+
+def orbit_angles(position, look_at) -> tuple[float, float, float]:
+    """Inverse of `orbit_position`: (distance, azimuth [deg], elevation [deg])."""
+    d = np.asarray(position, np.float64) - np.asarray(look_at, np.float64)
+    r = float(np.linalg.norm(d))
+    return r, math.degrees(math.atan2(d[0], d[2])), math.degrees(math.asin(np.clip(d[1] / r, -1.0, 1.0)))
+
+
+def slider_spec(p) -> tuple[float, float, float]:
+    """(min, max, initial) of a parameter's slider in slider units: log10 for log-scale parameters."""
+    if p.scale == "log":
+        return math.log10(p.lo), math.log10(p.hi), math.log10(p.default)
+    return p.lo, p.hi, p.default
+
+
+def from_slider(p, x: float) -> float:
+    """A slider position back to the parameter value (clipped to the declared range)."""
+    v = 10.0 ** x if p.scale == "log" else x
+    return float(min(max(v, p.lo), p.hi))
+
+
+class Viewer:
+    """Rendering state of the interactive viewer: a scene, a selected object, its model and parameters.
+
+    Args:
+        scene: a scene file path or shipped name.
+        object: the object whose material the sliders edit (default: the first non-plane object).
+        width, height: render size [pixels] (default: the scene file's).
+        exposure: display exposure [stops].
+        frame: point the camera at the object, zoomed to fit it (`jaxrt.sweep.frame_object`); the
+            orbit then turns about the object's centre.
+    Attributes:
+        image: (H, W, 3) float32 linear RGB of the current state; frame_time: seconds of the last render.
+        model: current model name; values: {param: value} of the current model (RGB shown as channel mean).
+    """
+
+    def __init__(self, scene: str | os.PathLike, object: str | None = None, width: int | None = None,
+                 height: int | None = None, exposure: float = 0.0, frame: bool = False):
+        from jaxrt import scene as _scene
+
+        spec = _scene.parse(_scene.find_scene(scene), overrides={"camera.width": width, "camera.height": height})
+        spec, self.object, self.model = _sweep.substitute(spec, None, object, inherit=True)
+        self.scene = _scene.build(spec)
+        if frame:
+            self.scene = _sweep.frame_object(self.scene, self.object)
+        self.exposure = float(exposure)
+        cam = self.scene.camera
+        self._look_at = np.asarray(cam.look_at, np.float64)
+        self.distance, self.azimuth, self.elevation = orbit_angles(np.asarray(cam.position), self._look_at)
+        self._fig = None
+        self.sliders: dict[str, Any] = {}
+        self.frame_time = float("nan")
+        self.render()
+
+    # ---- state -------------------------------------------------------------------------------
+    @property
+    def spec(self) -> tuple:
+        """The current model's `Param`s plus `jaxrt.sweep.DELTA` for non-delta models."""
+        m = brdfs.get(self.model)
+        return m.spec + (() if m.delta else (_sweep.DELTA,))
+
+    @property
+    def values(self) -> dict[str, float]:
+        mats = self.scene.materials
+        i = mats.index(_sweep.material_name(self.model))
+        table, row = mats.params[int(mats.model_id[i])], int(mats.row[i])
+        out = {k: float(np.mean(np.asarray(v[row]))) for k, v in table.items()}
+        if not brdfs.get(self.model).delta:
+            out["delta"] = float(mats.delta[i])
+        return out
+
+    @property
+    def compiles(self) -> int:
+        """Number of compiled variants of `jaxrt.render.frame` so far (process-wide)."""
+        from jaxrt import render as _render
+
+        return _render.frame._cache_size()
+
+    def render(self) -> Float[np.ndarray, "H W 3"]:
+        """Re-render the current state with the compiled frame; sets `image` and `frame_time`."""
+        from jaxrt import render as _render
+
+        t0 = time.perf_counter()
+        img = _render.frame(self.scene)
+        img.block_until_ready()
+        self.frame_time = time.perf_counter() - t0
+        self.image = np.nan_to_num(np.asarray(img), nan=0.0, posinf=0.0, neginf=0.0)
+        self._refresh()
+        return self.image
+
+    def set_param(self, name: str, value: float) -> None:
+        """Set a parameter of the current model (or "delta") and re-render; InputError if out of range."""
+        _sweep.param_spec(self.model, name)
+        self.scene = self.scene.with_material(_sweep.material_name(self.model), **{name: float(value)})
+        self.render()
+
+    def set_model(self, name: str) -> None:
+        """Dress the object in model `name` (its own material, kept between switches) and re-render."""
+        brdfs.get(name)
+        self.model = name
+        self.scene = _sweep.use_model(self.scene, self.object, name)
+        self._rebuild_param_sliders()
+        self.render()
+
+    def set_light(self, position=None, intensity=None, index: int = 0) -> None:
+        """Move / re-scale point light `index` (position (3,) scene units, intensity W/sr, scalar or RGB)."""
+        if not 0 <= index < self.scene.lights.count:
+            raise InputError(f"light index {index}: the scene has {self.scene.lights.count} light(s)")
+        self.scene = self.scene.with_light(index, position=position, intensity=intensity)
+        self.render()
+
+    def orbit(self, azimuth: float, elevation: float) -> None:
+        """Place the camera at azimuth/elevation [deg] about its look-at point (same distance)."""
+        for k, v, lim in (("azimuth", azimuth, 360.0), ("elevation", elevation, 89.0)):
+            if not math.isfinite(v) or abs(v) > lim:
+                raise InputError(f"{k}: expected a number in [-{lim:g}, {lim:g}] degrees, got {v!r}")
+        self.azimuth, self.elevation = float(azimuth), float(elevation)
+        pos = orbit_position(self._look_at, self.distance, self.azimuth, self.elevation)
+        self.scene = self.scene.with_camera(position=pos, up=np.array([0.0, 1.0, 0.0], np.float32))
+        self.render()
+
+    def srgb(self) -> np.ndarray:
+        """The current image as 8-bit sRGB (H, W, 3)."""
+        from jaxrt.image import to_srgb8
+
+        return to_srgb8(self.image, self.exposure)
+
+    def png(self) -> bytes:
+        """The current image as PNG bytes (sRGB), e.g. for an ipywidgets.Image."""
+        import io
+
+        from PIL import Image
+
+        buf = io.BytesIO()
+        Image.fromarray(self.srgb(), mode="RGB").save(buf, format="PNG")
+        return buf.getvalue()
+
+    def status(self) -> str:
+        return f"{self.object}: {self.model}   frame {1e3 * self.frame_time:.1f} ms"
+
+    # ---- matplotlib window -------------------------------------------------------------------
+    def figure(self):
+        """Build (once) and return the matplotlib figure with the image and its widgets.
+
+        `sliders` maps parameter names (and light_x/y/z, intensity, azimuth, elevation) to
+        `matplotlib.widgets.Slider`s and "model" to the `RadioButtons`; their callbacks call the
+        methods above, so `slider.set_val(x)` drives the viewer exactly like a mouse drag.
+        """
+        if self._fig is not None:
+            return self._fig
+        import matplotlib.pyplot as plt
+        from matplotlib.widgets import RadioButtons, Slider
+
+        fig = plt.figure(figsize=(10, 6))
+        self._fig = fig
+        self._ax = fig.add_axes((0.02, 0.08, 0.56, 0.86))
+        self._ax.set_axis_off()
+        self._im = self._ax.imshow(self.srgb(), interpolation="nearest")
+        self._title = self._ax.set_title(self.status(), fontsize=9)
+        names = brdfs.names()
+        rax = fig.add_axes((0.62, 0.70, 0.14, 0.26))
+        radio = RadioButtons(rax, names, active=names.index(self.model))
+        radio.on_clicked(self.set_model)
+        self.sliders["model"] = radio
+        # light and camera sliders (bottom right); ranges from the scene's own extent
+        pos = np.asarray(self.scene.lights.position[0], np.float64)
+        inten = float(np.mean(np.asarray(self.scene.lights.intensity[0])))
+        reach = max(float(np.max(np.abs(pos))), self.distance, 1.0) * 2.0
+        rows = [
+            ("light_x", -reach, reach, pos[0], lambda v: self._light_axis(0, v)),
+            ("light_y", -reach, reach, pos[1], lambda v: self._light_axis(1, v)),
+            ("light_z", -reach, reach, pos[2], lambda v: self._light_axis(2, v)),
+            ("intensity", 0.0, max(4.0 * inten, 1.0), inten, lambda v: self.set_light(intensity=v)),
+            ("azimuth", -180.0, 180.0, self.azimuth, lambda v: self.orbit(v, self.elevation)),
+            ("elevation", -89.0, 89.0, self.elevation, lambda v: self.orbit(self.azimuth, v)),
+        ]
+        for k, (name, lo, hi, init, cb) in enumerate(rows):
+            ax = fig.add_axes((0.68, 0.05 + 0.045 * k, 0.22, 0.03))
+            s = Slider(ax, name, lo, hi, valinit=float(np.clip(init, lo, hi)))
+            s.on_changed(cb)
+            self.sliders[name] = s
+        self._param_axes: list = []
+        self._rebuild_param_sliders()
+        return fig
+
+    def _light_axis(self, axis: int, value: float) -> None:
+        pos = np.asarray(self.scene.lights.position[0], np.float64).copy()
+        pos[axis] = value
+        self.set_light(position=pos)
+
+    def _rebuild_param_sliders(self) -> None:
+        if self._fig is None:
+            return
+        from matplotlib.widgets import Slider
+
+        for ax in self._param_axes:
+            ax.remove()
+        for p in list(self.sliders):
+            if p not in ("model", "light_x", "light_y", "light_z", "intensity", "azimuth", "elevation"):
+                del self.sliders[p]
+        self._param_axes = []
+        vals = self.values
+        for k, p in enumerate(self.spec):
+            lo, hi, _ = slider_spec(p)
+            x = math.log10(max(vals[p.name], p.lo)) if p.scale == "log" else vals[p.name]
+            ax = self._fig.add_axes((0.68, 0.62 - 0.045 * k, 0.22, 0.03))
+            s = Slider(ax, p.name, lo, hi, valinit=float(np.clip(x, lo, hi)))
+            s.valtext.set_text(f"{from_slider(p, s.val):.3g}")
+
+            def changed(x, p=p, s=s):
+                s.valtext.set_text(f"{from_slider(p, x):.3g}")
+                self.set_param(p.name, from_slider(p, x))
+
+            s.on_changed(changed)
+            self.sliders[p.name] = s
+            self._param_axes.append(ax)
+        self._fig.canvas.draw_idle()
+
+    def _refresh(self) -> None:
+        if self._fig is None:
+            return
+        self._im.set_data(self.srgb())
+        self._title.set_text(self.status())
+        self._fig.canvas.draw_idle()
+
+
+def notebook_controls(viewer: Viewer, scale: int = 2):
+    """ipywidgets controls for a `Viewer` (the notebook twin of `Viewer.figure`).
+
+    Returns (box, sliders): a widget to `display`, and name -> widget for every control: the current
+    model's parameters (FloatLogSlider for log-scale `Param`s, FloatSlider otherwise, ranges from the
+    declarations; δ for non-delta models), "model" (Dropdown), light_x/y/z, intensity, azimuth,
+    elevation. Changing a control's `.value` calls the viewer and refreshes the image and the frame
+    time; like the matplotlib window it never recompiles. `scale` magnifies the displayed image.
+    """
+    import ipywidgets as w
+
+    h, wd = viewer.image.shape[:2]
+    image = w.Image(value=viewer.png(), format="png", width=scale * wd, height=scale * h)
+    status = w.Label(viewer.status())
+    sliders: dict = {}
+    params = w.VBox()
+
+    def refresh():
+        image.value = viewer.png()
+        status.value = viewer.status()
+
+    def on(name, fn):
+        sliders[name].observe(lambda ch: (fn(ch["new"]), refresh()), names="value")
+
+    def build_params():
+        for k in [k for k in sliders if k in _param_names(sliders)]:
+            del sliders[k]
+        vals, rows = viewer.values, []
+        for p in viewer.spec:
+            if p.scale == "log":
+                lo, hi, _ = slider_spec(p)
+                s = w.FloatLogSlider(value=vals[p.name], base=10, min=lo, max=hi, step=(hi - lo) / 200,
+                                     description=p.name, readout_format=".3g")
+            else:
+                s = w.FloatSlider(value=vals[p.name], min=p.lo, max=p.hi, step=(p.hi - p.lo) / 200,
+                                  description=p.name, readout_format=".3g")
+            s.tooltip = p.doc
+            sliders[p.name] = s
+            on(p.name, lambda v, n=p.name: viewer.set_param(n, v))
+            rows.append(s)
+        params.children = rows
+
+    def _param_names(d):
+        return set(d) - {"model", "light_x", "light_y", "light_z", "intensity", "azimuth", "elevation"}
+
+    sliders["model"] = w.Dropdown(options=list(brdfs.names()), value=viewer.model, description="model")
+
+    def set_model(name):
+        viewer.set_model(name)
+        build_params()
+
+    on("model", set_model)
+    pos = np.asarray(viewer.scene.lights.position[0], np.float64)
+    inten = float(np.mean(np.asarray(viewer.scene.lights.intensity[0])))
+    reach = max(float(np.max(np.abs(pos))), viewer.distance, 1.0) * 2.0
+    for k, axis in enumerate("xyz"):
+        sliders[f"light_{axis}"] = w.FloatSlider(value=pos[k], min=-reach, max=reach, step=reach / 100,
+                                                 description=f"light {axis}")
+
+        def move(v, k=k):
+            q = np.asarray(viewer.scene.lights.position[0], np.float64).copy()
+            q[k] = v
+            viewer.set_light(position=q)
+
+        on(f"light_{axis}", move)
+    sliders["intensity"] = w.FloatSlider(value=inten, min=0.0, max=max(4 * inten, 1.0), description="intensity")
+    on("intensity", lambda v: viewer.set_light(intensity=v))
+    sliders["azimuth"] = w.FloatSlider(value=viewer.azimuth, min=-180, max=180, description="azimuth")
+    on("azimuth", lambda v: viewer.orbit(v, viewer.elevation))
+    sliders["elevation"] = w.FloatSlider(value=viewer.elevation, min=-89, max=89, description="elevation")
+    on("elevation", lambda v: viewer.orbit(viewer.azimuth, v))
+    build_params()
+    fixed = w.VBox([sliders[k] for k in ("light_x", "light_y", "light_z", "intensity", "azimuth", "elevation")])
+    box = w.HBox([w.VBox([image, status]), w.VBox([sliders["model"], params, fixed])])
+    return box, sliders
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = """\
+Sliders: the selected object's material parameters (log sliders for exponents and roughnesses show
+the value, not its log), δ, the model (radio buttons), light 0's position and intensity, and a
+camera orbit about the look-at point. Every change re-runs the compiled frame; the first frame
+compiles (tens of seconds on a CPU for big scenes). Use a small --width/--height on a CPU.
+
+Examples:
+  jaxrt view spheres --object phong --width 256 --height 192
+  jaxrt view scenes/dragon.toml
+"""
+    parser.add_argument("scene", metavar="SCENE", help="scene file (.toml) or shipped scene name")
+    parser.add_argument("--object", help="object whose material the sliders edit (default: the first non-plane object)")
+    parser.add_argument("--width", type=int, help="render width in pixels (default: the scene's)")
+    parser.add_argument("--height", type=int, help="render height in pixels (default: the scene's)")
+    parser.add_argument("--exposure", type=float, default=0.0, help="display exposure in stops")
+    parser.add_argument("--frame", action="store_true", help="zoom the camera onto the selected object")
+
+
+def run(args: argparse.Namespace) -> int:
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    if not math.isfinite(args.exposure):
+        raise InputError(f"--exposure: expected a finite number of stops, got {args.exposure}")
+    v = Viewer(args.scene, object=args.object, width=args.width, height=args.height, exposure=args.exposure,
+               frame=args.frame)
+    v.figure()
+    if matplotlib.get_backend().lower() == "agg":
+        print("jaxrt view: no interactive matplotlib backend (is a display available?); "
+              f"rendered one frame in {v.frame_time * 1e3:.1f} ms", flush=True)
+        return 0
+    plt.show()
+    return 0

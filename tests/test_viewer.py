@@ -1,0 +1,116 @@
+"""The slider viewer, driven headless (Agg): sliders change the image as physics says and never recompile.
+
+Expectations are independent of the renderer's numbers: more diffuse albedo never darkens a pixel,
+a specular highlight follows the light, a log slider's position is log10 of the value declared in
+the model's `Param`, and `jaxrt.render.frame`'s compile cache does not grow after the first frame.
+"""
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import numpy as np
+import pytest
+
+import brdfs
+from jaxrt.cli import main
+from jaxrt.errors import InputError
+from jaxrt.viewer import Viewer, from_slider, orbit_angles, orbit_position, slider_spec
+
+W, H = 32, 24
+
+
+@pytest.fixture(scope="module")
+def viewer():
+    v = Viewer("spheres", object="phong", width=W, height=H, frame=True)
+    v.figure()
+    v.compiled = v.compiles  # the first frame compiled; nothing after it may
+    return v
+
+
+def test_rho_d_slider_brightens_and_does_not_recompile(viewer):
+    s = viewer.sliders["rho_d"]
+    s.set_val(0.0)
+    dark = viewer.image.copy()
+    s.set_val(1.0)
+    bright = viewer.image.copy()
+    assert viewer.values["rho_d"] == pytest.approx(1.0)
+    assert np.all(bright >= dark - 1e-6) and float((bright - dark).max()) > 0.05
+    assert np.isfinite(viewer.frame_time) and "ms" in viewer._title.get_text()
+    assert viewer.compiles == viewer.compiled
+
+
+def test_log_slider_shows_the_value(viewer):
+    p = brdfs.get("phong").param("s")
+    lo, hi, _ = slider_spec(p)
+    assert (lo, hi) == (np.log10(p.lo), np.log10(p.hi))
+    viewer.sliders["s"].set_val(2.0)
+    assert viewer.values["s"] == pytest.approx(100.0, rel=1e-5)
+    assert viewer.sliders["s"].valtext.get_text() == "100"
+    assert from_slider(p, 99.0) == p.hi  # clipped into the declared range
+
+
+def test_highlight_follows_the_light(viewer):
+    viewer.set_param("rho_d", 1.0)
+    lit = viewer.image.copy()
+    viewer.set_param("rho_d", 0.0)
+    sphere = np.abs(lit - viewer.image).max(-1) > 1e-4  # the object's lit pixels
+    assert sphere.sum() > 30
+    viewer.set_param("s", 30.0)
+    cols = []
+    for x in (-6.0, -2.0, 6.0):
+        viewer.sliders["light_x"].set_val(x)
+        lum = np.where(sphere, viewer.image.mean(-1), -1.0)
+        cols.append(np.unravel_index(lum.argmax(), lum.shape)[1])
+    assert cols[0] <= cols[1] <= cols[2] and cols[2] > cols[0]  # moves right with the light
+    at60 = viewer.image.copy()  # the scene's 60 W/sr
+    viewer.sliders["intensity"].set_val(0.0)
+    unlit = viewer.image.copy()  # background and its reflections only
+    viewer.sliders["intensity"].set_val(120.0)
+    assert float(np.abs(at60 - unlit).max()) > 0.1
+    np.testing.assert_allclose(viewer.image, 2 * at60 - unlit, rtol=1e-4, atol=1e-5)  # light adds linearly
+    assert viewer.compiles == viewer.compiled
+
+
+def test_model_switch_and_orbit_reuse_the_compiled_frame(viewer):
+    before = viewer.image.copy()
+    viewer.sliders["model"].set_active(brdfs.names().index("ward"))
+    assert viewer.model == "ward"
+    assert {"alpha_x", "alpha_y", "delta"} <= set(viewer.sliders) and "s" not in viewer.sliders
+    assert not np.allclose(before, viewer.image)
+    viewer.set_model("glass")
+    assert "n_t" in viewer.sliders and "delta" not in viewer.sliders
+    viewer.sliders["n_t"].set_val(2.0)
+    assert viewer.values["n_t"] == pytest.approx(2.0)
+    viewer.set_model("phong")
+    assert viewer.values["s"] == pytest.approx(30.0)  # each model keeps its own values
+    old = viewer.image.copy()
+    viewer.sliders["azimuth"].set_val(viewer.azimuth + 25.0)
+    assert not np.allclose(old, viewer.image)
+    assert viewer.compiles == viewer.compiled
+
+
+def test_orbit_geometry():
+    look = np.array([1.0, 2.0, 3.0])
+    p = orbit_position(look, 5.0, 90.0, 0.0)
+    np.testing.assert_allclose(p, [6.0, 2.0, 3.0], atol=1e-5)  # azimuth 90° is +x
+    np.testing.assert_allclose(orbit_angles(orbit_position(look, 2.0, -30.0, 40.0), look), (2.0, -30.0, 40.0),
+                               atol=1e-4)
+
+
+def test_bad_viewer_input(viewer):
+    with pytest.raises(InputError, match=r"outside the allowed range \[1, 1000\]"):
+        viewer.set_param("s", 5000.0)
+    with pytest.raises(InputError, match="unknown parameter"):
+        viewer.set_param("eta", 1.0)
+    with pytest.raises(InputError, match="elevation"):
+        viewer.orbit(0.0, 95.0)
+    with pytest.raises(InputError, match="no object named 'teapot'"):
+        Viewer("spheres", object="teapot", width=W, height=H)
+
+
+def test_cli_view_headless(capsys):
+    assert main(["view", "spheres", "--object", "phong", "--width", str(W), "--height", str(H), "--frame"]) == 0
+    assert "no interactive matplotlib backend" in capsys.readouterr().out
+    assert main(["view", "spheres", "--object", "nope"]) == 2
+    assert "no object named 'nope'" in capsys.readouterr().err

@@ -117,6 +117,7 @@ def test_fit_loss_gradient_matches_float64_finite_differences(bunny_setups):
         data = jax.tree.map(f64, (setup.gbuffers, setup.scenes))
         tgt = jnp.asarray(target, jnp.float64)
 
+        @jax.jit
         def loss(p):
             return 0.5 * jnp.sum((shade(p, data) - tgt) ** 2)
 

@@ -57,6 +57,26 @@ class Setup:
     fitbuffer: "compact.FitBuffer"
 
 
+def variant(source, *, lights: Sequence[Mapping[str, Any]] | None = None, **tables) -> dict:
+    """A scene file or shipped name as a parsed dict with some tables replaced, for extra views.
+
+    `lights` replaces the [[lights]] array (e.g. a rim light behind the object); keyword tables
+    update tables key by key, e.g. `camera={"width": 64, "height": 64}`. The result is accepted
+    wherever a scene source is (validated when prepared).
+    """
+    import copy
+    import tomllib
+
+    path = _scene.find_scene(source)
+    doc = tomllib.loads(path.read_text())
+    doc = copy.deepcopy(doc)
+    if lights is not None:
+        doc["lights"] = [dict(l) for l in lights]
+    for table, values in tables.items():
+        doc.setdefault(table, {}).update(values)
+    return doc
+
+
 def _spec(source, overrides=None) -> _scene.SceneSpec:
     if isinstance(source, _scene.SceneSpec):
         return source

@@ -19,6 +19,7 @@ from fitting.cli import hidden_params
 from jaxrt.cli import main as cli
 
 BAR_MODELS = ("phong", "cook_torrance", "ward")
+RIM = [{"position": [0.0, 2.5, -4.0], "intensity": [40.0, 40.0, 40.0]}]
 
 
 def _rel_err(model, fitted, truth):
@@ -34,16 +35,8 @@ def bunny_views(width, height):
     ρs·F0 is determined (the fit then reports the pair as ill-conditioned). Grazing half-angles
     from a backlight separate them, as they would in a real acquisition.
     """
-    import copy
-    import tomllib
-
-    from jaxrt import scene as _scene
-
-    doc = tomllib.loads(_scene.find_scene("bunny").read_text())
-    doc["camera"].update(width=width, height=height)
-    rim = copy.deepcopy(doc)
-    rim["lights"] = [{"position": [0.0, 2.5, -4.0], "intensity": [40.0, 40.0, 40.0]}]
-    return [doc, rim]
+    camera = {"width": width, "height": height}
+    return [scene_fit.variant("bunny", camera=camera), scene_fit.variant("bunny", lights=RIM, camera=camera)]
 
 
 @pytest.fixture(scope="module")

@@ -172,20 +172,15 @@ def draw_lobe(ax, model: Model, p: Params, theta_i_list, plane: str = "incidence
 def plot_lobe(model: Model, p: Params, theta_i_list, path, plane: str = "incidence") -> None:
     """Write a polar lobe plot (PNG, Agg backend) of `model` for each light angle in
     `theta_i_list` [radians] to `path`, atomically (nothing is left behind on failure)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # A bare Figure renders with Agg and leaves pyplot's backend (e.g. a notebook's) alone.
+    from matplotlib.figure import Figure
 
     from jaxrt.fsutil import atomic_path
 
-    fig = plt.figure(figsize=(5, 3.5))
-    try:
-        ax = fig.add_subplot(111, projection="polar")
-        draw_lobe(ax, model, p, theta_i_list, plane)
-        ax.set_title(f"{model.name} ({plane})")
-        ax.legend(loc="lower left", fontsize=7)
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=100)
-    finally:
-        plt.close(fig)
+    fig = Figure(figsize=(5, 3.5))
+    ax = fig.add_subplot(111, projection="polar")
+    draw_lobe(ax, model, p, theta_i_list, plane)
+    ax.set_title(f"{model.name} ({plane})")
+    ax.legend(loc="lower left", fontsize=7)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)

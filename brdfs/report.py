@@ -51,10 +51,7 @@ def albedo_table(angles_deg, samples: int = 256) -> dict[str, np.ndarray]:
 
 def write_lobe_grid(path, lobe_angles_deg) -> None:
     """A 2 x 4 grid of polar lobe slices (plane of incidence), one panel per model."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     import brdfs
     from brdfs.analysis import draw_lobe
@@ -62,21 +59,18 @@ def write_lobe_grid(path, lobe_angles_deg) -> None:
 
     th = [math.radians(a) for a in lobe_angles_deg]
     names = brdfs.names()
-    fig = plt.figure(figsize=(16, 7.5))
-    try:
-        for k, name in enumerate(names):
-            ax = fig.add_subplot(2, 4, k + 1, projection="polar")
-            m = brdfs.get(name)
-            draw_lobe(ax, m, m.params(), th)
-            ax.set_title(name, pad=12)
-            if k == 0:
-                ax.legend(loc="lower left", fontsize=7)
-        fig.suptitle("f·cos θo in the plane of incidence (defaults; glass: R solid, 1-R dashed)")
-        fig.tight_layout()
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=80)
-    finally:
-        plt.close(fig)
+    fig = Figure(figsize=(16, 7.5))
+    for k, name in enumerate(names):
+        ax = fig.add_subplot(2, 4, k + 1, projection="polar")
+        m = brdfs.get(name)
+        draw_lobe(ax, m, m.params(), th)
+        ax.set_title(name, pad=12)
+        if k == 0:
+            ax.legend(loc="lower left", fontsize=7)
+    fig.suptitle("f·cos θo in the plane of incidence (defaults; glass: R solid, 1-R dashed)")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -30,14 +30,12 @@ def comparison_png(
     Display: both images are scaled by the target's 99th-percentile value inside the mask and
     sRGB-encoded; the heat map shows the per-pixel RGB error norm relative to that same white.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # Agg, without touching pyplot's backend
 
     targets, fits, mask = np.asarray(targets), np.asarray(fits), np.asarray(mask) > 0
     k = targets.shape[0]
-    fig, axes = plt.subplots(k, 3, figsize=(9.6, 3.2 * k + 0.4), squeeze=False)
+    fig = Figure(figsize=(9.6, 3.2 * k + 0.4))
+    axes = fig.subplots(k, 3, squeeze=False)
     for i in range(k):
         vals = targets[i][mask[i]]
         white = float(np.percentile(vals, 99)) if vals.size else 1.0
@@ -57,7 +55,6 @@ def comparison_png(
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100)
-    plt.close(fig)
 
 
 def format_result(r: FitResult, truth: dict | None = None) -> str:
@@ -92,13 +89,11 @@ def _fmt(v) -> str:
 
 def matrix_png(path: str | os.PathLike, names: Sequence[str], matrix: np.ndarray, title: str) -> None:
     """Heat map of a (targets × fitted models) matrix of relative RMSE values."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     m = np.asarray(matrix, np.float64)
-    fig, ax = plt.subplots(figsize=(1.2 * len(names) + 2.5, 1.0 * len(names) + 1.8))
+    fig = Figure(figsize=(1.2 * len(names) + 2.5, 1.0 * len(names) + 1.8))
+    ax = fig.subplots()
     im = ax.imshow(np.log10(np.maximum(m, 1e-6)), cmap="viridis_r")
     ax.set_xticks(range(len(names)), names, rotation=35, ha="right")
     ax.set_yticks(range(len(names)), names)
@@ -113,4 +108,3 @@ def matrix_png(path: str | os.PathLike, names: Sequence[str], matrix: np.ndarray
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100)
-    plt.close(fig)

@@ -22,7 +22,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import brdfs
     from fitting import report, scene_fit
 
     names = [n.strip() for n in args.models.split(",") if n.strip()]
@@ -30,15 +29,9 @@ def run(args: argparse.Namespace) -> int:
     _check_outputs((args.output, ".png", "-o"), (args.out, ".json", "--out"))
     overrides = [DEMO_OVERRIDES] if args.scene == DEMO_SCENE else None
     setups = {m.name: scene_fit.prepare(args.scene, m, object=args.object, overrides=overrides) for m in models}
-    mat = np.zeros((len(models), len(models)))
-    for i, src in enumerate(models):
-        truth = src.params(**hidden_params(src, seed=7 + i))
-        target = np.asarray(scene_fit.render_with(setups[src.name], truth))
-        scale = float(np.sqrt(np.mean(target[setups[src.name].mask > 0] ** 2))) or 1.0
-        for j, dst in enumerate(models):
-            r, _ = scene_fit.fit(None, target, dst, setup=setups[dst.name], rgb=not args.grey, solver=args.solver,
-                                 starts=args.starts, max_steps=args.max_steps, progress=not args.quiet)
-            mat[i, j] = r.rmse / scale
+    truths = {m.name: hidden_params(m, seed=7 + i) for i, m in enumerate(models)}
+    mat = scene_fit.cross_model_matrix(setups, truths, rgb=not args.grey, solver=args.solver, starts=args.starts,
+                                       max_steps=args.max_steps, progress=not args.quiet)
     width = max(len(n) for n in names) + 2
     print("relative RMSE of the best fit (rows: target model, columns: fitted model)")
     print(" " * width + "".join(f"{n[:10]:>11}" for n in names))

@@ -249,3 +249,30 @@ def fit(
     result = fit_images(compact.shader(setup.model.name), setup.fitbuffer, targets, setup.model, mask=m,
                         **solver_options)
     return result, setup
+
+
+def cross_model_matrix(
+    setups: Mapping[str, Setup], targets_params: Mapping[str, Mapping[str, Any]], **solver_options
+) -> np.ndarray:
+    """Fit every model to targets rendered by every model (Ngan, Durand & Matusik 2005 style).
+
+    Args:
+        setups: model name -> `prepare` result, all of the same scene and object.
+        targets_params: model name -> the parameters its target is rendered with (same keys/order as
+            `setups`).
+        **solver_options: passed to `fit` (starts, max_steps, rgb, solver, progress).
+
+    Returns:
+        (n, n) RMSE of the best fit relative to the target's RMS over the object's pixels; row i is the
+        target model, column j the fitted model.
+    """
+    names = list(setups)
+    out = np.zeros((len(names), len(names)))
+    for i, src in enumerate(names):
+        s = setups[src]
+        target = np.asarray(render_with(s, s.model.params(**targets_params[src])))
+        scale = float(np.sqrt(np.mean(target[s.mask > 0] ** 2))) or 1.0
+        for j, dst in enumerate(names):
+            r, _ = fit(None, target, dst, setup=setups[dst], **solver_options)
+            out[i, j] = r.rmse / scale
+    return out

@@ -23,6 +23,16 @@ DEMO_OVERRIDES = {
     "render.max_depth": 2,
 }
 DEMO_MODELS = ("phong", "cook_torrance", "ward")
+# A second view lit from behind the sphere: grazing half-angles separate Cook-Torrance's ρs from η,
+# which front lighting determines only as ρs·F0.
+DEMO_RIM_LIGHT = {"position": [1.2, 1.6, -1.2], "intensity": [25.0, 25.0, 25.0]}
+
+
+def demo_views() -> list:
+    """The demo's two views of the default scene: as shipped, and rim-lit."""
+    from fitting import scene_fit
+
+    return [DEMO_SCENE, scene_fit.variant(DEMO_SCENE, lights=[DEMO_RIM_LIGHT])]
 
 FIT_EPILOG = """\
 Targets are linear RGB EXR files rendered (or photographed) at the scene's resolution; give one
@@ -195,7 +205,7 @@ def _demo(args) -> int:
     targets, fits, titles, summary = [], [], [], []
     for i, name in enumerate(DEMO_MODELS):
         model = brdfs.get(name)
-        setup = scene_fit.prepare(DEMO_SCENE, model, object=DEMO_OBJECT, overrides=[DEMO_OVERRIDES])
+        setup = scene_fit.prepare(demo_views(), model, object=DEMO_OBJECT, overrides=[DEMO_OVERRIDES] * 2)
         truth = hidden_params(model, seed=100 + i)
         target = scene_fit.render_with(setup, model.params(**truth))
         result, _ = scene_fit.fit(None, target, model, setup=setup, rgb=not args.grey, solver=args.solver,

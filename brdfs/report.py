@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     table = albedo_table(args.angles, args.samples)
     head = f"{'model':<18}" + "".join(f"{f'{a:g}°':>9}" for a in args.angles)
-    print(f"Directional albedo ∫ f cosθi dωi at view angle θo (default parameters; glass: Fresnel R)")
+    print("Directional albedo ∫ f cosθi dωi at view angle θo (default parameters; glass: Fresnel R)")
     print(head)
     for name, row in table.items():
         print(f"{name:<18}" + "".join(f"{v:9.4f}" for v in row))

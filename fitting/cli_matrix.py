@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
 
 from fitting.cli import DEMO_OBJECT, DEMO_OVERRIDES, DEMO_SCENE, _add_common, _check_outputs, _model, _write_json, hidden_params
 

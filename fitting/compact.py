@@ -45,7 +45,7 @@ class FitBuffer(eqx.Module):
 
 def _nodes(gb, scene, material: int):
     """Per-view node data (numpy) for the nodes whose hit has `material`."""
-    st, cam = scene.settings, scene.camera
+    st = scene.settings
     keep = np.asarray(gb.active & (gb.prim >= 0))
     mat = np.asarray(scene.geometry.material)[np.maximum(np.asarray(gb.prim), 0)]
     sel = keep & (mat == material)

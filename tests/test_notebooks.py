@@ -4,7 +4,6 @@ Each notebook also checks itself where it can (one compiled frame for all sweeps
 a slider, every model fitting its own renders best); an assertion there fails the cell and this test.
 """
 
-import sys
 from pathlib import Path
 
 import nbformat

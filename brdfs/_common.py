@@ -91,6 +91,11 @@ def lum(x: Float[Array, "... 3"]) -> Float[Array, "..."]:
     return jnp.mean(x, axis=-1)
 
 
+def rho_lobe_prob(p) -> Float[Array, "..."]:
+    """Specular-lobe probability from the luminances of rho_s and rho_d (the usual choice)."""
+    return lobe_prob(lum(p["rho_s"]), lum(p["rho_d"]))
+
+
 def lobe_prob(w_spec: Float[Array, "..."], w_diff: Float[Array, "..."], floor: float = 0.0) -> Float[Array, "..."]:
     """pbrt-style probability of sampling the specular lobe: w_spec / (w_spec + w_diff).
 

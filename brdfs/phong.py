@@ -83,9 +83,7 @@ def _spec_pdf(p: Params, wo, wi):
     return (s + 1.0) / (2.0 * math.pi) * _lobe(C.dot(wi, C.reflect_z(wo)), s)
 
 
-def _ps(p: Params):
-    return C.lobe_prob(C.lum(p["rho_s"]), C.lum(p["rho_d"]))
-
+_ps = C.rho_lobe_prob
 
 sample, pdf = C.mixture(_ps, _spec_sample, _spec_pdf, eval)
 

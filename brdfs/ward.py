@@ -83,9 +83,7 @@ def _spec_pdf(p: Params, wo, wi):
     return d * jnp.maximum(h[..., 2], 0.0) * C.half_jacobian(wo, h)
 
 
-def _ps(p: Params):
-    return C.lobe_prob(C.lum(p["rho_s"]), C.lum(p["rho_d"]))
-
+_ps = C.rho_lobe_prob
 
 sample, pdf = C.mixture(_ps, _spec_sample, _spec_pdf, eval)
 

@@ -90,13 +90,11 @@ def _assignments(items: list[str], flag: str) -> dict:
 
 
 def _check_outputs(*pairs):
+    from jaxrt.fsutil import check_output
+
     for path, suffix, flag in pairs:
-        if path is None:
-            continue
-        if Path(path).suffix.lower() != suffix:
-            raise InputError(f"{flag} {path}: the file name must end in {suffix}")
-        if not Path(path).resolve().parent.is_dir():
-            raise InputError(f"{flag} {path}: output directory {Path(path).resolve().parent} does not exist")
+        if path is not None:
+            check_output(path, suffix, flag)
 
 
 def _write_json(path, obj) -> None:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 
 from jaxrt.errors import InputError
+from jaxrt.fsutil import check_output
 
 AOV_NAMES = ("depth", "normal", "albedo", "object_id")
 
@@ -54,11 +54,7 @@ def run(args: argparse.Namespace) -> int:
     for flag in ("output", "png"):
         p = getattr(args, flag)
         if p is not None:
-            want = ".exr" if flag == "output" else ".png"
-            if Path(p).suffix.lower() != want:
-                raise InputError(f"{'-o' if flag == 'output' else '--png'} {p}: the file name must end in {want}")
-            if not Path(p).resolve().parent.is_dir():
-                raise InputError(f"{p}: output directory {Path(p).resolve().parent} does not exist")
+            check_output(p, ".exr" if flag == "output" else ".png", "-o" if flag == "output" else "--png")
 
     from jaxrt import scene as _scene
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from pathlib import Path
 
 from jaxrt.errors import InputError
 
@@ -68,11 +67,9 @@ def run(args: argparse.Namespace) -> int:
     if not 1 <= args.steps <= 64:
         raise InputError(f"--steps: expected an integer in [1, 64], got {args.steps}")
     vals = sweep.span(model, args.param, args.start, args.stop, args.steps)
-    out = Path(args.output)
-    if out.suffix.lower() != ".png":
-        raise InputError(f"-o {out}: the file name must end in .png")
-    if not out.resolve().parent.is_dir():
-        raise InputError(f"-o {out}: output directory {out.resolve().parent} does not exist")
+    from jaxrt.fsutil import check_output
+
+    out = check_output(args.output, ".png", "-o")
     if not math.isfinite(args.exposure):
         raise InputError(f"--exposure: expected a finite number of stops, got {args.exposure}")
     base = _assignments(args.set)

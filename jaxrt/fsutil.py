@@ -34,3 +34,18 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def check_output(path: str | os.PathLike, suffix: str, flag: str) -> Path:
+    """Validate a CLI output path before any work: the right extension and an existing directory.
+
+    Raises InputError naming the option (`flag`), the path and what is allowed.
+    """
+    from jaxrt.errors import InputError
+
+    path = Path(path)
+    if path.suffix.lower() != suffix:
+        raise InputError(f"{flag} {path}: the file name must end in {suffix}")
+    if not path.resolve().parent.is_dir():
+        raise InputError(f"{flag} {path}: output directory {path.resolve().parent} does not exist")
+    return path

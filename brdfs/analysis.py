@@ -6,7 +6,9 @@ grid per lobe of the one-sample mixture:
 
     a(wo) = (1 - ps) mean_grid[f cos / pdf](wi ~ diffuse) + ps mean_grid[f cos / pdf](wi ~ specular)
 
-where ps is the model's specular-lobe probability and pdf the full mixture density. This is the
+where ps is the model's specular-lobe probability and pdf the full mixture density. A model with more
+than two lobes (Disney) lists them in `extras["lobes"]` as (probability, sampler) pairs, and the sum
+runs over all of them in the same way. This is the
 mixture estimator with the lobe choice integrated out exactly, so there is no discontinuity in u
 (the one-sample selection would put one) and each grid integrates a smooth function of u: for
 Lambert the weight is constant (exact up to float32 rounding), for smooth lobes the error is

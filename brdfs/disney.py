@@ -21,9 +21,9 @@
 
 B. Burley, "Physically-Based Shading at Disney", SIGGRAPH 2012 course: Practical Physically Based
 Shading in Film and Game Production (with its Appendix B: GTR1/GTR2 sampling), as implemented in
-Disney's BRDF Explorer (`brdfs/disney.brdf`). As there, base_color is used as given (linear RGB;
-the explorer's mon2lin gamma is the caller's business), the specular G uses a_x, a_y themselves
-(the 2012 paper's (0.5 + roughness/2)^2 remapping of G was dropped in the explorer's final version),
+Disney's BRDF Explorer (`brdfs/disney.brdf`), except that base_color is taken as linear RGB (the
+explorer's mon2lin gamma is not applied; scene colours are linear here). The specular G uses a_x, a_y themselves
+(Burley's 2015 course notes removed the 2012 paper's (0.5 + roughness/2)^2 remapping of G),
 and the clearcoat weight is clearcoat/4.
 
 Properties (measured by tests/test_disney.py over a parameter grid with `brdfs.albedo`):

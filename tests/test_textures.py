@@ -248,3 +248,87 @@ def test_textured_example_scene_renders(tmp_path):
     assert cli.main(["render", "textured", "-o", str(exr), "--width", "32", "--height", "20", "-q"]) == 0
     img = read_exr(exr)
     assert img.shape == (20, 32, 3) and np.all(np.isfinite(img)) and img.max() > 0
+
+
+def test_box_faces_map_to_unit_square():
+    from jaxrt import shapes
+
+    size = np.array([1.0, 2.0, 3.0])
+    b = shapes.box(size=tuple(size))
+    v, n, uv = (np.asarray(x, np.float64) for x in (b.vertices, b.normals, b.uvs))
+    for a, (i, j) in enumerate([(1, 2), (0, 2), (0, 1)]):
+        on = np.abs(n[:, a]) > 0.5
+        assert on.sum() == 12  # two faces of two triangles per axis
+        np.testing.assert_allclose(uv[on], np.stack([v[on, i] / size[i], v[on, j] / size[j]], -1) + 0.5, atol=1e-6)
+
+
+def test_sphere_uv_is_latitude_longitude_without_a_seam_sweep():
+    from jaxrt import shapes
+
+    s = shapes.sphere(radius=1.0, subdivisions=3)
+    v, uv, f = (np.asarray(x, np.float64) for x in (s.vertices, s.uvs, s.faces))
+    f = f.astype(int)
+    n = v / np.linalg.norm(v, axis=1, keepdims=True)
+    # v: latitude (1 at +y); u: longitude around +y, up to a whole turn at seam copies
+    np.testing.assert_allclose(uv[:, 1], 0.5 + np.arcsin(np.clip(n[:, 1], -1, 1)) / np.pi, atol=1e-6)
+    lon = np.mod(np.arctan2(n[:, 0], n[:, 2]) / (2 * np.pi) + 0.5, 1.0)
+    d = np.mod(uv[:, 0] - lon + 0.5, 1.0) - 0.5
+    polar = np.abs(n[:, 1]) > 0.999
+    np.testing.assert_allclose(d[~polar], 0.0, atol=1e-6)
+    # away from the poles no face spans more than a small part of the turn
+    span = uv[f, 0].max(1) - uv[f, 0].min(1)
+    near_pole = np.abs(n[f, 1]).max(1) > 0.97
+    assert span[~near_pole].max() < 0.1
+
+
+def test_gather_params_textured_scalar_parameter_and_float64_gradient(tmp_path):
+    """_gather_params(..., uv) returns the texture value only for the textured material's slots, and
+    the Disney BRDF's gradient with respect to a roughness texel matches float64 central differences."""
+    import brdfs
+    from jaxrt.integrators import _gather_params
+
+    _write_png(tmp_path / "rough.png", np.array([[40, 200], [120, 90]], np.uint8))
+    doc = _plane_doc(0.5)
+    doc["materials"] = {"a": {"model": "disney", "roughness": {"texture": "rough.png", "wrap": "clamp"}},
+                        "b": {"model": "disney", "roughness": 0.3}}
+    doc["objects"][0]["material"] = "a"
+    sc = S.load(doc, base_dir=tmp_path)
+    mats = sc.materials
+    rng = np.random.default_rng(5)
+    B = 12
+    uv = rng.uniform(0, 1, (B, 2))
+    mat = np.arange(B) % 2  # alternate materials a (textured) and b (constant)
+    tex = mats.textures[0]
+    p = _gather_params(mats, jnp.asarray(mat), 0, jnp.asarray(uv, jnp.float32))
+    ref = bilinear_ref(np.asarray(tex.texels), uv, "clamp")[:, 0]
+    np.testing.assert_allclose(np.asarray(p["roughness"]), np.where(mat == 0, ref, 0.3), atol=1e-6)
+    assert p["roughness"].shape == (B,) and p["base_color"].shape == (B, 3)
+    # uv=None keeps the old call form: constants (a textured parameter's constant is its texture mean)
+    p0 = _gather_params(mats, jnp.asarray(mat), 0)
+    np.testing.assert_allclose(np.asarray(p0["roughness"]), np.where(mat == 0, np.mean(np.asarray(tex.texels)), 0.3),
+                               rtol=1e-6)
+
+    m = brdfs.get("disney")
+    wo = np.tile([[0.3, 0.1, 0.95]], (B, 1))
+    wi = wo * np.array([-1, -1, 1]) + 0.2 * rng.normal(size=(B, 3))
+    wi[:, 2] = np.abs(wi[:, 2]) + 0.3
+    wo, wi = (w / np.linalg.norm(w, axis=-1, keepdims=True) for w in (wo, wi))
+    with jax.enable_x64(True):
+        mats64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64) if jnp.issubdtype(x.dtype, jnp.floating)
+                                        else x, mats)
+
+        def total(t):
+            mm = eqx.tree_at(lambda q: q.textures[0].texels, mats64, t)
+            pp = _gather_params(mm, jnp.asarray(mat), 0, jnp.asarray(uv))
+            return jnp.sum(m.eval(pp, jnp.asarray(wi), jnp.asarray(wo)))
+
+        t0 = mats64.textures[0].texels
+        g = np.asarray(jax.grad(total)(t0))
+        total = jax.jit(total)
+        fd = np.zeros(t0.shape)
+        for idx in np.ndindex(t0.shape):
+            e = np.zeros(t0.shape)
+            e[idx] = 1e-6
+            fd[idx] = (float(total(t0 + e)) - float(total(t0 - e))) / 2e-6
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-9)
+    assert np.all(np.abs(fd) > 0)

@@ -277,3 +277,16 @@ def test_scene_with_disney_material_renders_and_matches_reference():
     f = disney_ref(q, wi, wo)
     expect = f * light_i * (wi[:, 2] / dist2)[:, None]
     np.testing.assert_allclose(img, expect, rtol=2e-3, atol=1e-5)
+
+
+def test_chi2_rejects_disney_samples_against_a_perturbed_pdf():
+    """The generic chi-square test (tests/test_brdf_sampling.py) can fail for Disney: samples drawn with
+    roughness 0.5 are rejected against the pdf of roughness 0.575."""
+    from test_brdf_sampling import N_SAMPLES, _draw, _expected_cell_probs, _histogram, _wo, chi2_pvalue
+
+    kw = dict(base_color=[0.7, 0.4, 0.2], metallic=0.3, roughness=0.5, anisotropic=0.8, sheen=0.5, clearcoat=1.0,
+              clearcoat_gloss=0.0)
+    wo = _wo(45, 30)
+    wi, _, pdf, _ = _draw(M, M.params(**kw), wo, N_SAMPLES, seed=5)
+    probs = _expected_cell_probs(M, M.params(**{**kw, "roughness": 0.575}), wo)
+    assert chi2_pvalue(_histogram(wi, pdf > 0), probs, N_SAMPLES) < 1e-6

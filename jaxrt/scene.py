@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
@@ -137,7 +138,8 @@ class Scene(eqx.Module):
 
     def with_texture(self, name: str, param: str, texels) -> "Scene":
         """A copy with the texels of material `name`'s textured parameter `param` replaced (same shape;
-        never recompiles). Values are not range-checked here (gradient steps may pass through)."""
+        never recompiles). Concrete values must be finite; they are not range-checked here (an
+        optimiser's steps may pass through), and traced values (inside jax.grad) are not checked."""
         mats = self.materials
         i = mats.index(name)
         key = (int(mats.model_id[i]), int(mats.row[i]), param)
@@ -148,6 +150,8 @@ class Scene(eqx.Module):
         new = jnp.asarray(texels, jnp.float32)
         if new.shape != old.shape:
             raise InputError(f"material {name!r}: {param} texels must keep the shape {old.shape}, got {new.shape}")
+        if not isinstance(new, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(new))):
+            raise InputError(f"material {name!r}: {param} texels must be finite")
         return eqx.tree_at(lambda s: s.materials.textures[hit[0]].texels, self, new)
 
     def with_light(self, index: int = 0, position=None, intensity=None) -> "Scene":

@@ -177,6 +177,10 @@ def test_changing_texels_does_not_recompile(textured):
         sc.with_material("tex", rho_d=0.5)
     with pytest.raises(InputError, match="shape"):
         sc.with_texture("tex", "rho_d", np.zeros((2, 2, 3)))
+    with pytest.raises(InputError, match="finite"):
+        sc.with_texture("tex", "rho_d", np.full(sc.materials.textures[0].texels.shape, np.nan))
+    with pytest.raises(InputError, match="not textured"):
+        sc.with_texture("tex", "rho_s", sc.materials.textures[0].texels)
 
 
 def _parse(doc, base):

@@ -34,8 +34,9 @@ Properties (measured by tests/test_disney.py over a parameter grid with `brdfs.a
   diffuse albedo above base_color, the subsurface term's 1/(n·wi + n·wo) grows at grazing views,
   and the diffuse, sheen and clearcoat lobes are added on top of the specular lobe with no energy
   taken from them. The maximum directional albedo measured over the corner grid in
-  tests/test_disney.py (base_color, metallic, subsurface, specular, anisotropic, sheen, clearcoat,
-  clearcoat_gloss in {0, 1}, roughness in {0, 0.5, 1}, view 0/30/60/80 deg) is 1.72
+  tests/test_disney.py (base_color, metallic, subsurface, specular, anisotropic, sheen, clearcoat
+  in {0, 1}, roughness in {0, 0.5, 1}, clearcoat_gloss 1, view 0/30/60/80 deg; the same maximum
+  with clearcoat_gloss in {0, 1}) is 1.72
   (`MAX_ALBEDO_MEASURED`: base_color = 1, metallic = 0, subsurface = 1, specular = 1, sheen = 1,
   clearcoat = 1, roughness = 0, view 80 deg). The metallic lobe alone (metallic = 1, no sheen or
   clearcoat) stays <= 1 on that grid (max 1.000 at roughness 0, where it is almost a mirror; GGX

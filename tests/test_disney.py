@@ -207,7 +207,7 @@ def _albedo_quadrature(q, theta_o, n=160):
     return np.sum(f * w[:, None], axis=0)
 
 
-@pytest.mark.parametrize("theta", [0.0, 45.0, 75.0])
+@pytest.mark.parametrize("theta", [0.0, 75.0])
 def test_albedo_estimator_matches_brute_force_quadrature(theta):
     """brdfs.albedo's three-lobe estimator vs float64 quadrature of the independent reference."""
     q = _full(base_color=[0.8, 0.5, 0.2], metallic=0.3, subsurface=0.4, roughness=0.5, sheen=0.6,
@@ -218,9 +218,9 @@ def test_albedo_estimator_matches_brute_force_quadrature(theta):
     np.testing.assert_allclose(a, ref, atol=2e-3)
 
 
-GRID_KEYS = ("base_color", "metallic", "subsurface", "specular", "roughness", "anisotropic", "sheen", "clearcoat",
-             "clearcoat_gloss")
-GRID_VALUES = ((0, 1), (0, 1), (0, 1), (0, 1), (0, 0.5, 1), (0, 1), (0, 1), (0, 1), (0, 1))  # 768 sets
+# 384 sets; clearcoat_gloss stays at its default 1 (the sharpest, brightest clearcoat peak)
+GRID_KEYS = ("base_color", "metallic", "subsurface", "specular", "roughness", "anisotropic", "sheen", "clearcoat")
+GRID_VALUES = ((0, 1), (0, 1), (0, 1), (0, 1), (0, 0.5, 1), (0, 1), (0, 1), (0, 1))
 GRID_ANGLES = np.array([0.0, 30.0, 60.0, 80.0]) * DEG
 
 
@@ -279,6 +279,7 @@ def test_scene_with_disney_material_renders_and_matches_reference():
     np.testing.assert_allclose(img, expect, rtol=2e-3, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_chi2_rejects_disney_samples_against_a_perturbed_pdf():
     """The generic chi-square test (tests/test_brdf_sampling.py) can fail for Disney: samples drawn with
     roughness 0.5 are rejected against the pdf of roughness 0.575."""

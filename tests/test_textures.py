@@ -144,7 +144,6 @@ def test_textured_plane_render_matches_numpy(textured):
 def test_pixel_gradient_wrt_texel_matches_finite_differences(textured):
     sc, gb, _ = textured
     tex0 = sc.materials.textures[0].texels
-    W = CAM["width"]
     pix = [(5, 7), (16, 16), (28, 3)]
 
     def pixels(texels):
@@ -161,7 +160,6 @@ def test_pixel_gradient_wrt_texel_matches_finite_differences(textured):
         np.testing.assert_allclose(jac[:, jj, ii, 1], fd, rtol=2e-3, atol=1e-7)
         checked += int(np.sum(np.abs(fd) > 0))
     assert checked >= 2  # some of the chosen texels do influence the chosen pixels
-    del W
 
 
 def test_changing_texels_does_not_recompile(textured):

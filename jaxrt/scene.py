@@ -580,6 +580,8 @@ def _parse_texture(t: Mapping, p, model: str, base: Path, where: str) -> Texture
             raise InputError(f"{where}: checker must be a list of two values, got {vals!r}")
         texels = []
         for k, v in enumerate(vals):
+            if not p.rgb and np.ndim(v) != 0:
+                raise InputError(f"{where}: checker value {k + 1} must be a number ({p.name} is not RGB), got {v!r}")
             try:
                 texels.append(np.broadcast_to(p.check(v, model), (chans,)))
             except ValueError as e:

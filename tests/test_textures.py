@@ -235,6 +235,9 @@ def test_scalar_parameter_needs_one_channel(tmp_path):
     doc["materials"]["tex"] = {"model": "disney", "roughness": {"texture": "rgb.png"}}
     with pytest.raises(InputError, match="materials.tex.roughness.*rgb.png.*one-channel"):
         _parse(doc, tmp_path)
+    doc["materials"]["tex"] = {"model": "disney", "roughness": {"checker": [[0.1, 0.2, 0.3], 0.5]}}
+    with pytest.raises(InputError, match="materials.tex.roughness: checker value 1 must be a number"):
+        _parse(doc, tmp_path)
     doc["materials"]["tex"] = {"model": "disney", "roughness": {"texture": "rough.png"}}
     ts = _parse(doc, tmp_path).materials["tex"].textures["roughness"]
     np.testing.assert_allclose(ts.texels[..., 0], arr / 255.0, rtol=1e-6)  # linear, not sRGB-decoded

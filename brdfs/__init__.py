@@ -1,7 +1,8 @@
 """brdfs: analytic reflectance models as pure, differentiable JAX functions.
 
     import brdfs
-    brdfs.names()        # ('lambert', 'phong', 'blinn_phong', 'cook_torrance', 'ward', 'ashikhmin_shirley', 'glass')
+    brdfs.names()        # ('lambert', 'phong', 'blinn_phong', 'cook_torrance', 'ward', 'ashikhmin_shirley', 'glass',
+                         #  'disney')
     model = brdfs.get("cook_torrance")
     p = model.params(rho_d=0.2, rho_s=0.8, m=0.3, eta=1.5)
     f = model.eval(p, wi, wo)           # (..., 3) linear RGB [1/sr]
@@ -13,11 +14,11 @@ formula, the paper, and the measured energy/reciprocity properties.
 
 from __future__ import annotations
 
-from brdfs import ashikhmin_shirley, blinn_phong, cook_torrance, glass, lambert, phong, ward
+from brdfs import ashikhmin_shirley, blinn_phong, cook_torrance, disney, glass, lambert, phong, ward
 from brdfs.analysis import albedo, lobe_slice, plot_lobe, reciprocity_error
 from brdfs.base import Model, Param, Params
 
-_MODULES = (lambert, phong, blinn_phong, cook_torrance, ward, ashikhmin_shirley, glass)
+_MODULES = (lambert, phong, blinn_phong, cook_torrance, ward, ashikhmin_shirley, glass, disney)
 MODELS: dict[str, Model] = {m.MODEL.name: m.MODEL for m in _MODULES}
 
 

@@ -6,7 +6,9 @@ grid per lobe of the one-sample mixture:
 
     a(wo) = (1 - ps) mean_grid[f cos / pdf](wi ~ diffuse) + ps mean_grid[f cos / pdf](wi ~ specular)
 
-where ps is the model's specular-lobe probability and pdf the full mixture density. This is the
+where ps is the model's specular-lobe probability and pdf the full mixture density. A model with more
+than two lobes (Disney) lists them in `extras["lobes"]` as (probability, sampler) pairs, and the sum
+runs over all of them in the same way. This is the
 mixture estimator with the lobe choice integrated out exactly, so there is no discontinuity in u
 (the one-sample selection would put one) and each grid integrates a smooth function of u: for
 Lambert the weight is constant (exact up to float32 rounding), for smooth lobes the error is
@@ -73,7 +75,6 @@ def albedo(model: Model, p: Params, wo: Float[Array, "... 3"], n: int = 256) -> 
     u = jnp.asarray(stratified_grid(n), dtype=wo.dtype)  # (N, 2)
     pe = _expand(model, p)
     woe = wo[..., None, :]
-    ps = model.extras["lobe_prob"](p)  # (...)
 
     def lobe_mean(wi):
         f = model.eval(pe, wi, woe)
@@ -84,6 +85,10 @@ def albedo(model: Model, p: Params, wo: Float[Array, "... 3"], n: int = 256) -> 
         w = w.reshape(w.shape[:-2] + (n, n, w.shape[-1]))
         return jnp.mean(jnp.mean(w, axis=-2), axis=-2)
 
+    if "lobes" in model.extras:  # a mixture of more than two lobes: ((prob_fn, sample_fn), ...)
+        a = sum(prob(p)[..., None] * lobe_mean(samp(pe, woe, u)) for prob, samp in model.extras["lobes"])
+        return jnp.where((wo[..., 2] > 0)[..., None], a, 0.0)
+    ps = model.extras["lobe_prob"](p)  # (...)
     wi_d = jnp.broadcast_to(C.cosine_sample(u), woe.shape[:-2] + u.shape[:-1] + (3,))
     wi_s = model.extras["sample_specular"](pe, woe, u)
     a = (1.0 - ps)[..., None] * lobe_mean(wi_d) + ps[..., None] * lobe_mean(wi_s)

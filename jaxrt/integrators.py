@@ -91,6 +91,7 @@ class Surface(eqx.Module):
     ns: Float[Array, "B 3"]
     tangent: Float[Array, "B 3"]
     material: Int[Array, "B"]
+    uv: Float[Array, "B 2"] | None = None  # interpolated texture coordinates
 
 
 def _dot(a, b):
@@ -115,7 +116,12 @@ def surface(geometry, prim: Int[Array, "B"], u: Float[Array, "B"], v: Float[Arra
     ns = jnp.where((_dot(ns, ns) > 0.5)[:, None], ns, ng)
     t0, t1, t2 = (geometry.tangents[f[:, k]] for k in range(3))
     tg = w * t0 + u[:, None] * t1 + v[:, None] * t2
-    return Surface(p, ng, ns, tg, geometry.material[jnp.maximum(prim, 0)])
+    uvs = getattr(geometry, "uvs", None)
+    if uvs is None:
+        uv = jnp.zeros(u.shape + (2,), p.dtype)
+    else:
+        uv = w * uvs[f[:, 0]] + u[:, None] * uvs[f[:, 1]] + v[:, None] * uvs[f[:, 2]]
+    return Surface(p, ng, ns, tg, geometry.material[jnp.maximum(prim, 0)], uv)
 
 
 def _frame(n: Float[Array, "B 3"], t: Float[Array, "B 3"]):
@@ -145,10 +151,25 @@ def _offset_scale(p):
     return _OFFSET * (1.0 + jnp.max(jnp.abs(p), axis=-1, keepdims=True))
 
 
-def _gather_params(materials, mat: Int[Array, "B"], k: int) -> dict:
-    """Model k's parameters for every slot (rows of other models' materials point at row 0)."""
+def _gather_params(materials, mat: Int[Array, "B"], k: int, uv: Float[Array, "B 2"] | None = None) -> dict:
+    """Model k's parameters for every slot (rows of other models' materials point at row 0).
+
+    With `uv`, a textured parameter (`materials.bindings`) takes its texture's value at the slot's
+    uv (jaxrt.textures.lookup) instead of the table's constant; uv=None gives the constants.
+    """
     row = jnp.where(materials.model_id[mat] == k, materials.row[mat], 0)
-    return {name: table[row] for name, table in materials.params[k].items()}
+    out = {name: table[row] for name, table in materials.params[k].items()}
+    if uv is not None:
+        from jaxrt import textures as _tx
+
+        model = brdfs.get(materials.models[k])
+        for mk, r, name, t in getattr(materials, "bindings", ()):
+            if mk != k:
+                continue
+            sel = (materials.model_id[mat] == k) & (materials.row[mat] == r)
+            val = _tx.value(materials.textures[t], uv, model.param(name).rgb)
+            out[name] = jnp.where(sel[:, None] if val.ndim == 2 else sel, val, out[name])
+    return out
 
 
 def _oriented(s: Surface, d: Float[Array, "B 3"]):
@@ -344,9 +365,11 @@ def _direct(scene, s: Surface, d, visible):
     for k, name in enumerate(mats.models):
         model = brdfs.get(name)
         sel = mats.model_id[s.material] == k
-        p = _gather_params(mats, s.material, k)
+        p = _gather_params(mats, s.material, k, s.uv)
         if "rho_d" in p:
             albedo = jnp.where(sel[:, None], p["rho_d"], albedo)
+        elif "base_color" in p:  # Disney
+            albedo = jnp.where(sel[:, None], p["base_color"], albedo)
         if model.delta:
             albedo = jnp.where(sel[:, None], 1.0, albedo)
             continue
@@ -371,7 +394,7 @@ def shade(gbuffer: GBuffer, scene, aovs: bool = False):
     Returns:
         image (H, W, 3) linear radiance, or with `aovs=True` a pair (image, dict) where the dict has
         depth (H, W) [scene units along the primary ray; 0 where nothing was hit], normal (H, W, 3)
-        (world shading normal facing the camera; 0 on misses), albedo (H, W, 3) (rho_d, 1 for glass,
+        (world shading normal facing the camera; 0 on misses), albedo (H, W, 3) (rho_d or base_color, 1 for glass,
         0 for models without rho_d or misses) and object_id (H, W) int32 (-1 on misses), each from
         the pixel's first sample.
     """

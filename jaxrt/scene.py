@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
@@ -59,6 +60,10 @@ class Materials(eqx.Module):
     delta: Float[Array, "M"]
     models: tuple[str, ...] = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True)
+    # Textured parameters (jaxrt.textures): the texel values are traced, which parameter of which
+    # material row uses which texture is static: bindings[j] = (model index, row, param, texture index).
+    textures: tuple = ()
+    bindings: tuple[tuple[int, int, str, int], ...] = eqx.field(static=True, default=())
 
     def index(self, name: str) -> int:
         if name not in self.names:
@@ -81,6 +86,7 @@ class Geometry(eqx.Module):
     object_id: Int[Array, "F"]
     tree: Any
     object_names: tuple[str, ...] = eqx.field(static=True)
+    uvs: Float[Array, "V 2"] | None = None  # texture coordinates per vertex (zeros where a mesh has none)
 
 
 class Settings(eqx.Module):
@@ -120,6 +126,8 @@ class Scene(eqx.Module):
                     raise InputError(f"material {name!r}: delta is not a parameter of {model.name}")
                 delta = delta.at[i].set(_check_range(v, 0.0, 1.0, f"material {name!r}: delta"))
                 continue
+            if any(b[:3] == (m, r, k) for b in mats.bindings):
+                raise InputError(f"material {name!r}: {k} is textured; change it with with_texture")
             try:
                 val = model.param(k).check(v, model.name)
             except ValueError as e:
@@ -127,6 +135,24 @@ class Scene(eqx.Module):
             table[k] = table[k].at[r].set(val)
         params = tuple(table if j == m else t for j, t in enumerate(mats.params))
         return eqx.tree_at(lambda s: (s.materials.params, s.materials.delta), self, (params, delta))
+
+    def with_texture(self, name: str, param: str, texels) -> "Scene":
+        """A copy with the texels of material `name`'s textured parameter `param` replaced (same shape;
+        never recompiles). Concrete values must be finite; they are not range-checked here (an
+        optimiser's steps may pass through), and traced values (inside jax.grad) are not checked."""
+        mats = self.materials
+        i = mats.index(name)
+        key = (int(mats.model_id[i]), int(mats.row[i]), param)
+        hit = [b[3] for b in mats.bindings if b[:3] == key]
+        if not hit:
+            raise InputError(f"material {name!r}: {param} is not textured")
+        old = mats.textures[hit[0]].texels
+        new = jnp.asarray(texels, jnp.float32)
+        if new.shape != old.shape:
+            raise InputError(f"material {name!r}: {param} texels must keep the shape {old.shape}, got {new.shape}")
+        if not isinstance(new, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(new))):
+            raise InputError(f"material {name!r}: {param} texels must be finite")
+        return eqx.tree_at(lambda s: s.materials.textures[hit[0]].texels, self, new)
 
     def with_light(self, index: int = 0, position=None, intensity=None) -> "Scene":
         """A copy with light `index` moved and/or re-scaled."""
@@ -194,8 +220,19 @@ class CameraSpec:
 class MaterialSpec:
     name: str
     model: str
-    params: dict  # name -> float32 numpy array (validated)
+    params: dict  # name -> float32 numpy array (validated); a textured parameter holds its texture's mean
     delta: float
+    textures: dict = dataclasses.field(default_factory=dict)  # name -> TextureSpec
+
+
+@dataclasses.dataclass(frozen=True)
+class TextureSpec:
+    kind: str  # "image" | "checker"
+    texels: np.ndarray  # (H, W, C) float32 linear; checker: (1, 2, C)
+    wrap: str
+    uv_scale: tuple
+    uv_offset: tuple
+    source: str  # file path or "checker"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -421,15 +458,20 @@ def parse(
             delta = 0.0
         else:
             delta = mc.number("delta", 0.0, lo=0.0, hi=1.0)
-        params = {}
+        params, textures = {}, {}
         for p in model.spec:
             value = mc.raw(p.name, p.default)
+            if isinstance(value, Mapping) and not model.delta:
+                textures[p.name] = _parse_texture(value, p, model.name, base, f"{file}: materials.{name}.{p.name}")
+                params[p.name] = np.asarray(textures[p.name].texels.reshape(-1, textures[p.name].texels.shape[-1])
+                                            .mean(0) if p.rgb else textures[p.name].texels.mean(), np.float32)
+                continue
             try:
                 params[p.name] = p.check(value, model.name)
             except ValueError as e:
                 mc.fail(p.name, str(e).split(": ", 1)[-1])
         mc.done()
-        materials[name] = MaterialSpec(name, model_name, params, delta)
+        materials[name] = MaterialSpec(name, model_name, params, delta, textures)
 
     # ---- objects
     raw_objs = top.raw("objects")
@@ -502,6 +544,61 @@ def parse(
     rc.raw("ray_budget", None)
     rc.done()
     return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render)
+
+
+def _parse_texture(t: Mapping, p, model: str, base: Path, where: str) -> TextureSpec:
+    """Validate a texture table `{ texture = "file.png" | checker = [a, b], wrap, scale, offset }` for
+    parameter declaration `p` (see jaxrt/textures.py for the conventions)."""
+    from jaxrt import textures as _tx
+
+    allowed = ("texture", "checker", "wrap", "scale", "offset")
+    unknown = [k for k in t if k not in allowed]
+    if unknown:
+        raise InputError(f"{where}: unknown texture key {unknown[0]!r}; allowed: {', '.join(allowed)}")
+    if ("texture" in t) == ("checker" in t):
+        raise InputError(f"{where}: a texture table needs exactly one of texture = \"FILE.png|.exr\" "
+                         "or checker = [VALUE_A, VALUE_B]")
+    wrap = t.get("wrap", "repeat")
+    if wrap not in _tx.WRAPS:
+        raise InputError(f"{where}: wrap = {wrap!r}; allowed: {', '.join(_tx.WRAPS)}")
+
+    def pair(key, default, positive):
+        v = t.get(key, default)
+        try:
+            a = np.broadcast_to(np.asarray(v, np.float64), (2,))
+        except (TypeError, ValueError):
+            raise InputError(f"{where}: {key} must be a number or [u, v], got {v!r}") from None
+        if not np.all(np.isfinite(a)) or (positive and np.any(a == 0)):
+            raise InputError(f"{where}: {key} = {v!r} must be finite{' and non-zero' if positive else ''}")
+        return tuple(float(x) for x in a)
+
+    scale, offset = pair("scale", 1.0, True), pair("offset", 0.0, False)
+    chans = 3 if p.rgb else 1
+    if "checker" in t:
+        vals = t["checker"]
+        if not isinstance(vals, list) or len(vals) != 2:
+            raise InputError(f"{where}: checker must be a list of two values, got {vals!r}")
+        texels = []
+        for k, v in enumerate(vals):
+            if not p.rgb and np.ndim(v) != 0:
+                raise InputError(f"{where}: checker value {k + 1} must be a number ({p.name} is not RGB), got {v!r}")
+            try:
+                texels.append(np.broadcast_to(p.check(v, model), (chans,)))
+            except ValueError as e:
+                raise InputError(f"{where}: checker value {k + 1}: {str(e).split(': ', 1)[-1]}") from None
+        return TextureSpec("checker", np.stack(texels)[None].astype(np.float32), wrap, scale, offset, "checker")
+    ref = t["texture"]
+    if not isinstance(ref, str):
+        raise InputError(f"{where}: texture must be a file name, got {ref!r}")
+    path = Path(ref) if Path(ref).is_absolute() else base / ref
+    texels = _tx.read_image(path, p.rgb, where)
+    if not np.all(np.isfinite(texels)):
+        raise InputError(f"{where}: {path} contains non-finite values")
+    lo, hi = float(texels.min()), float(texels.max())
+    if lo < p.lo or hi > p.hi:
+        raise InputError(f"{where}: {path} has values in [{lo:g}, {hi:g}], outside the allowed range "
+                         f"[{p.lo:g}, {p.hi:g}] of {model}.{p.name}")
+    return TextureSpec("image", texels, wrap, scale, offset, str(path))
 
 
 def _resolve_mesh(ref: str, base: Path, oc: _Checker) -> Path:
@@ -599,6 +696,13 @@ def build(spec: SceneSpec) -> Scene:
         {p: jnp.asarray(np.stack([r[p] for r in rows[mname]])) for p in brdfs.get(mname).param_names}
         for mname in models
     )
+    from jaxrt import textures as _tx
+
+    texs, bindings = [], []
+    for n, mid, r in zip(mat_names, model_id, row):
+        for pname, ts in spec.materials[n].textures.items():
+            bindings.append((mid, r, pname, len(texs)))
+            texs.append(_tx.make(ts.texels, ts.kind, ts.wrap, ts.uv_scale, ts.uv_offset))
     materials = Materials(
         params=tables,
         model_id=jnp.asarray(model_id, jnp.int32),
@@ -606,6 +710,8 @@ def build(spec: SceneSpec) -> Scene:
         delta=jnp.asarray(delta, jnp.float32),
         models=tuple(models),
         names=mat_names,
+        textures=tuple(texs),
+        bindings=tuple(bindings),
     )
 
     cache: dict = {}
@@ -632,6 +738,9 @@ def build(spec: SceneSpec) -> Scene:
         object_id=jnp.asarray(np.concatenate(face_obj)),
         tree=tree,
         object_names=tuple(obj_names),
+        # mesh.concatenate drops UVs unless every mesh has them: keep them, zeros where a mesh has none
+        uvs=jnp.asarray(np.concatenate([np.zeros((m.num_vertices, 2), np.float32) if m.uvs is None
+                                        else np.asarray(m.uvs, np.float32) for m in meshes])),
     )
 
     lights = PointLights(

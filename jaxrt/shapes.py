@@ -23,10 +23,22 @@ def sphere(radius: float = 1.0, subdivisions: int = 4, name: str = "sphere") -> 
     tm = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     v = np.asarray(tm.vertices, np.float64)
     n = v / np.linalg.norm(v, axis=1, keepdims=True)
-    # spherical uv, so textures and tangents have a consistent parameterisation
-    uv = np.stack([0.5 + np.arctan2(n[:, 0], n[:, 2]) / (2 * np.pi), np.arccos(np.clip(n[:, 1], -1, 1)) / np.pi], 1)
+    # Latitude-longitude uv: u = 0.5 + atan2(x, z) / 2 pi around +y (u = 0.5 faces +z), v = 1 at the
+    # north pole (+y), so an equirectangular image maps upright (textures use v = 1 for the top row).
+    uv = np.stack([0.5 + np.arctan2(n[:, 0], n[:, 2]) / (2 * np.pi), 1.0 - np.arccos(np.clip(n[:, 1], -1, 1)) / np.pi], 1)
+    faces = np.asarray(tm.faces, np.int64).copy()
+    # Faces straddling the seam (u jumps from ~1 to ~0) get copies of their small-u vertices at
+    # u + 1, so uv interpolates across the face instead of sweeping through the whole texture.
+    fu = uv[faces, 0]
+    low = ((fu.max(1) - fu.min(1)) > 0.5)[:, None] & (fu < 0.5)
+    dup = np.unique(faces[low])
+    remap = np.full(len(v), -1, np.int64)
+    remap[dup] = len(v) + np.arange(len(dup))
+    faces[low] = remap[faces[low]]
+    v, n = np.concatenate([v, v[dup]]), np.concatenate([n, n[dup]])
+    uv = np.concatenate([uv, uv[dup] + np.array([1.0, 0.0])])
     return _mesh.Mesh.from_arrays(
-        v.astype(np.float32), np.asarray(tm.faces, np.int32), normals=n.astype(np.float32),
+        v.astype(np.float32), faces.astype(np.int32), normals=n.astype(np.float32),
         uvs=uv.astype(np.float32), name=name,
     )
 
@@ -42,14 +54,22 @@ def plane(size: tuple[float, float] = (1.0, 1.0), name: str = "plane") -> "_mesh
 
 
 def box(size: tuple[float, float, float] = (1.0, 1.0, 1.0), name: str = "box") -> "_mesh.Mesh":
-    """Axis-aligned box centred at the origin with edge lengths `size`, flat-shaded (24 vertices)."""
+    """Axis-aligned box centred at the origin with edge lengths `size`, flat-shaded (36 unshared vertices);
+    each face's uv spans [0, 1]^2 over its two in-plane axes."""
     tm = trimesh.creation.box(extents=np.asarray(size, np.float64))
     # unshare corners: each triangle gets its own vertices so every face keeps its own normal
     faces = np.asarray(tm.faces, np.int64)
     v = np.asarray(tm.vertices, np.float64)[faces.reshape(-1)]
     n = np.repeat(np.asarray(tm.face_normals, np.float64), 3, axis=0)
     f = np.arange(len(v), dtype=np.int32).reshape(-1, 3)
-    return _mesh.Mesh.from_arrays(v.astype(np.float32), f, normals=n.astype(np.float32), name=name)
+    # each face maps to [0, 1]^2 by its two in-plane coordinates (in x, y, z order)
+    size = np.asarray(size, np.float64)
+    axis = np.argmax(np.abs(n), axis=1)
+    other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
+    rows = np.arange(len(v))[:, None]
+    uv = v[rows, other] / size[other] + 0.5
+    return _mesh.Mesh.from_arrays(v.astype(np.float32), f, normals=n.astype(np.float32),
+                                  uvs=uv.astype(np.float32), name=name)
 
 
 PRIMITIVES = {"sphere": sphere, "plane": plane, "box": box}

@@ -89,7 +89,7 @@ EST_TOL = 1e-3  # estimator at n = 96 (see brdfs/analysis.py for its accuracy)
 def test_energy_conserving_flags():
     flags = {n: brdfs.get(n).energy_conserving for n in brdfs.names()}
     assert flags == {"lambert": True, "phong": True, "blinn_phong": False, "cook_torrance": True, "ward": True,
-                     "ashikhmin_shirley": True, "glass": True}
+                     "ashikhmin_shirley": True, "glass": True, "disney": False}
     assert set(GRIDS) == {n for n, f in flags.items() if f and n != "glass"}
 
 
@@ -142,7 +142,7 @@ def _hemi(rng, n):
 @pytest.mark.parametrize("name", [n for n in brdfs.names() if n != "glass"])
 def test_reciprocity_float64(name):
     m = brdfs.get(name)
-    assert m.reciprocal  # every seed model is reciprocal (see the module docstrings)
+    assert m.reciprocal  # every model is reciprocal (see the module docstrings)
     rng = np.random.default_rng(7)
     wi, wo = _hemi(rng, 2000), _hemi(rng, 2000)
     # include mirror pairs, where the lobes peak

@@ -21,6 +21,8 @@ GRAD_PARAMS = {
     "cook_torrance": dict(rho_d=[0.3, 0.5, 0.7], rho_s=[0.4, 0.2, 0.6], m=0.35, eta=1.7),
     "ward": dict(rho_d=[0.3, 0.5, 0.7], rho_s=[0.4, 0.2, 0.6], alpha_x=0.3, alpha_y=0.15),
     "ashikhmin_shirley": dict(rho_d=[0.3, 0.5, 0.7], rho_s=[0.4, 0.2, 0.6], n_u=40.0, n_v=8.0),
+    "disney": dict(base_color=[0.3, 0.5, 0.7], metallic=0.4, subsurface=0.3, specular=0.6, specular_tint=0.4,
+                   roughness=0.45, anisotropic=0.5, sheen=0.7, sheen_tint=0.3, clearcoat=0.8, clearcoat_gloss=0.4),
 }
 
 

@@ -10,7 +10,9 @@ import pytest
 import brdfs
 from jaxrt.errors import InputError
 
-NAMES = ("lambert", "phong", "blinn_phong", "cook_torrance", "ward", "ashikhmin_shirley", "glass")
+NAMES = ("lambert", "phong", "blinn_phong", "cook_torrance", "ward", "ashikhmin_shirley", "glass", "disney")
+DISNEY = ("base_color", "metallic", "subsurface", "specular", "specular_tint", "roughness", "anisotropic", "sheen",
+          "sheen_tint", "clearcoat", "clearcoat_gloss")
 PARAMS = {
     "lambert": ("rho_d",),
     "phong": ("rho_d", "rho_s", "s"),
@@ -19,10 +21,12 @@ PARAMS = {
     "ward": ("rho_d", "rho_s", "alpha_x", "alpha_y"),
     "ashikhmin_shirley": ("rho_d", "rho_s", "n_u", "n_v"),
     "glass": ("n_t",),
+    "disney": DISNEY,
 }
 # The seed's swept ranges: each model's bounds must contain them.
 SEED_RANGES = {"rho_d": (0, 1), "rho_s": (0, 1), "s": (1, 1000), "m": (0.01, 1), "eta": (1, 10),
-               "alpha_x": (0.01, 1), "alpha_y": (0.01, 1), "n_u": (1, 10000), "n_v": (1, 10000), "n_t": (1, 2)}
+               "alpha_x": (0.01, 1), "alpha_y": (0.01, 1), "n_u": (1, 10000), "n_v": (1, 10000), "n_t": (1, 2),
+               **{k: (0, 1) for k in DISNEY}}  # Burley 2012: every Disney parameter spans [0, 1]
 LOG = {"s", "m", "alpha_x", "alpha_y", "n_u", "n_v"}
 
 
@@ -46,7 +50,7 @@ def test_param_declarations_cover_seed_ranges(name):
         lo, hi = SEED_RANGES[spec.name]
         assert spec.lo <= lo and spec.hi >= hi, spec
         assert spec.lo <= spec.default <= spec.hi
-        assert spec.rgb == spec.name.startswith("rho")
+        assert spec.rgb == (spec.name.startswith("rho") or spec.name == "base_color")
         assert (spec.scale == "log") == (spec.name in LOG)
 
 

@@ -29,6 +29,11 @@ CASES = [
     ("ward", dict(rho_d=0.2, rho_s=0.8, alpha_x=0.3, alpha_y=0.1), 50, 30),
     ("ashikhmin_shirley", dict(rho_d=0.5, rho_s=0.3, n_u=50.0, n_v=5.0), 45, 60),
     ("ashikhmin_shirley", dict(rho_d=0.6, rho_s=0.0, n_u=10.0, n_v=200.0), 30, 100),
+    # Disney: all three lobes (diffuse+sheen, anisotropic GGX visible normals, GTR1 clearcoat) ...
+    ("disney", dict(base_color=[0.7, 0.4, 0.2], metallic=0.3, roughness=0.5, anisotropic=0.8, sheen=0.5,
+                    subsurface=0.5, clearcoat=1.0, clearcoat_gloss=0.0, specular_tint=0.5), 45, 30),
+    # ... and a rough metal at a grazing view (many lobe samples below the horizon).
+    ("disney", dict(base_color=0.9, metallic=1.0, roughness=0.7, anisotropic=0.3), 75, 120),
 ]
 ALPHA_SIDAK = 1 - (1 - ALPHA) ** (1 / len(CASES))
 

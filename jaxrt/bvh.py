@@ -162,8 +162,10 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
                                      count_steps=count_steps)
 
     def pallas(o, d, lo, hi, interpret=False):
+        # The interpreter runs program instances one after another: few, wide blocks are fastest.
+        kw = dict(block=1024, steps_per_iter=1) if interpret else {}
         out = bvh_pallas.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
-                                  interpret=interpret)
+                                  interpret=interpret, **kw)
         return (*out, jnp.zeros(n, jnp.int32))
 
     impl = _impl(impl)

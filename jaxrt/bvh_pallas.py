@@ -64,10 +64,16 @@ def _pick(k, x, y, z):
     return jnp.where(k == 0, x, jnp.where(k == 1, y, z))
 
 
+def _load_row(ref, idx, width):
+    """Columns of rows `idx` of a flat (rows*width,) table, as one (block, width) gather (vector loads)."""
+    x = ref[idx[:, None] * width + lax.broadcasted_iota(jnp.int32, (1, width), 1)]
+    return [c.reshape(idx.shape) for c in jnp.split(x, width, axis=1)]
+
+
 def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz_r, base_r, tmin_r, tmax_r,
             box_r, leaf_r, links_r, tri_r,
             t_o, best_o, u_o, v_o,
-            *, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int):
+            *, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, vec_nodes: bool, vec_tris: bool):
     ox, oy, oz = ox_r[...], oy_r[...], oz_r[...]
     ix, iy, iz = ix_r[...], iy_r[...], iz_r[...]
     sx, sy, sz = sx_r[...], sy_r[...], sz_r[...]
@@ -77,8 +83,11 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
     zero = lax.shift_right_logical(kz, jnp.int32(8))  # 0, unknown to the compiler
 
     def tri_test(idx, valid, t_best):
-        i9 = idx * 9
-        vs = [tri_r[i9 + k] for k in range(9)]
+        if vec_tris:
+            vs = _load_row(tri_r, idx, 16)[:9]
+        else:
+            i9 = idx * 9
+            vs = [tri_r[i9 + k] for k in range(9)]
         px, py, pz = [], [], []
         for j in range(3):
             qx, qy, qz = vs[3 * j] - ox, vs[3 * j + 1] - oy, vs[3 * j + 2] - oz
@@ -104,20 +113,27 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
         node, t_best, best, bu, bv = st
         active = node >= 0
         n = jnp.maximum(node, 0)
-        b6 = n * 6
-        t0x = (box_r[b6] - ox) * ix
-        t0y = (box_r[b6 + 1] - oy) * iy
-        t0z = (box_r[b6 + 2] - oz) * iz
-        t1x = (box_r[b6 + 3] - ox) * ix
-        t1y = (box_r[b6 + 4] - oy) * iy
-        t1z = (box_r[b6 + 5] - oz) * iz
+        if vec_nodes:
+            row = _load_row(box_r, n, 8)
+            bb = row[:6]
+            first = lax.bitcast_convert_type(row[6], jnp.int32)
+            count = lax.bitcast_convert_type(row[7], jnp.int32)
+        else:
+            b6 = n * 6
+            bb = [box_r[b6 + k] for k in range(6)]
+            first = leaf_r[n * 2]
+            count = leaf_r[n * 2 + 1]
+        t0x = (bb[0] - ox) * ix
+        t0y = (bb[1] - oy) * iy
+        t0z = (bb[2] - oz) * iz
+        t1x = (bb[3] - ox) * ix
+        t1y = (bb[4] - oy) * iy
+        t1z = (bb[5] - oz) * iz
         t_near = jnp.maximum(jnp.maximum(jnp.maximum(jnp.minimum(t0x, t1x), jnp.minimum(t0y, t1y)),
                                          jnp.minimum(t0z, t1z)), t_lo)
         t_far = jnp.minimum(jnp.minimum(jnp.maximum(t0x, t1x), jnp.maximum(t0y, t1y)), jnp.maximum(t0z, t1z))
         t_far = jnp.minimum(t_far * _FAR_SCALE, t_best)
         box_hit = active & (t_near <= t_far)
-        first = leaf_r[n * 2]
-        count = leaf_r[n * 2 + 1]
         leaf_hit = box_hit & (count > 0)
         first = jnp.where(leaf_hit, first, 0)  # lanes not testing a leaf read triangle 0 (cached)
         any_h = jnp.zeros_like(active)
@@ -155,9 +171,10 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
-                                             "interpret"))
+                                             "interpret", "vec_nodes", "vec_tris"))
 def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_size: int, block: int = 128,
-             steps_per_iter: int = 2, num_warps: int = 4, interpret: bool = False):
+             steps_per_iter: int = 2, num_warps: int = 4, interpret: bool = False, vec_nodes: bool = False,
+             vec_tris: bool = False):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `bvh_traverse.traverse` (without the step counts).
 
@@ -165,7 +182,9 @@ def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_siz
     origins, directions (N,3) float32; tmin, tmax (N,) float32. block: rays per program instance
     (a power of 2); steps_per_iter: traversal steps between two checks of the block's loop
     predicate; num_warps: Triton warps per program; interpret: run the kernel with the Pallas
-    interpreter (any backend; slow, for tests).
+    interpreter (any backend; slow, for tests). vec_nodes / vec_tris: read each node as one
+    8-word row (box + leaf) / each triangle as one 16-word row, repacked per call (layout
+    experiments; results are the same).
     """
     nn = arrays["node_box"].shape[0]
     nf = arrays["triangles"].shape[0]
@@ -182,8 +201,12 @@ def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_siz
     per_ray += [col(ray["shear"][:, i], 0.0) for i in range(3)]
     per_ray += [col(ray[k], 0) for k in ("kx", "ky", "kz")] + [col(ray["ray_class"] * nn, 0)]
     per_ray += [col(tmin.astype(jnp.float32), 1.0), col(tmax.astype(jnp.float32), 0.0)]
-    tables = [arrays["node_box"].reshape(-1), arrays["node_leaf"].reshape(-1), arrays["links"].reshape(-1),
-              arrays["triangles"].reshape(-1)]
+    box, leaf, tri = arrays["node_box"], arrays["node_leaf"], arrays["triangles"]
+    if vec_nodes:
+        box = jnp.concatenate([box, lax.bitcast_convert_type(leaf, jnp.float32)], axis=1)
+    if vec_tris:
+        tri = jnp.pad(tri, ((0, 0), (0, 7)))
+    tables = [box.reshape(-1), leaf.reshape(-1), arrays["links"].reshape(-1), tri.reshape(-1)]
     ray_spec = pl.BlockSpec((block,), lambda i: (i,))
     in_specs = [ray_spec] * len(per_ray) + [pl.BlockSpec(tb.shape, lambda i: (0,)) for tb in tables]
     f32 = jax.ShapeDtypeStruct((n_pad,), jnp.float32)
@@ -194,7 +217,8 @@ def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_siz
 
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
     t, best, u, v = pl.pallas_call(
-        functools.partial(_kernel, any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf),
+        functools.partial(_kernel, any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf,
+                          vec_nodes=vec_nodes, vec_tris=vec_tris),
         out_shape=(f32, i32, f32, f32),
         grid=(n_pad // block,),
         in_specs=in_specs,

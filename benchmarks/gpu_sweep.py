@@ -61,10 +61,11 @@ def main():
                   f"({dt * 1e3:.2f} ms, compile {tc:.1f} s, agree {agree:.5f})", flush=True)
 
 
-PALLAS_VARIANTS = [  # (block, num_warps, steps_per_iter, vec_nodes, vec_tris)
-    (128, 4, 2, False, False), (64, 2, 2, False, False), (32, 1, 2, False, False), (256, 8, 2, False, False),
-    (128, 2, 2, False, False), (128, 8, 2, False, False), (128, 4, 1, False, False), (128, 4, 4, False, False),
-    (64, 4, 2, False, False), (128, 4, 2, True, False), (128, 4, 2, False, True), (128, 4, 2, True, True),
+PALLAS_VARIANTS = [  # (block, num_warps, steps_per_iter, vec_nodes, vec_tris, inline leaves)
+    (32, 1, 2, False, False, False), (128, 4, 2, False, False, False), (32, 1, 2, False, False, True),
+    (32, 1, 1, False, False, True), (32, 1, 4, False, False, True), (64, 2, 2, False, False, True),
+    (128, 4, 2, False, False, True), (16, 1, 2, False, False, True), (64, 1, 2, False, False, True),
+    (32, 1, 2, True, False, False),
 ]
 
 
@@ -84,13 +85,13 @@ def sweep_pallas(args):
     ref_occ = np.asarray(bvh.occluded(tree, so, sd, shi, slo, impl="xla"))
     ref_prim = np.asarray(h.prim)
     print(f"# {jax.devices()[0].device_kind}, {args.model} {args.res}², {n} primary, {len(p)} shadow rays")
-    for blk, warps, spi, vn, vt in PALLAS_VARIANTS:
-        line = f"block {blk:>3} warps {warps} steps {spi} vec_nodes {vn:d} vec_tris {vt:d}:"
+    for blk, warps, spi, vn, vt, inl in PALLAS_VARIANTS:
+        line = f"block {blk:>3} warps {warps} steps {spi} vec_nodes {vn:d} vec_tris {vt:d} inline {inl:d}:"
         try:
             for any_hit, args_ in ((False, (od, dd, lo, hi)), (True, (so, sd, slo, shi))):
                 f = jax.jit(lambda *a, ah=any_hit: bvh_pallas.traverse(
                     arrays, *a, any_hit=ah, leaf_size=1, block=blk, num_warps=warps, steps_per_iter=spi,
-                    vec_nodes=vn, vec_tris=vt))
+                    vec_nodes=vn, vec_tris=vt, inline=inl))
                 t = time.perf_counter()
                 r = jax.block_until_ready(f(*args_))
                 tc = time.perf_counter() - t

@@ -30,6 +30,7 @@ from jax.experimental import pallas as pl
 from jaxrt import bvh_traverse
 
 _FAR_SCALE = bvh_traverse._FAR_SCALE
+_ROW = 12  # words per node row with inline leaves: 9 (box or triangle), first, count, pad
 _HI_MASK = -4096  # 0xFFFFF000 as int32: keeps sign, exponent and the top 11 mantissa bits
 
 
@@ -73,7 +74,8 @@ def _load_row(ref, idx, width):
 def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz_r, base_r, tmin_r, tmax_r,
             box_r, leaf_r, links_r, tri_r,
             t_o, best_o, u_o, v_o,
-            *, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, vec_nodes: bool, vec_tris: bool):
+            *, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, vec_nodes: bool, vec_tris: bool,
+            inline: bool):
     ox, oy, oz = ox_r[...], oy_r[...], oz_r[...]
     ix, iy, iz = ix_r[...], iy_r[...], iz_r[...]
     sx, sy, sz = sx_r[...], sy_r[...], sz_r[...]
@@ -82,12 +84,13 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
     t_lo = tmin_r[...]
     zero = lax.shift_right_logical(kz, jnp.int32(8))  # 0, unknown to the compiler
 
-    def tri_test(idx, valid, t_best):
+    def tri_load(idx):
         if vec_tris:
-            vs = _load_row(tri_r, idx, 16)[:9]
-        else:
-            i9 = idx * 9
-            vs = [tri_r[i9 + k] for k in range(9)]
+            return _load_row(tri_r, idx, 16)[:9]
+        i9 = idx * 9
+        return [tri_r[i9 + k] for k in range(9)]
+
+    def tri_test(vs, valid, t_best):
         px, py, pz = [], [], []
         for j in range(3):
             qx, qy, qz = vs[3 * j] - ox, vs[3 * j + 1] - oy, vs[3 * j + 2] - oz
@@ -113,7 +116,13 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
         node, t_best, best, bu, bv = st
         active = node >= 0
         n = jnp.maximum(node, 0)
-        if vec_nodes:
+        if inline:
+            r12 = n * _ROW
+            w = [box_r[r12 + k] for k in range(9)]
+            bb = w[:6]
+            first = lax.bitcast_convert_type(box_r[r12 + 9], jnp.int32)
+            count = lax.bitcast_convert_type(box_r[r12 + 10], jnp.int32)
+        elif vec_nodes:
             row = _load_row(box_r, n, 8)
             bb = row[:6]
             first = lax.bitcast_convert_type(row[6], jnp.int32)
@@ -133,13 +142,20 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
                                          jnp.minimum(t0z, t1z)), t_lo)
         t_far = jnp.minimum(jnp.minimum(jnp.maximum(t0x, t1x), jnp.maximum(t0y, t1y)), jnp.maximum(t0z, t1z))
         t_far = jnp.minimum(t_far * _FAR_SCALE, t_best)
-        box_hit = active & (t_near <= t_far)
+        if inline:
+            # A leaf's row holds its triangle, not its box: the triangle test alone decides (the
+            # padded box test is implied by a hit in [tmin, t_best]) and a leaf's hit and miss links
+            # are the same node, so box_hit only matters for interior nodes.
+            box_hit = active & ((count > 0) | (t_near <= t_far))
+        else:
+            box_hit = active & (t_near <= t_far)
         leaf_hit = box_hit & (count > 0)
         first = jnp.where(leaf_hit, first, 0)  # lanes not testing a leaf read triangle 0 (cached)
         any_h = jnp.zeros_like(active)
         for j in range(leaf_size):
             idx = jnp.minimum(first + j, nf - 1)
-            h, t, u, v = tri_test(idx, leaf_hit & (count > j), t_best)
+            vs = w if inline else tri_load(idx)
+            h, t, u, v = tri_test(vs, leaf_hit & (count > j), t_best)
             # Strict < keeps the earlier triangle on exact ties (the XLA path's argmin).
             better = h & ((t < t_best) | (best < 0))
             t_best = jnp.where(better, t, t_best)
@@ -171,10 +187,10 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
-                                             "interpret", "vec_nodes", "vec_tris"))
-def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_size: int, block: int = 128,
-             steps_per_iter: int = 2, num_warps: int = 4, interpret: bool = False, vec_nodes: bool = False,
-             vec_tris: bool = False):
+                                             "interpret", "vec_nodes", "vec_tris", "inline"))
+def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_size: int, block: int = 32,
+             steps_per_iter: int = 2, num_warps: int = 1, interpret: bool = False, vec_nodes: bool = False,
+             vec_tris: bool = False, inline: bool | None = None):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `bvh_traverse.traverse` (without the step counts).
 
@@ -184,8 +200,14 @@ def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_siz
     predicate; num_warps: Triton warps per program; interpret: run the kernel with the Pallas
     interpreter (any backend; slow, for tests). vec_nodes / vec_tris: read each node as one
     8-word row (box + leaf) / each triangle as one 16-word row, repacked per call (layout
-    experiments; results are the same).
+    experiments; results are the same). inline (default: leaf_size == 1): one 12-word row per node
+    holding an interior node's box or a leaf's triangle, so a step makes one round of dependent
+    loads instead of two (node, then triangle); repacked per call.
     """
+    if inline is None:
+        inline = leaf_size == 1 and not (vec_nodes or vec_tris)
+    if inline and leaf_size != 1:
+        raise ValueError("bvh_pallas: inline rows need leaf_size 1")
     nn = arrays["node_box"].shape[0]
     nf = arrays["triangles"].shape[0]
     n = origins.shape[0]
@@ -202,7 +224,13 @@ def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_siz
     per_ray += [col(ray[k], 0) for k in ("kx", "ky", "kz")] + [col(ray["ray_class"] * nn, 0)]
     per_ray += [col(tmin.astype(jnp.float32), 1.0), col(tmax.astype(jnp.float32), 0.0)]
     box, leaf, tri = arrays["node_box"], arrays["node_leaf"], arrays["triangles"]
-    if vec_nodes:
+    if inline:
+        is_leaf = (leaf[:, 1] > 0)[:, None]
+        body = jnp.where(is_leaf, tri[jnp.where(is_leaf[:, 0], leaf[:, 0], 0)],
+                         jnp.pad(box, ((0, 0), (0, 3))))
+        box = jnp.concatenate([body, lax.bitcast_convert_type(leaf, jnp.float32), jnp.zeros((nn, 1), jnp.float32)],
+                              axis=1)
+    elif vec_nodes:
         box = jnp.concatenate([box, lax.bitcast_convert_type(leaf, jnp.float32)], axis=1)
     if vec_tris:
         tri = jnp.pad(tri, ((0, 0), (0, 7)))
@@ -218,7 +246,7 @@ def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_siz
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
     t, best, u, v = pl.pallas_call(
         functools.partial(_kernel, any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf,
-                          vec_nodes=vec_nodes, vec_tris=vec_tris),
+                          vec_nodes=vec_nodes, vec_tris=vec_tris, inline=inline),
         out_shape=(f32, i32, f32, f32),
         grid=(n_pad // block,),
         in_specs=in_specs,

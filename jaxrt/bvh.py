@@ -17,7 +17,8 @@ traced argument, and are not differentiable: their inputs pass through `lax.stop
 renderer recomputes the differentiable hit point from `prim` (DESIGN.md: trace once, shade many).
 Triangle tests are watertight (see `jaxrt.bvh_traverse`): a ray aimed at an edge or vertex shared
 by two triangles of a closed mesh always hits one of them. Build and traversal details are in
-`jaxrt.bvh_build` and `jaxrt.bvh_traverse`.
+`jaxrt.bvh_build` and `jaxrt.bvh_traverse` (pure JAX, the default) and `jaxrt.bvh_pallas` (one Pallas
+kernel, the default where the computation is lowered for an NVIDIA GPU; `impl=` / JAXRT_TRAVERSAL).
 """
 
 from __future__ import annotations

@@ -37,6 +37,7 @@ def main():
     ap.add_argument("--leaf", type=int, nargs="+", default=[1, 4])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--pallas", action="store_true")
+    ap.add_argument("--variants", type=int, nargs="*", default=None, help="indices into PALLAS_VARIANTS")
     args = ap.parse_args()
     if args.pallas:
         return sweep_pallas(args)
@@ -61,11 +62,14 @@ def main():
                   f"({dt * 1e3:.2f} ms, compile {tc:.1f} s, agree {agree:.5f})", flush=True)
 
 
-PALLAS_VARIANTS = [  # (block, num_warps, steps_per_iter, vec_nodes, vec_tris, inline leaves)
-    (32, 1, 2, False, False, False), (128, 4, 2, False, False, False), (32, 1, 2, False, False, True),
-    (32, 1, 1, False, False, True), (32, 1, 4, False, False, True), (64, 2, 2, False, False, True),
-    (128, 4, 2, False, False, True), (16, 1, 2, False, False, True), (64, 1, 2, False, False, True),
-    (32, 1, 2, True, False, False),
+PALLAS_VARIANTS = [  # (block, num_warps, steps_per_iter, vec_nodes, vec_tris, inline leaves, gated exact signs)
+    (32, 1, 2, False, False, False, False), (128, 4, 2, False, False, False, False),
+    (32, 1, 2, False, False, True, False), (32, 1, 1, False, False, True, False),
+    (32, 1, 4, False, False, True, False), (64, 2, 2, False, False, True, False),
+    (128, 4, 2, False, False, True, False), (16, 1, 2, False, False, True, False),
+    (64, 1, 2, False, False, True, False), (32, 1, 2, True, False, False, False),
+    (32, 1, 2, False, False, True, True), (32, 1, 1, False, False, True, True),
+    (64, 2, 2, False, False, True, True), (32, 1, 2, False, False, False, True),
 ]
 
 
@@ -85,13 +89,16 @@ def sweep_pallas(args):
     ref_occ = np.asarray(bvh.occluded(tree, so, sd, shi, slo, impl="xla"))
     ref_prim = np.asarray(h.prim)
     print(f"# {jax.devices()[0].device_kind}, {args.model} {args.res}², {n} primary, {len(p)} shadow rays")
-    for blk, warps, spi, vn, vt, inl in PALLAS_VARIANTS:
-        line = f"block {blk:>3} warps {warps} steps {spi} vec_nodes {vn:d} vec_tris {vt:d} inline {inl:d}:"
+    for k, (blk, warps, spi, vn, vt, inl, gate) in enumerate(PALLAS_VARIANTS):
+        if args.variants and k not in args.variants:
+            continue
+        line = (f"block {blk:>3} warps {warps} steps {spi} vec_nodes {vn:d} vec_tris {vt:d} inline {inl:d} "
+                f"gate {gate:d}:")
         try:
             for any_hit, args_ in ((False, (od, dd, lo, hi)), (True, (so, sd, slo, shi))):
                 f = jax.jit(lambda *a, ah=any_hit: bvh_pallas.traverse(
                     arrays, *a, any_hit=ah, leaf_size=1, block=blk, num_warps=warps, steps_per_iter=spi,
-                    vec_nodes=vn, vec_tris=vt, inline=inl))
+                    vec_nodes=vn, vec_tris=vt, inline=inl, gate_exact=gate))
                 t = time.perf_counter()
                 r = jax.block_until_ready(f(*args_))
                 tc = time.perf_counter() - t

@@ -50,15 +50,21 @@ def _product_error(a, b, p):
     return ((ah * bh - p) + ah * bl + al * bh) + al * bl
 
 
-def _edge_sign(ax, ay, bx, by, zero):
-    """(|p1 - p2|, exact sign of ax*by - ay*bx) as in bvh_traverse.intersect_triangles."""
-    p1 = _opaque(ax * by, zero)
-    p2 = _opaque(ay * bx, zero)
+def _edge_products(ax, ay, bx, by, zero):
+    """Rounded products (p1, p2) of the edge function ax*by - ay*bx."""
+    return _opaque(ax * by, zero), _opaque(ay * bx, zero)
+
+
+def _sign(x):
+    return jnp.where(x > 0, 1.0, jnp.where(x < 0, -1.0, 0.0)).astype(jnp.float32)
+
+
+def _edge_sign(ax, ay, bx, by, p1, p2, exact: bool):
+    """Sign of ax*by - ay*bx as in bvh_traverse._edge_sign: exact, or from the rounded products."""
     s = jnp.where(p1 > p2, 1.0, jnp.where(p1 < p2, -1.0, 0.0)).astype(jnp.float32)
-    e = _product_error(ax, by, p1) - _product_error(ay, bx, p2)
-    se = jnp.where(e > 0, 1.0, jnp.where(e < 0, -1.0, 0.0)).astype(jnp.float32)
-    s = jnp.where(p1 == p2, se, s)
-    return jnp.abs(p1 - p2) * s, s
+    if exact:
+        s = jnp.where(p1 == p2, _sign(_product_error(ax, by, p1) - _product_error(ay, bx, p2)), s)
+    return s
 
 
 def _pick(k, x, y, z):
@@ -75,7 +81,7 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
             box_r, leaf_r, links_r, tri_r,
             t_o, best_o, u_o, v_o,
             *, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, vec_nodes: bool, vec_tris: bool,
-            inline: bool):
+            inline: bool, gate_exact: bool):
     ox, oy, oz = ox_r[...], oy_r[...], oz_r[...]
     ix, iy, iz = ix_r[...], iy_r[...], iz_r[...]
     sx, sy, sz = sx_r[...], sy_r[...], sz_r[...]
@@ -101,9 +107,18 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
         y = [py[j] - _opaque(sy * pz[j], zero) for j in range(3)]
         z = [sz * pz[j] for j in range(3)]
         (ax, bx, cx), (ay, by, cy), (az, bz, cz) = x, y, z
-        U, su = _edge_sign(cx, cy, bx, by, zero)
-        V, sv = _edge_sign(ax, ay, cx, cy, zero)
-        W, sw = _edge_sign(bx, by, ax, ay, zero)
+        edges = ((cx, cy, bx, by), (ax, ay, cx, cy), (bx, by, ax, ay))
+        prods = [_edge_products(*e, zero) for e in edges]
+        if gate_exact:
+            # Tied rounded products are rare: the exact-sign arithmetic runs only for programs where
+            # some tested ray/triangle pair needs it (a warp-uniform branch), as the XLA path's cond.
+            tie = valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1]) | (prods[2][0] == prods[2][1]))
+            su, sv, sw = lax.cond(jnp.max(tie.astype(jnp.int32)) > 0,
+                                  lambda: tuple(_edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)),
+                                  lambda: tuple(_edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods)))
+        else:
+            su, sv, sw = (_edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods))
+        U, V, W = (jnp.abs(p1 - p2) * sg for (p1, p2), sg in zip(prods, (su, sv, sw)))
         inside = ((su >= 0) & (sv >= 0) & (sw >= 0)) | ((su <= 0) & (sv <= 0) & (sw <= 0))
         det = U + V + W
         ok = inside & (det != 0)
@@ -187,10 +202,10 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
-                                             "interpret", "vec_nodes", "vec_tris", "inline"))
+                                             "interpret", "vec_nodes", "vec_tris", "inline", "gate_exact"))
 def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_size: int, block: int = 32,
              steps_per_iter: int = 2, num_warps: int = 1, interpret: bool = False, vec_nodes: bool = False,
-             vec_tris: bool = False, inline: bool | None = None):
+             vec_tris: bool = False, inline: bool | None = None, gate_exact: bool = True):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `bvh_traverse.traverse` (without the step counts).
 
@@ -202,7 +217,8 @@ def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_siz
     8-word row (box + leaf) / each triangle as one 16-word row, repacked per call (layout
     experiments; results are the same). inline (default: leaf_size == 1): one 12-word row per node
     holding an interior node's box or a leaf's triangle, so a step makes one round of dependent
-    loads instead of two (node, then triangle); repacked per call.
+    loads instead of two (node, then triangle); repacked per call. gate_exact: evaluate the
+    exact edge signs only in programs where a rounded-product tie occurs (else always).
     """
     if inline is None:
         inline = leaf_size == 1 and not (vec_nodes or vec_tris)
@@ -246,7 +262,7 @@ def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_siz
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
     t, best, u, v = pl.pallas_call(
         functools.partial(_kernel, any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf,
-                          vec_nodes=vec_nodes, vec_tris=vec_tris, inline=inline),
+                          vec_nodes=vec_nodes, vec_tris=vec_tris, inline=inline, gate_exact=gate_exact),
         out_shape=(f32, i32, f32, f32),
         grid=(n_pad // block,),
         in_specs=in_specs,

@@ -8,9 +8,11 @@ scheduler starts the next block on a free multiprocessor, which is the lane refi
 done by hardware.
 
 Results are the XLA path's: the same stackless links, node order, box test (same slab formula and
-far-distance widening) and watertight triangle test with exact edge signs (the exact path is
-always evaluated here, a few extra multiplies, instead of a `lax.cond`; it only changes the sign
-where the rounded products tie, exactly as there). The hit distance is float32 and may differ from
+far-distance widening) and watertight triangle test with exact edge signs (as there, the exact
+path runs only where some tested pair's rounded products tie: here a branch per program of 32
+rays). With one triangle per leaf, a leaf's node row holds its triangle instead of its box, so a
+traversal step makes one round of dependent loads; the box test a leaf skips is implied by a
+triangle hit (the boxes are padded outward) and a leaf's hit and miss links are the same node. The hit distance is float32 and may differ from
 the XLA path's in the last ulp where the compiler contracts a multiply-add differently, so two
 triangles at the same distance to within an ulp may be chosen differently (ties); `bvh.intersect`
 then refines t of the chosen triangle in double-float in XLA for both paths.

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 from jax.experimental import pallas as pl
+from jaxtyping import Array, Float
 
 from jaxrt import bvh_traverse
 
@@ -205,7 +206,8 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
                                              "interpret", "vec_nodes", "vec_tris", "inline", "gate_exact"))
-def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_size: int, block: int = 32,
+def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"], tmin: Float[Array, " N"],
+             tmax: Float[Array, " N"], *, any_hit: bool, leaf_size: int, block: int = 32,
              steps_per_iter: int = 2, num_warps: int = 1, interpret: bool = False, vec_nodes: bool = False,
              vec_tris: bool = False, inline: bool | None = None, gate_exact: bool = True):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as

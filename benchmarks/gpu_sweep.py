@@ -2,6 +2,11 @@
 model at one resolution, primary rays; prints Mrays/s per variant (median of --repeats).
 
     JAXRT_DATA=... python benchmarks/gpu_sweep.py --model dragon --res 1024
+    JAXRT_DATA=... python benchmarks/gpu_sweep.py --pallas      # the Pallas kernel's knobs, primary + shadow
+
+The first form sweeps the XLA loop (impl="xla"); --pallas sweeps jaxrt.bvh_pallas.traverse (rays per
+program, Triton warps, steps per predicate check, packed node/triangle rows) on primary rays and on
+shadow rays from their hits to a point light (kernel time only; bvh.intersect adds the t refinement).
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxrt import bvh, data, mesh  # noqa: E402
+from jaxrt import bvh, bvh_pallas, data, mesh  # noqa: E402
 from rays import camera_rays, median_time  # noqa: E402
 
 
@@ -31,7 +36,11 @@ def main():
     ap.add_argument("--steps", type=int, nargs="+", default=[4, 8, 16])
     ap.add_argument("--leaf", type=int, nargs="+", default=[1, 4])
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--pallas", action="store_true")
+    ap.add_argument("--variants", type=int, nargs="*", default=None, help="indices into PALLAS_VARIANTS")
     args = ap.parse_args()
+    if args.pallas:
+        return sweep_pallas(args)
     print(f"# {jax.devices()[0].device_kind}, jax {jax.__version__}")
     m = mesh.load(data.find(args.model))
     o, d, _ = camera_rays(m.vertices, args.res)
@@ -40,7 +49,7 @@ def main():
     for leaf in args.leaf:
         tree = bvh.build(m.vertices, m.faces, leaf_size=leaf)
         for lanes, steps in itertools.product(args.lanes, args.steps):
-            f = jax.jit(lambda tr, o, d: bvh.intersect(tr, o, d, lanes=lanes, steps_per_iter=steps))
+            f = jax.jit(lambda tr, o, d: bvh.intersect(tr, o, d, lanes=lanes, steps_per_iter=steps, impl="xla"))
             t = time.perf_counter()
             h = jax.block_until_ready(f(tree, od, dd))
             tc = time.perf_counter() - t
@@ -51,6 +60,59 @@ def main():
             agree = np.mean(prim == ref)
             print(f"leaf {leaf} lanes {lanes:>8} steps {steps:>2}: {len(o) / dt / 1e6:8.1f} Mrays/s "
                   f"({dt * 1e3:.2f} ms, compile {tc:.1f} s, agree {agree:.5f})", flush=True)
+
+
+PALLAS_VARIANTS = [  # (block, num_warps, steps_per_iter, vec_nodes, vec_tris, inline leaves, gated exact signs)
+    (32, 1, 2, False, False, False, False), (128, 4, 2, False, False, False, False),
+    (32, 1, 2, False, False, True, False), (32, 1, 1, False, False, True, False),
+    (32, 1, 4, False, False, True, False), (64, 2, 2, False, False, True, False),
+    (128, 4, 2, False, False, True, False), (16, 1, 2, False, False, True, False),
+    (64, 1, 2, False, False, True, False), (32, 1, 2, True, False, False, False),
+    (32, 1, 2, False, False, True, True), (32, 1, 1, False, False, True, True),
+    (64, 2, 2, False, False, True, True), (32, 1, 2, False, False, False, True),
+]
+
+
+def sweep_pallas(args):
+    m = mesh.load(data.find(args.model))
+    tree = bvh.build(m.vertices, m.faces)
+    arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
+    o, d, light = camera_rays(m.vertices, args.res)
+    n = len(o)
+    od, dd = jnp.asarray(o), jnp.asarray(d)
+    lo, hi = jnp.zeros(n, jnp.float32), jnp.full(n, jnp.inf, jnp.float32)
+    h = bvh.intersect(tree, od, dd, impl="xla")
+    ok = np.asarray(h.prim) >= 0
+    p = o[ok] + np.asarray(h.t)[ok, None] * d[ok]
+    so, sd = jnp.asarray(p, jnp.float32), jnp.asarray(light[None] - p, jnp.float32)
+    slo, shi = jnp.full(len(p), 1e-4, jnp.float32), jnp.full(len(p), 1 - 1e-4, jnp.float32)
+    ref_occ = np.asarray(bvh.occluded(tree, so, sd, shi, slo, impl="xla"))
+    ref_prim = np.asarray(h.prim)
+    print(f"# {jax.devices()[0].device_kind}, {args.model} {args.res}², {n} primary, {len(p)} shadow rays")
+    for k, (blk, warps, spi, vn, vt, inl, gate) in enumerate(PALLAS_VARIANTS):
+        if args.variants and k not in args.variants:
+            continue
+        line = (f"block {blk:>3} warps {warps} steps {spi} vec_nodes {vn:d} vec_tris {vt:d} inline {inl:d} "
+                f"gate {gate:d}:")
+        try:
+            for any_hit, args_ in ((False, (od, dd, lo, hi)), (True, (so, sd, slo, shi))):
+                f = jax.jit(lambda *a, ah=any_hit: bvh_pallas.traverse(
+                    arrays, *a, any_hit=ah, leaf_size=1, block=blk, num_warps=warps, steps_per_iter=spi,
+                    vec_nodes=vn, vec_tris=vt, inline=inl, gate_exact=gate))
+                t = time.perf_counter()
+                r = jax.block_until_ready(f(*args_))
+                tc = time.perf_counter() - t
+                dt = median_time(lambda: jax.block_until_ready(f(*args_)), args.repeats)
+                if any_hit:
+                    agree = np.mean(np.asarray(r[0]) == ref_occ)
+                else:
+                    agree = np.mean(np.where(np.asarray(r[0]), np.asarray(tree.prim_ids)[np.asarray(r[2])], -1)
+                                    == ref_prim)
+                line += (f" {'shadow' if any_hit else 'primary'} {len(args_[0]) / dt / 1e6:7.1f} Mrays/s "
+                         f"(compile {tc:.1f} s, agree {agree:.5f})")
+        except Exception as e:  # a variant Triton cannot compile is reported, not fatal
+            line += f" FAILED {type(e).__name__}: {str(e)[:300]}"
+        print(line, flush=True)
 
 
 if __name__ == "__main__":

@@ -17,12 +17,14 @@ traced argument, and are not differentiable: their inputs pass through `lax.stop
 renderer recomputes the differentiable hit point from `prim` (DESIGN.md: trace once, shade many).
 Triangle tests are watertight (see `jaxrt.bvh_traverse`): a ray aimed at an edge or vertex shared
 by two triangles of a closed mesh always hits one of them. Build and traversal details are in
-`jaxrt.bvh_build` and `jaxrt.bvh_traverse`.
+`jaxrt.bvh_build` and `jaxrt.bvh_traverse` (pure JAX, the default) and `jaxrt.bvh_pallas` (one Pallas
+kernel, the default where the computation is lowered for an NVIDIA GPU; `impl=` / JAXRT_TRAVERSAL).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 from typing import NamedTuple
 
 import equinox as eqx
@@ -32,7 +34,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrt import bvh_build, bvh_traverse
+from jaxrt import bvh_build, bvh_pallas, bvh_traverse
 from jaxrt.errors import InputError
 
 
@@ -132,7 +134,17 @@ def _default_steps() -> int:
     return 2 if jax.default_backend() == "cpu" else 16
 
 
-def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_iter, count_steps=False):
+IMPLS = ("auto", "xla", "pallas", "pallas-interpret")
+
+
+def _impl(impl: str | None) -> str:
+    impl = impl or os.environ.get("JAXRT_TRAVERSAL") or "auto"
+    if impl not in IMPLS:
+        raise InputError(f"bvh: traversal impl (argument or JAXRT_TRAVERSAL) must be one of {IMPLS}; got {impl!r}")
+    return impl
+
+
+def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_iter, count_steps=False, impl=None):
     origins = lax.stop_gradient(jnp.asarray(origins, jnp.float32))
     directions = lax.stop_gradient(jnp.asarray(directions, jnp.float32))
     if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
@@ -144,9 +156,30 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         z = jnp.zeros(0, jnp.float32)
         return jnp.zeros(0, bool), z, jnp.zeros(0, jnp.int32), z, z, jnp.zeros(0, jnp.int32)
     arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
-    return bvh_traverse.traverse(arrays, origins, directions, tmin, tmax, any_hit=any_hit, leaf_size=tree.leaf_size,
-                                 steps_per_iter=steps_per_iter or _default_steps(), lanes=lanes or _default_lanes(),
-                                 count_steps=count_steps)
+
+    def xla(o, d, lo, hi):
+        return bvh_traverse.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
+                                     steps_per_iter=steps_per_iter or _default_steps(), lanes=lanes or _default_lanes(),
+                                     count_steps=count_steps)
+
+    def pallas(o, d, lo, hi, interpret=False):
+        # The interpreter runs program instances one after another: few, wide blocks are fastest.
+        kw = dict(block=1024, steps_per_iter=1) if interpret else {}
+        out = bvh_pallas.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
+                                  interpret=interpret, **kw)
+        return (*out, jnp.zeros(n, jnp.int32))
+
+    impl = _impl(impl)
+    args = (origins, directions, tmin, tmax)
+    if impl == "xla" or count_steps:
+        return xla(*args)
+    if impl == "pallas":
+        return pallas(*args)
+    if impl == "pallas-interpret":
+        return pallas(*args, interpret=True)
+    # auto: the Pallas (Triton) kernel where the computation is lowered for an NVIDIA GPU, the
+    # portable XLA loop everywhere else (decided at lowering, so one jitted function serves both).
+    return lax.platform_dependent(*args, cuda=pallas, default=xla)
 
 
 def intersect(
@@ -158,15 +191,20 @@ def intersect(
     *,
     lanes: int | None = None,
     steps_per_iter: int | None = None,
+    impl: str | None = None,
 ) -> Hit:
     """Closest hit of each ray with t in [tmin, tmax] (see the module docstring).
 
     lanes: rays in flight at once (default 1024 on CPU, 2**17 on GPU; finished lanes refill from
     the queue); steps_per_iter: traversal steps per loop iteration (default 2 on CPU, 16 on GPU).
-    Both only affect speed, never results.
+    Both only affect speed, never results, and apply to the XLA loop only. impl: "auto" (default;
+    the Pallas kernel of `jaxrt.bvh_pallas` when lowered for an NVIDIA GPU, else the XLA loop),
+    "xla", "pallas" (GPU only) or "pallas-interpret" (the kernel in the Pallas interpreter, any
+    backend, slow: for tests); the env var JAXRT_TRAVERSAL sets it when the argument is None.
+    All give the same hits up to ties between triangles at the same distance to within an ulp.
     """
     found, t, best, u, v, _ = _run(tree, origins, directions, tmin, tmax, any_hit=False, lanes=lanes,
-                                   steps_per_iter=steps_per_iter)
+                                   steps_per_iter=steps_per_iter, impl=impl)
     best = jnp.maximum(best, 0)
     prim = jnp.where(found, tree.prim_ids[best], -1)
     # Once per ray: t of the chosen triangle in double-float, so grazing hits keep ~1e-7 relative
@@ -187,14 +225,16 @@ def occluded(
     *,
     lanes: int | None = None,
     steps_per_iter: int | None = None,
+    impl: str | None = None,
 ) -> Bool[Array, " N"]:
     """True where any triangle is hit with t in [tmin, tmax] (any-hit, stops at the first hit).
 
     For a shadow ray from p towards a light at distance L along unit d, pass tmax = L*(1-eps)
-    and tmin (or an offset origin) to skip the surface the ray starts on.
+    and tmin (or an offset origin) to skip the surface the ray starts on. lanes, steps_per_iter,
+    impl: as for `intersect`.
     """
     found, *_ = _run(tree, origins, directions, tmin, tmax, any_hit=True, lanes=lanes,
-                     steps_per_iter=steps_per_iter)
+                     steps_per_iter=steps_per_iter, impl=impl)
     return found
 
 

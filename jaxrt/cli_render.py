@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from jaxrt import image
+    from jaxrt import image, instancing
     from jaxrt import render as _render
 
     t0 = time.perf_counter()
@@ -90,6 +90,6 @@ def run(args: argparse.Namespace) -> int:
         c = spec.camera
         outs = " and ".join(str(p) for p in (exr, png) if p is not None)
         print(f"{path.name}: {c.width}x{c.height}, {spec.render.spp} spp, "
-              f"{scn.geometry.faces.shape[0]} triangles; scene {t1 - t0:.2f} s, "
+              f"{instancing.triangle_count(scn.geometry)} triangles; scene {t1 - t0:.2f} s, "
               f"render {t2 - t1:.2f} s (incl. compile); wrote {outs}", file=sys.stdout)
     return 0

@@ -43,7 +43,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrt import bvh_build, bvh_traverse
+from jaxrt import bvh_build
 from jaxrt.bvh import Hit, _default_lanes, _default_steps
 from jaxrt.bvh_traverse import _df_add, _df_mul, _df_neg, _FAR_SCALE, precompute, intersect_triangles
 from jaxrt.errors import InputError

@@ -191,7 +191,7 @@ def test_instanced_render_equals_copied_objects(shipped):
 
 
 def test_group_material_override_changes_exactly_its_pixels(shipped):
-    inst, copy = shipped["inst"], shipped["copy"]
+    inst = shipped["inst"]
     target = "pair.8"
     ids = [k for k, n in enumerate(inst.geometry.object_names) if n.startswith(target + "/")]
     assert len(ids) == 2
@@ -200,7 +200,7 @@ def test_group_material_override_changes_exactly_its_pixels(shipped):
     for k in ids:
         geo = instancing.set_object_material(geo, k, gold)
     inst2 = eqx_replace_geometry(inst, geo)
-    img2, aov2 = (jax.tree.map(np.asarray, x) for x in R.frame(inst2, aovs=True))  # a value change: no recompile
+    img2 = np.asarray(R.frame(inst2, aovs=True)[0])  # a value change: no recompile
     # reference: the copied scene with the same objects' materials changed in the file
     doc2 = dict(shipped["copy_doc"])
     doc2["objects"] = [dict(o, material="gold") if o["name"].startswith(target + "/") else o

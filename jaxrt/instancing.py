@@ -23,8 +23,9 @@ without [[instances]] build the plain `scene.Geometry` exactly as before.
 
 Objects of an instanced scene: every (instance, group object) pair is one scene object named
 "INSTANCE/OBJECT" (plain objects keep their names); its material is `object_material[object]`,
-so a group's material override, or a sweep/fit substituting one object's material, is a value
-change of an (O,) array, O = instances x objects per group.
+so a group's material override, or `set_object_material` (used by `sweep.use_model`), is a value
+change of an (O,) array, O = instances x objects per group. Sweeps and fits (`sweep.substitute`)
+still address plain [[objects]] only.
 
 Hit identity: `prim` is a virtual face id (instance face offset + local face; see
 `bvh_instanced.decode`). Code that needs a hit's material or object uses `face_material` /

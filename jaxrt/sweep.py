@@ -138,6 +138,8 @@ def substitute(spec, model: str | Model | None, obj: str | None, base_params: Ma
     from jaxrt import scene as _scene
 
     names = [o.name for o in spec.objects]
+    if not names:  # objects placed by [[instances]] are not addressable here (see jaxrt.instancing)
+        raise InputError(f"{spec.source}: sweeps and fits address [[objects]] only; this scene has none")
     if obj is None:  # the same default for every model keeps one compiled structure for all
         obj = next((o.name for o in spec.objects if o.primitive != "plane"), names[0])
     if obj not in names:

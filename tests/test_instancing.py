@@ -294,6 +294,10 @@ def test_instances_parse_names_and_override():
     geo = S.build(spec).geometry
     assert geo.object_names == ("g.1/box", "x/box")
     assert list(np.asarray(geo.object_material)) == [0, 1]
+    from jaxrt import sweep
+
+    with pytest.raises(InputError, match=r"address \[\[objects\]\] only"):
+        sweep.substitute(spec, None, None)
     # a scene without groups keeps the plain single-level geometry
     plain = _doc(objects=[{"primitive": "box", "material": "a"}])
     del plain["groups"], plain["instances"]

@@ -90,8 +90,9 @@ def build(prototypes, inst_proto, object_to_world) -> InstancedBVH:
     """Build the two-level BVH (host numpy).
 
     prototypes: sequence of (vertices (V_p, 3), faces (F_p, 3)) in object space; inst_proto (I,)
-    int prototype of each instance; object_to_world (I, 3, 4) affine maps with invertible linear
-    part. Raises InputError on bad input (see `bvh.build`) or a singular/non-finite transform.
+    int prototype of each instance; object_to_world (I, 3, 4) affine maps whose linear part has a
+    positive determinant. Raises InputError on bad input (see `bvh.build`) or a singular, mirroring
+    or non-finite transform.
     """
     inst_proto = np.asarray(inst_proto, np.int64)
     xf = np.asarray(object_to_world, np.float32)
@@ -105,6 +106,9 @@ def build(prototypes, inst_proto, object_to_world) -> InstancedBVH:
     det = np.linalg.det(xf[:, :, :3].astype(np.float64))
     if np.any(~(np.abs(det) > 1e-30)):
         raise InputError(f"instancing: instance {int(np.argmin(np.abs(det)))} has a singular transform")
+    if np.any(det < 0):  # as mesh.transformed: a mirror would flip the winding (and glass's inside)
+        raise InputError(f"instancing: instance {int(np.argmin(det))} has a negative-determinant (mirroring) "
+                         "transform")
     inv = affine_inverse(xf).astype(np.float32)
 
     blas = [bvh_build.build_arrays(v, f, leaf_size=1) for v, f in prototypes]

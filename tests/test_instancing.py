@@ -132,6 +132,8 @@ def test_build_rejects_bad_transforms():
     box = shapes.box()
     with pytest.raises(InputError, match="singular"):
         bi.build([(box.vertices, box.faces)], [0], np.zeros((1, 3, 4), np.float32))
+    with pytest.raises(InputError, match="negative-determinant"):
+        bi.build([(box.vertices, box.faces)], [0], np.diag([1.0, -1.0, 1.0, 0.0])[:3].astype(np.float32)[None])
     with pytest.raises(InputError, match="finite"):
         bi.build([(box.vertices, box.faces)], [0], np.full((1, 3, 4), np.nan, np.float32))
     with pytest.raises(InputError, match="prototype index"):

@@ -13,7 +13,7 @@ AOV_NAMES = ("depth", "normal", "albedo", "object_id")
 
 EPILOG = """\
 SCENE is a path to a TOML scene file or the name of a shipped scene (spheres, bunny, dragon,
-cornell, showcase, instances; `spheres` and `instances` need no data files, the others need
+cornell, showcase, instances, bunnies; `spheres` and `instances` need no data files, the others need
 $JAXRT_DATA).
 
 Outputs: -o sets the EXR (linear float32 RGB, plus AOV channels with --aovs); --png sets the PNG

@@ -364,3 +364,15 @@ def test_thousand_bunnies_memory_and_rays(data_dir, fns, monkeypatch):
         if ref >= 0:
             assert abs(t[r] - ref_t[0]) <= 1e-5 * ref_t[0]
     assert np.mean(prim >= 0) > 0.5
+
+
+@pytest.mark.slow
+@pytest.mark.data
+def test_bunny_field_scene_is_finite(data_dir, monkeypatch):
+    monkeypatch.setenv("JAXRT_DATA", str(data_dir))
+    sc = S.load("bunnies", overrides={"camera.width": 32, "camera.height": 24})
+    assert instancing.triangle_count(sc.geometry) == 100 * 69451 + 2  # + the table
+    img, aovs = R.frame(sc, aovs=True)
+    img, oid = np.asarray(img), np.asarray(aovs["object_id"])
+    assert np.all(np.isfinite(img)) and img.max() > 0.05
+    assert len(np.unique(oid[oid > 0])) > 20  # many distinct bunnies in view (object 0 is the table)

@@ -1,10 +1,11 @@
 """Instancing: scene build time, device memory and primary-ray throughput for N bunny instances.
 
-    JAXRT_DATA=../shared/data/meshes python benchmarks/instancing.py [--counts 100 1000] [--res 128] [--repeats 3]
+    JAXRT_DATA=../shared/data/meshes python benchmarks/instancing.py [--counts 1 100 1000] [--res 128] [--repeats 3]
 
 For each N, N bunnies (random Y rotation, scale 0.8-1.3) on a cubic grid are placed with
 [[groups]]/[[instances]] (two-level BVH, `jaxrt.bvh_instanced`); the first row is the plain
-single-level bunny scene for reference. Prints scene build time (mesh load excluded: cached after the
+single-level bunny scene for reference, and N = 1 is one instance with the identity transform (the
+same rays and hits as the plain row: the two-level overhead per ray). Prints scene build time (mesh load excluded: cached after the
 first row), bytes of the Scene's device arrays, compile time, and primary-ray Mrays/s (camera rays
 framing the whole grid, 16x16 tile order; median over --repeats after a warm-up).
 """
@@ -34,6 +35,9 @@ BASE = {"camera": {"position": [0, 0, 30], "look_at": [0, 0, 0], "width": 8, "he
 def scene_doc(n: int, seed: int = 0) -> dict:
     if n == 0:
         return dict(BASE, objects=[{"mesh": "bunny", "material": "m"}])
+    if n == 1:  # one instance, identity transform: the same rays and hits as the plain scene
+        return dict(BASE, groups=[{"name": "b", "objects": [{"mesh": "bunny", "material": "m"}]}],
+                    instances=[{"group": "b"}])
     rng = np.random.default_rng(seed)
     k = int(np.ceil(n ** (1 / 3)))
     grid = np.stack(np.meshgrid(*[np.arange(float(k))] * 3, indexing="ij"), -1).reshape(-1, 3)[:n] * 0.25
@@ -44,7 +48,7 @@ def scene_doc(n: int, seed: int = 0) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--counts", type=int, nargs="+", default=[100, 1000])
+    ap.add_argument("--counts", type=int, nargs="+", default=[1, 100, 1000])
     ap.add_argument("--res", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
@@ -67,7 +71,7 @@ def main() -> None:
             fn = jax.jit(bvh_instanced.intersect)
         else:
             tree = geo.tree
-            pts = np.asarray(geo.vertices)
+            pts = np.asarray(geo.vertices)[::50]  # the same framing as the identity instance
             fn = jax.jit(bvh.intersect)
         o, d, _ = camera_rays(pts, args.res)
         t0 = time.perf_counter()

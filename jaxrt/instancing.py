@@ -67,7 +67,8 @@ class InstanceSpec:
 class InstancedGeometry(eqx.Module):
     """Prototypes stored once plus instances (see module docstring).
 
-    vertices/normals/tangents (V, 3): all prototypes, in prototype (group) space; faces (F, 3)
+    vertices/normals/tangents (V, 3): all prototypes, in prototype (group) space; uvs (V, 2) texture
+    coordinates (zeros where a mesh has none); faces (F, 3)
     int32 into them; face_object (F,) int32: object index within the face's prototype;
     proto_face_offset (P,) int32: first face of each prototype; inst_object_base (I,) int32: scene
     object id of each instance's first object; object_material (O,) int32 material id per scene
@@ -77,6 +78,7 @@ class InstancedGeometry(eqx.Module):
     vertices: Float[Array, "V 3"]
     normals: Float[Array, "V 3"]
     tangents: Float[Array, "V 3"]
+    uvs: Float[Array, "V 2"]
     faces: Int[Array, "F 3"]
     face_object: Int[Array, " F"]
     proto_face_offset: Int[Array, " P"]
@@ -190,9 +192,12 @@ def build_geometry(spec, mat_names: tuple[str, ...], cache: dict) -> InstancedGe
         meshes = [m for _, m, _ in pieces]
         whole = _mesh.concatenate(meshes) if len(meshes) > 1 else meshes[0]
         f_obj = np.concatenate([np.full(len(np.asarray(m.faces)), k, np.int32) for k, m in enumerate(meshes)])
+        # mesh.concatenate drops UVs unless every mesh has them: keep them, zeros where a mesh has none
+        uvs = np.concatenate([np.zeros((m.num_vertices, 2), np.float32) if m.uvs is None
+                              else np.asarray(m.uvs, np.float32) for m in meshes])
         protos.append((np.asarray(whole.vertices, np.float32), np.asarray(whole.normals, np.float32),
                        np.asarray(whole.tangents, np.float32), np.asarray(whole.faces, np.int32), f_obj,
-                       [(n, mat) for n, _, mat in pieces]))
+                       [(n, mat) for n, _, mat in pieces], uvs))
         return len(protos) - 1
 
     inst_proto, xforms, names, obj_mat, obj_base = [], [], [], [], []
@@ -224,6 +229,7 @@ def build_geometry(spec, mat_names: tuple[str, ...], cache: dict) -> InstancedGe
         vertices=jnp.asarray(np.concatenate([p[0] for p in protos])),
         normals=jnp.asarray(np.concatenate([p[1] for p in protos])),
         tangents=jnp.asarray(np.concatenate([p[2] for p in protos])),
+        uvs=jnp.asarray(np.concatenate([p[6] for p in protos])),
         faces=jnp.asarray(np.concatenate([p[3] + o for p, o in zip(protos, v_off)]).astype(np.int32)),
         face_object=jnp.asarray(np.concatenate([p[4] for p in protos])),
         proto_face_offset=jnp.asarray(f_off.astype(np.int32)),
@@ -260,7 +266,7 @@ def face_material(geometry, prim: Int[Array, "..."]) -> Int[Array, "..."]:
 
 
 def surface_arrays(geometry: InstancedGeometry, prim, u, v):
-    """World-space (p, ng, ns (not normalised), tangent, material) of instanced hits, each (B, ...).
+    """World-space (p, ng, ns (not normalised), tangent, material, uv) of instanced hits, each (B, ...).
 
     Vertices map with the instance's object-to-world matrix A|b, the interpolated normal with the
     inverse transpose (A^-1)^T (read from the stored world-to-object matrix), tangents with A.
@@ -280,7 +286,8 @@ def surface_arrays(geometry: InstancedGeometry, prim, u, v):
     t_obj = sum(c * geometry.tangents[f[:, k]] for k, c in enumerate((w, u[:, None], v[:, None])))
     tg = jnp.einsum("bij,bj->bi", a, t_obj)
     mat = geometry.object_material[geometry.inst_object_base[inst] + geometry.face_object[face]]
-    return p, ng, ns, tg, mat
+    uv = w * geometry.uvs[f[:, 0]] + u[:, None] * geometry.uvs[f[:, 1]] + v[:, None] * geometry.uvs[f[:, 2]]
+    return p, ng, ns, tg, mat, uv
 
 
 def set_object_material(geometry, obj: int, material: int):

@@ -108,7 +108,8 @@ def surface(geometry, prim: Int[Array, "B"], u: Float[Array, "B"], v: Float[Arra
 
     Works on `scene.Geometry` and on `instancing.InstancedGeometry` (prim = virtual face id)."""
     if instancing.is_instanced(geometry):
-        p, ng, ns, tg, mat = instancing.surface_arrays(geometry, prim, u, v)
+        # uv (texture coordinates) is for the textures branch's Surface.uv; unused here
+        p, ng, ns, tg, mat, _uv = instancing.surface_arrays(geometry, prim, u, v)
         ng = _normalize(ng)
         ns = _normalize(ns)
         ns = jnp.where((_dot(ns, ns) > 0.5)[:, None], ns, ng)

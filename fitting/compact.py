@@ -24,7 +24,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 import brdfs
-from jaxrt import integrators, render
+from jaxrt import instancing, integrators, render
 
 
 class FitBuffer(eqx.Module):
@@ -47,7 +47,7 @@ def _nodes(gb, scene, material: int):
     """Per-view node data (numpy) for the nodes whose hit has `material`."""
     st = scene.settings
     keep = np.asarray(gb.active & (gb.prim >= 0))
-    mat = np.asarray(scene.geometry.material)[np.maximum(np.asarray(gb.prim), 0)]
+    mat = np.asarray(instancing.face_material(scene.geometry, gb.prim))
     sel = keep & (mat == material)
     d_idx, b_idx = np.nonzero(sel)
     prim, u, v = (jnp.asarray(np.asarray(x)[d_idx, b_idx]) for x in (gb.prim, gb.u, gb.v))

@@ -28,7 +28,7 @@ import brdfs
 from brdfs.base import Model
 from fitting import compact
 from fitting.solve import FitResult, fit_images
-from jaxrt import integrators
+from jaxrt import instancing, integrators
 from jaxrt import render as _render
 from jaxrt import scene as _scene
 from jaxrt.errors import InputError
@@ -158,7 +158,7 @@ def prepare(
         npix = s.camera.num_pixels
         first = jnp.arange(npix) * s.settings.spp
         prim = gb.prim[0, first]
-        hit_mat = jnp.where(prim >= 0, s.geometry.material[jnp.maximum(prim, 0)], -1)
+        hit_mat = jnp.where(prim >= 0, instancing.face_material(s.geometry, prim), -1)
         masks.append(np.asarray(hit_mat == mi, np.float32).reshape(s.camera.height, s.camera.width))
     mask = np.stack(masks)
     if not mask.any():

@@ -2,6 +2,7 @@
 
 Submodules (imported on demand so `import jaxrt` stays cheap and does not import JAX):
   mesh, data, bvh        geometry: mesh loading, the data registry, BVH build and traversal
+  instancing, bvh_instanced  object groups placed as instances; the two-level BVH
   scene, camera, lights  scene description
   integrators, image     rendering and image I/O
   render                 `jaxrt.render(scene)` -> (H, W, 3) linear image
@@ -14,7 +15,8 @@ import importlib
 __version__ = "0.1.0"
 
 _SUBMODULES = frozenset(
-    {"mesh", "data", "bvh", "scene", "camera", "lights", "integrators", "image", "shapes", "cli", "errors", "fsutil"}
+    {"mesh", "data", "bvh", "scene", "camera", "lights", "integrators", "image", "shapes", "cli", "errors", "fsutil",
+     "instancing", "bvh_instanced"}
 )
 
 

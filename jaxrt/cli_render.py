@@ -13,7 +13,8 @@ AOV_NAMES = ("depth", "normal", "albedo", "object_id")
 
 EPILOG = """\
 SCENE is a path to a TOML scene file or the name of a shipped scene (spheres, bunny, dragon,
-cornell, showcase; `spheres` needs no data files, the others need $JAXRT_DATA).
+cornell, showcase, instances, bunnies; `spheres` and `instances` need no data files, the others need
+$JAXRT_DATA).
 
 Outputs: -o sets the EXR (linear float32 RGB, plus AOV channels with --aovs); --png sets the PNG
 (sRGB, exposure applied). Without -o and --png, SCENE_STEM.exr and SCENE_STEM.png are written to the
@@ -70,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from jaxrt import image
+    from jaxrt import image, instancing
     from jaxrt import render as _render
 
     t0 = time.perf_counter()
@@ -90,6 +91,6 @@ def run(args: argparse.Namespace) -> int:
         c = spec.camera
         outs = " and ".join(str(p) for p in (exr, png) if p is not None)
         print(f"{path.name}: {c.width}x{c.height}, {spec.render.spp} spp, "
-              f"{scn.geometry.faces.shape[0]} triangles; scene {t1 - t0:.2f} s, "
+              f"{instancing.triangle_count(scn.geometry)} triangles; scene {t1 - t0:.2f} s, "
               f"render {t2 - t1:.2f} s (incl. compile); wrote {outs}", file=sys.stdout)
     return 0

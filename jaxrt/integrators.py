@@ -50,7 +50,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 import brdfs
-from jaxrt import bvh, camera, lights as _lights
+from jaxrt import bvh, bvh_instanced, camera, instancing, lights as _lights
 
 MIRROR, GLASS_R, GLASS_T = 0, 1, 2
 _OFFSET = 2.0**-16
@@ -105,7 +105,15 @@ def _normalize(v):
 
 
 def surface(geometry, prim: Int[Array, "B"], u: Float[Array, "B"], v: Float[Array, "B"]) -> Surface:
-    """Hit point, normals and frame of faces `prim` at barycentrics (u, v); misses (-1) give face 0."""
+    """Hit point, normals and frame of faces `prim` at barycentrics (u, v); misses (-1) give face 0.
+
+    Works on `scene.Geometry` and on `instancing.InstancedGeometry` (prim = virtual face id)."""
+    if instancing.is_instanced(geometry):
+        p, ng, ns, tg, mat, uv = instancing.surface_arrays(geometry, prim, u, v)
+        ng = _normalize(ng)
+        ns = _normalize(ns)
+        ns = jnp.where((_dot(ns, ns) > 0.5)[:, None], ns, ng)
+        return Surface(p, ng, ns, tg, mat, uv)
     f = geometry.faces[jnp.maximum(prim, 0)]  # (B, 3)
     v0, v1, v2 = (geometry.vertices[f[:, k]] for k in range(3))
     w = (1.0 - u - v)[:, None]
@@ -226,7 +234,15 @@ def _is_glass(materials, mat):
 def _intersect(tree, o, d, active):
     # inactive slots get an empty interval so traversal rejects them at the root
     tmax = jnp.where(active, jnp.inf, -1.0)
+    if isinstance(tree, bvh_instanced.InstancedBVH):
+        return bvh_instanced.intersect(tree, o, d, tmin=0.0, tmax=tmax)
     return bvh.intersect(tree, o, d, tmin=0.0, tmax=tmax)
+
+
+def _occluded(tree, o, d, tmax):
+    if isinstance(tree, bvh_instanced.InstancedBVH):
+        return bvh_instanced.occluded(tree, o, d, tmax)
+    return bvh.occluded(tree, o, d, tmax)
 
 
 def trace(scene) -> GBuffer:
@@ -272,7 +288,7 @@ def trace(scene) -> GBuffer:
         lit = found[:, None] & (_dot(wi, ng[:, None, :]) > 0) & ~_is_glass(mats, s.material)[:, None]
         so = jnp.broadcast_to(s.p[:, None, :] + ng[:, None, :] * eps[:, None, :], wi.shape)
         smax = jnp.where(lit, dist - 2.0 * eps, -1.0)
-        occ = bvh.occluded(geo.tree, so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1)).reshape(B, L)
+        occ = _occluded(geo.tree, so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1)).reshape(B, L)
         visible = lit & ~occ
         buf = GBuffer(
             active=buf.active.at[k].set(act), prim=buf.prim.at[k].set(prim),
@@ -451,7 +467,7 @@ def shade(gbuffer: GBuffer, scene, aovs: bool = False):
         "depth": jnp.where(found, gbuffer.t[0, first], 0.0).reshape(hw),
         "normal": jnp.where(found[:, None], ns, 0.0).reshape(hw + (3,)),
         "albedo": jnp.where(found[:, None], albedo, 0.0).reshape(hw + (3,)),
-        "object_id": jnp.where(found, scene.geometry.object_id[jnp.maximum(prim, 0)], -1).reshape(hw),
+        "object_id": jnp.where(found, instancing.face_object(scene.geometry, prim), -1).reshape(hw),
     }
     return image, out
 

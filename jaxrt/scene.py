@@ -268,6 +268,8 @@ class SceneSpec:
     materials: dict[str, MaterialSpec]
     objects: tuple[ObjectSpec, ...]
     render: RenderSpec
+    groups: tuple = ()  # jaxrt.instancing.GroupSpec
+    instances: tuple = ()  # jaxrt.instancing.InstanceSpec
 
 
 _REQ = object()
@@ -408,7 +410,7 @@ def parse(
     import brdfs  # cheap: no JAX tracing, only the parameter declarations
 
     top = _Checker(file, "top level", doc)
-    for k in ("camera", "lights", "materials", "objects", "render", "description"):
+    for k in ("camera", "lights", "materials", "objects", "render", "description", "groups", "instances"):
         top.used.add(k)
     top.done()
     if "description" in doc and not isinstance(doc["description"], str):
@@ -473,63 +475,22 @@ def parse(
         mc.done()
         materials[name] = MaterialSpec(name, model_name, params, delta, textures)
 
-    # ---- objects
-    raw_objs = top.raw("objects")
-    if not isinstance(raw_objs, list) or not raw_objs:
-        top.fail("objects", "expected one or more [[objects]] tables")
-    objects = []
+    # ---- objects (optional when [[instances]] place groups)
+    raw_objs = top.raw("objects", None)
+    has_instances = doc.get("instances") is not None
+    if raw_objs is None and has_instances:
+        raw_objs = []
+    elif not isinstance(raw_objs, list) or (not raw_objs and not has_instances):
+        top.fail("objects", "expected one or more [[objects]] tables (or [[groups]] placed by [[instances]])")
     names_seen: set[str] = set()
-    for i, o in enumerate(raw_objs):
-        oc = _Checker(file, f"[objects] #{i + 1}", o)
-        mesh_ref = oc.string("mesh", None)
-        prim = oc.string("primitive", None, choices=("sphere", "plane", "box"))
-        if (mesh_ref is None) == (prim is None):
-            oc.fail(None, "give exactly one of mesh = NAME|PATH or primitive = sphere|plane|box")
-        name = oc.string("name", mesh_ref if prim is None else prim)
-        if isinstance(name, str) and mesh_ref is not None and name == mesh_ref:
-            name = Path(mesh_ref).stem
-        base_name, k = name, 2
-        while name in names_seen:
-            name, k = f"{base_name}.{k}", k + 1
-        names_seen.add(name)
-        material = oc.string("material", choices=tuple(materials))
-        prim_args: dict = {}
-        mesh_path = None
-        parts = None
-        part_materials: dict = {}
-        flat = False
-        if prim == "sphere":
-            prim_args["radius"] = oc.number("radius", 1.0, lo=0.0, lo_open=True)
-            prim_args["subdivisions"] = oc.integer("subdivisions", 4, lo=0, hi=7)
-        elif prim == "plane":
-            prim_args["size"] = oc.vector("size", 2, default=[1.0, 1.0], lo=1e-30)
-        elif prim == "box":
-            prim_args["size"] = oc.vector("size", 3, default=[1.0, 1.0, 1.0], lo=1e-30, scalar_ok=True)
-        else:
-            mesh_path = _resolve_mesh(mesh_ref, base, oc)
-            flat = oc.boolean("flat", False)
-            p = oc.raw("parts", None)
-            if p is not None:
-                if not isinstance(p, list) or not p or not all(isinstance(x, str) for x in p):
-                    oc.fail("parts", f"expected a list of object names in the mesh file, got {p!r}")
-                parts = tuple(p)
-            pm = oc.raw("part_materials", {})
-            if not isinstance(pm, dict) or not all(isinstance(v, str) for v in pm.values()):
-                oc.fail("part_materials", "expected a table {part_name = \"material\", ...}")
-            for part, mat in pm.items():
-                if mat not in materials:
-                    oc.fail(f"part_materials.{part}", f"{mat!r} is not a material; allowed: {', '.join(materials)}")
-            part_materials = dict(pm)
-        scale = oc.raw("scale", None)
-        if scale is not None:
-            scale = oc.vector("scale", 3, lo=1e-30, scalar_ok=True)
-            if any(s <= 0 for s in scale):
-                oc.fail("scale", "every component must be > 0")
-        rotate = oc.vector("rotate", 3, default=None)
-        translate = oc.vector("translate", 3, default=None)
-        oc.done()
-        objects.append(ObjectSpec(name, material, mesh_path, prim, prim_args, scale, rotate, translate,
-                                  flat, parts, part_materials))
+    objects = [_parse_object(_Checker(file, f"[objects] #{i + 1}", o), materials, base, names_seen)
+               for i, o in enumerate(raw_objs)]
+
+    # ---- groups and instances (jaxrt.instancing)
+    from jaxrt import instancing
+
+    groups, instances = instancing.parse(doc, file, materials, base,
+                                         lambda oc, seen: _parse_object(oc, materials, base, seen), names_seen)
 
     # ---- render
     rc = _Checker(file, "render", top.raw("render", {}))
@@ -543,7 +504,60 @@ def parse(
     )
     rc.raw("ray_budget", None)
     rc.done()
-    return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render)
+    return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances)
+
+
+def _parse_object(oc: "_Checker", materials: dict, base: Path, names_seen: set[str]) -> ObjectSpec:
+    """One [[objects]] (or [[groups.objects]]) table; `names_seen` makes names unique (adds .2, .3)."""
+    mesh_ref = oc.string("mesh", None)
+    prim = oc.string("primitive", None, choices=("sphere", "plane", "box"))
+    if (mesh_ref is None) == (prim is None):
+        oc.fail(None, "give exactly one of mesh = NAME|PATH or primitive = sphere|plane|box")
+    name = oc.string("name", mesh_ref if prim is None else prim)
+    if isinstance(name, str) and mesh_ref is not None and name == mesh_ref:
+        name = Path(mesh_ref).stem
+    base_name, k = name, 2
+    while name in names_seen:
+        name, k = f"{base_name}.{k}", k + 1
+    names_seen.add(name)
+    material = oc.string("material", choices=tuple(materials))
+    prim_args: dict = {}
+    mesh_path = None
+    parts = None
+    part_materials: dict = {}
+    flat = False
+    if prim == "sphere":
+        prim_args["radius"] = oc.number("radius", 1.0, lo=0.0, lo_open=True)
+        prim_args["subdivisions"] = oc.integer("subdivisions", 4, lo=0, hi=7)
+    elif prim == "plane":
+        prim_args["size"] = oc.vector("size", 2, default=[1.0, 1.0], lo=1e-30)
+    elif prim == "box":
+        prim_args["size"] = oc.vector("size", 3, default=[1.0, 1.0, 1.0], lo=1e-30, scalar_ok=True)
+    else:
+        mesh_path = _resolve_mesh(mesh_ref, base, oc)
+        flat = oc.boolean("flat", False)
+        p = oc.raw("parts", None)
+        if p is not None:
+            if not isinstance(p, list) or not p or not all(isinstance(x, str) for x in p):
+                oc.fail("parts", f"expected a list of object names in the mesh file, got {p!r}")
+            parts = tuple(p)
+        pm = oc.raw("part_materials", {})
+        if not isinstance(pm, dict) or not all(isinstance(v, str) for v in pm.values()):
+            oc.fail("part_materials", "expected a table {part_name = \"material\", ...}")
+        for part, mat in pm.items():
+            if mat not in materials:
+                oc.fail(f"part_materials.{part}", f"{mat!r} is not a material; allowed: {', '.join(materials)}")
+        part_materials = dict(pm)
+    scale = oc.raw("scale", None)
+    if scale is not None:
+        scale = oc.vector("scale", 3, lo=1e-30, scalar_ok=True)
+        if any(s <= 0 for s in scale):
+            oc.fail("scale", "every component must be > 0")
+    rotate = oc.vector("rotate", 3, default=None)
+    translate = oc.vector("translate", 3, default=None)
+    oc.done()
+    return ObjectSpec(name, material, mesh_path, prim, prim_args, scale, rotate, translate, flat, parts,
+                      part_materials)
 
 
 def _parse_texture(t: Mapping, p, model: str, base: Path, where: str) -> TextureSpec:
@@ -715,33 +729,38 @@ def build(spec: SceneSpec) -> Scene:
     )
 
     cache: dict = {}
-    meshes, obj_names, face_mat, face_obj = [], [], [], []
-    for o in spec.objects:
-        for name, m, mat in _object_meshes(o, cache):
-            nf = int(np.asarray(m.faces).shape[0])
-            face_mat.append(np.full(nf, mat_names.index(mat), np.int32))
-            face_obj.append(np.full(nf, len(obj_names), np.int32))
-            obj_names.append(name)
-            meshes.append(m)
-    whole = _mesh.concatenate(meshes) if len(meshes) > 1 else meshes[0]
-    verts = np.asarray(whole.vertices, np.float32)
-    faces = np.asarray(whole.faces, np.int32)
-    if not np.all(np.isfinite(verts)):
-        raise InputError(f"{spec.source}: scene geometry contains non-finite vertices")
-    tree = bvh.build(verts, faces)
-    geometry = Geometry(
-        vertices=jnp.asarray(verts),
-        normals=jnp.asarray(np.asarray(whole.normals, np.float32)),
-        tangents=jnp.asarray(np.asarray(whole.tangents, np.float32)),
-        faces=jnp.asarray(faces),
-        material=jnp.asarray(np.concatenate(face_mat)),
-        object_id=jnp.asarray(np.concatenate(face_obj)),
-        tree=tree,
-        object_names=tuple(obj_names),
-        # mesh.concatenate drops UVs unless every mesh has them: keep them, zeros where a mesh has none
-        uvs=jnp.asarray(np.concatenate([np.zeros((m.num_vertices, 2), np.float32) if m.uvs is None
-                                        else np.asarray(m.uvs, np.float32) for m in meshes])),
-    )
+    if spec.instances:
+        from jaxrt import instancing
+
+        geometry = instancing.build_geometry(spec, mat_names, cache)
+    else:
+        meshes, obj_names, face_mat, face_obj = [], [], [], []
+        for o in spec.objects:
+            for name, m, mat in _object_meshes(o, cache):
+                nf = int(np.asarray(m.faces).shape[0])
+                face_mat.append(np.full(nf, mat_names.index(mat), np.int32))
+                face_obj.append(np.full(nf, len(obj_names), np.int32))
+                obj_names.append(name)
+                meshes.append(m)
+        whole = _mesh.concatenate(meshes) if len(meshes) > 1 else meshes[0]
+        verts = np.asarray(whole.vertices, np.float32)
+        faces = np.asarray(whole.faces, np.int32)
+        if not np.all(np.isfinite(verts)):
+            raise InputError(f"{spec.source}: scene geometry contains non-finite vertices")
+        tree = bvh.build(verts, faces)
+        geometry = Geometry(
+            vertices=jnp.asarray(verts),
+            normals=jnp.asarray(np.asarray(whole.normals, np.float32)),
+            tangents=jnp.asarray(np.asarray(whole.tangents, np.float32)),
+            faces=jnp.asarray(faces),
+            material=jnp.asarray(np.concatenate(face_mat)),
+            object_id=jnp.asarray(np.concatenate(face_obj)),
+            tree=tree,
+            object_names=tuple(obj_names),
+            # mesh.concatenate drops UVs unless every mesh has them: keep them, zeros where a mesh has none
+            uvs=jnp.asarray(np.concatenate([np.zeros((m.num_vertices, 2), np.float32) if m.uvs is None
+                                            else np.asarray(m.uvs, np.float32) for m in meshes])),
+        )
 
     lights = PointLights(
         position=jnp.asarray([l[0] for l in spec.lights], jnp.float32),

@@ -138,6 +138,8 @@ def substitute(spec, model: str | Model | None, obj: str | None, base_params: Ma
     from jaxrt import scene as _scene
 
     names = [o.name for o in spec.objects]
+    if not names:  # objects placed by [[instances]] are not addressable here (see jaxrt.instancing)
+        raise InputError(f"{spec.source}: sweeps and fits address [[objects]] only; this scene has none")
     if obj is None:  # the same default for every model keeps one compiled structure for all
         obj = next((o.name for o in spec.objects if o.primitive != "plane"), names[0])
     if obj not in names:
@@ -172,23 +174,29 @@ def substitute(spec, model: str | Model | None, obj: str | None, base_params: Ma
 def use_model(scene, obj: str, model: str | Model):
     """A copy of a `substitute`d scene in which object `obj` wears `model`'s material (a value change)."""
     import equinox as eqx
-    import jax.numpy as jnp
+
+    from jaxrt import instancing
 
     g = scene.geometry
     if obj not in g.object_names:
         raise InputError(f"no object named {obj!r}; objects: {', '.join(g.object_names)}")
     mi = scene.materials.index(material_name(model))
-    mat = jnp.where(g.object_id == g.object_names.index(obj), jnp.int32(mi), g.material)
-    return eqx.tree_at(lambda s: s.geometry.material, scene, mat)
+    geometry = instancing.set_object_material(g, g.object_names.index(obj), mi)
+    return eqx.tree_at(lambda s: s.geometry, scene, geometry)
 
 
 def frame_object(scene, obj: str, margin: float = 1.15):
     """A copy of `scene` whose camera looks at object `obj`'s bounding sphere from the same position,
     with the vertical field of view just wide enough to hold it (times `margin`)."""
+    from jaxrt import instancing
+
     g = scene.geometry
     k = g.object_names.index(obj)
-    faces = np.asarray(g.faces)[np.asarray(g.object_id) == k]
-    v = np.asarray(g.vertices)[np.unique(faces)]
+    if instancing.is_instanced(g):
+        v = instancing.object_triangles(g, k).reshape(-1, 3)
+    else:
+        faces = np.asarray(g.faces)[np.asarray(g.object_id) == k]
+        v = np.asarray(g.vertices)[np.unique(faces)]
     lo, hi = v.min(0), v.max(0)
     centre = 0.5 * (lo + hi)
     radius = float(np.max(np.linalg.norm(v - centre, axis=-1)))  # bounding sphere about the box centre

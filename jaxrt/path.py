@@ -240,7 +240,9 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
                 b1, b2 = 1.0 - su, u[:, 3] * su
                 y = (1.0 - b1 - b2)[:, None] * v0 + b1[:, None] * v1 + b2[:, None] * v2
                 n_l = _normalize(jnp.cross(v1 - v0, v2 - v0))
-                to = y - s.p
+                # aim from the offset origin: a ray parallel to y - p would meet the light's plane
+                # eps/cosθ early, short of the shadow ray's end, and count as occluded
+                to = y - origin
                 d2 = _dot(to, to)
                 dist = jnp.sqrt(jnp.maximum(d2, 1e-30))
                 wi_t = to / dist[:, None]
@@ -377,9 +379,6 @@ class Accumulation(eqx.Module):
         return self.total / jnp.maximum(self.count, 1)
 
 
-_pass = jax.jit(lambda scene, i: render(scene, i, jitter=True))
-
-
 def accumulate(scene, state: Accumulation | None = None) -> Accumulation:
     """Add one pass of `scene.settings.spp` jittered samples per pixel to `state` (None: start).
 
@@ -389,7 +388,7 @@ def accumulate(scene, state: Accumulation | None = None) -> Accumulation:
     cam = scene.camera
     if state is None:
         state = Accumulation(jnp.zeros((cam.height, cam.width, 3)), jnp.asarray(0), jnp.asarray(0))
-    img = _pass(scene, state.passes)
+    img = jnp.mean(samples_jit(scene, state.passes, jitter=True), axis=1).reshape(cam.height, cam.width, 3)
     spp = scene.settings.spp
     return Accumulation(state.total + img * spp, state.count + spp, state.passes + 1)
 

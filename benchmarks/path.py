@@ -18,7 +18,8 @@ Materials: the Cornell box is identical (two-sided diffuse). For the dragon Mits
 Torrance/Phong with these exact parameterisations, so it gets the nearest plugins (roughconductor
 Beckmann with alpha = m, roughplastic for the floor): the timing compares the same light transport
 workload, not identical images. Mitsuba's variant: llvm_ad_rgb (CPU, JIT-compiled, vectorised), or
-scalar_rgb when llvm is unavailable; the variant that ran is printed. Runs unchanged on a GPU (JAX
+scalar_rgb when llvm fails (each Mitsuba run is a child process, so an LLVM abort only costs the
+fallback); the variant that ran is printed. Runs unchanged on a GPU (JAX
 picks the backend; Mitsuba stays on the CPU).
 """
 
@@ -159,6 +160,24 @@ def bench_mitsuba(mi, scene, spp: int, passes: int) -> dict:
     return dict(pass_s=statistics.median(times), mean=float(np.mean(means)))
 
 
+def mitsuba_subprocess(variant: str, args, name: str, exr: Path) -> dict | None:
+    """Time Mitsuba in a child process: an LLVM back-end fault (e.g. drjit's libLLVM failing to
+    select an instruction) aborts the whole process, which must not take jaxrt's numbers with it."""
+    import json
+    import subprocess
+
+    cmd = [sys.executable, __file__, "--mitsuba-child", name, "--mitsuba-variant", variant, "--exr", str(exr),
+           "--size", str(args.size), "--spp", str(args.spp), "--depth", str(args.depth),
+           "--passes", str(args.passes), "--mesh", args.mesh]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    lines = [ln for ln in res.stdout.splitlines() if ln.startswith("{")]
+    if res.returncode != 0 or not lines:
+        err = [ln for ln in res.stderr.splitlines() if "ERROR" in ln or "Error" in ln][:1]
+        print(f"  Mitsuba {variant} failed on {name} (exit {res.returncode}: {err[0] if err else '?'})")
+        return None
+    return json.loads(lines[-1])
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=["cornell", "dragon"], choices=["cornell", "dragon"])
@@ -169,25 +188,29 @@ def main(argv=None) -> int:
     ap.add_argument("--mesh", default="dragon", help="dragon mesh data name (dragon, dragon_res2, dragon_res4)")
     ap.add_argument("--mitsuba-variant", default="llvm_ad_rgb")
     ap.add_argument("--no-mitsuba", action="store_true")
+    ap.add_argument("--mitsuba-child", help=argparse.SUPPRESS)
+    ap.add_argument("--exr", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.mitsuba_child:
+        import json
+
+        import mitsuba as mi
+
+        mi.set_variant(args.mitsuba_variant)
+        name = args.mitsuba_child
+        sc = load(name, args.size, args.spp, args.depth, Path(args.exr), args.mesh)
+        with tempfile.TemporaryDirectory() as tmp:
+            m = bench_mitsuba(mi, mitsuba_scene(mi, sc, name, Path(args.exr), Path(tmp), args.spp, args.depth),
+                              args.spp, args.passes)
+        print(json.dumps(dict(m, variant=mi.variant(), version=mi.__version__)))
+        return 0
 
     dev = jax.devices()[0]
     print(f"backend: {jax.default_backend()}  device: {dev.device_kind}  jax {jax.__version__}")
-    mi = None
-    if not args.no_mitsuba:
-        import mitsuba
-
-        mi = mitsuba
-        try:
-            mi.set_variant(args.mitsuba_variant)
-        except Exception as e:  # llvm needs libLLVM at run time
-            print(f"Mitsuba variant {args.mitsuba_variant} unavailable ({e}); using scalar_rgb")
-            mi.set_variant("scalar_rgb")
-        print(f"Mitsuba {mi.__version__} variant: {mi.variant()}")
     n = args.size * args.size * args.spp
     print(f"{args.size}x{args.size}, {args.spp} spp per pass, max_depth {args.depth}, median of {args.passes} passes")
     print(f"{'scene':8s} {'tris':>8s} {'build s':>8s} {'compile s':>9s} {'pass s':>8s} {'Msamples/s':>10s} "
-          f"{'mean':>8s} | {'Mitsuba pass s':>14s} {'Msamples/s':>10s} {'mean':>8s} {'jaxrt/Mitsuba':>13s}")
+          f"{'mean':>8s}")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         exr = sky_exr(tmp / "sky.exr")
@@ -198,12 +221,15 @@ def main(argv=None) -> int:
             r = bench_jaxrt(sc, args.passes)
             line = (f"{name:8s} {sc.geometry.faces.shape[0]:8d} {build:8.2f} {r['compile_s']:9.2f} "
                     f"{r['pass_s']:8.3f} {n / r['pass_s'] / 1e6:10.4f} {r['mean']:8.4f}")
-            if mi is not None:
-                m = bench_mitsuba(mi, mitsuba_scene(mi, sc, name, exr, tmp, args.spp, args.depth), args.spp,
-                                  args.passes)
-                line += (f" | {m['pass_s']:14.3f} {n / m['pass_s'] / 1e6:10.4f} {m['mean']:8.4f} "
-                         f"{r['pass_s'] / m['pass_s']:12.1f}x")
             print(line, flush=True)
+            if not args.no_mitsuba:
+                for variant in dict.fromkeys([args.mitsuba_variant, "scalar_rgb"]):
+                    m = mitsuba_subprocess(variant, args, name, exr)
+                    if m is not None:
+                        print(f"{'':8s} Mitsuba {m['version']} {m['variant']}: pass {m['pass_s']:.3f} s, "
+                              f"{n / m['pass_s'] / 1e6:.4f} Msamples/s, mean {m['mean']:.4f}; "
+                              f"jaxrt/Mitsuba time {r['pass_s'] / m['pass_s']:.1f}x", flush=True)
+                        break
     return 0
 
 

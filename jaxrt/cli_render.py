@@ -13,7 +13,8 @@ AOV_NAMES = ("depth", "normal", "albedo", "object_id")
 
 EPILOG = """\
 SCENE is a path to a TOML scene file or the name of a shipped scene (spheres, bunny, dragon,
-cornell, showcase; `spheres` needs no data files, the others need $JAXRT_DATA).
+cornell, showcase, and the path-traced cornell_area and furnace; `spheres` and `furnace` need no
+data files, the others need $JAXRT_DATA).
 
 Outputs: -o sets the EXR (linear float32 RGB, plus AOV channels with --aovs); --png sets the PNG
 (sRGB, exposure applied). Without -o and --png, SCENE_STEM.exr and SCENE_STEM.png are written to the

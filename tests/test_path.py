@@ -446,7 +446,7 @@ def test_cornell_area_light_agrees_with_mitsuba(data_dir):
 @pytest.mark.mitsuba
 @pytest.mark.data
 def test_cornell_area_light_agrees_with_mitsuba_deep(data_dir):
-    _compare_cornell(res=32, spp=2048, depth=8, mi_spp=1024, mi_runs=16, block=4)
+    _compare_cornell(res=32, spp=512, depth=8, mi_spp=512, mi_runs=8, block=4)
 
 
 # --------------------------------------------------------------------------- scene input

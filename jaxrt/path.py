@@ -125,6 +125,12 @@ def _light_classes(scene):
     return (1.0 / n if has_tri else 0.0), (1.0 / n if has_env else 0.0)
 
 
+def _params(mats, s, k: int) -> dict:
+    # textured parameters are looked up at the hit's uv where the Surface carries one
+    uv = getattr(s, "uv", None)
+    return _gather_params(mats, s.material, k) if uv is None else _gather_params(mats, s.material, k, uv)
+
+
 def _bsdf_models(mats):
     return [(k, brdfs.get(name)) for k, name in enumerate(mats.models) if not brdfs.get(name).delta]
 
@@ -200,7 +206,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         opaque = cont & ~glass
         delta = jnp.where(opaque, mats.delta[s.material], 0.0)
         q = _sg(delta)
-        params = {kk: _gather_params(mats, s.material, kk) for kk, _ in models}
+        params = {kk: _params(mats, s, kk) for kk, _ in models}
         sel = {kk: mats.model_id[s.material] == kk for kk, _ in models}
 
         def eval_f(wi_l, wo_l, extra_dims=0):
@@ -287,7 +293,9 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             pdf_s = jnp.where(sel[kk], pk, pdf_s)
         f_s, _ = eval_f(wi_s, wo)
         ok_s = pdf_s > 0
-        fac_b = f_s * (jnp.maximum(wi_s[:, 2], 0.0) * (1.0 - delta) / jnp.where(ok_s, pdf_s * (1.0 - q), 1.0))[:, None]
+        # (q = 1 always takes the mirror; the guard keeps this unused branch finite for gradients)
+        den = jnp.where(ok_s & (q < 1.0), pdf_s * (1.0 - q), 1.0)
+        fac_b = f_s * (jnp.maximum(wi_s[:, 2], 0.0) * (1.0 - delta) / den)[:, None]
         mirror = u[:, 4] < q
         fac_m = jnp.broadcast_to((delta / jnp.where(q > 0, q, 1.0))[:, None], (B, 3))
         d_op = jnp.where(mirror[:, None], _mirror_dir(d, ng, ns), _from_local(wi_s, frame))

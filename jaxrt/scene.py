@@ -469,7 +469,7 @@ def parse(
             except ValueError as e:
                 mc.fail(p.name, str(e).split(": ", 1)[-1])
         mc.done()
-        materials[name] = MaterialSpec(name, model_name, params, delta, emission)
+        materials[name] = MaterialSpec(name, model_name, params, delta, emission=emission)
 
     # ---- objects
     raw_objs = top.raw("objects")

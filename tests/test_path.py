@@ -126,6 +126,33 @@ def test_gradient_unbiased_vs_finite_differences(furnace):
     assert abs(g.mean() - fd.mean()) < K * se + 0.02 * abs(fd.mean()), (g.mean(), fd.mean(), se)
 
 
+@pytest.mark.slow  # another reverse-mode compile plus 72 renders
+@pytest.mark.data
+def test_gradient_multibounce_cornell_vs_finite_differences(data_dir):
+    """d(mean image)/ds with the Cornell box's white reflectance scaled by s: interreflection makes
+    the image a polynomial in s over up to 3 bounces, so the estimate must differentiate every
+    vertex's f along the path, the NEE and the MIS-weighted emission hits."""
+    sc = scene.load("cornell_area", overrides={"camera.width": 8, "camera.height": 8, "render.spp": 64,
+                                               "render.max_depth": 3})
+    i_white = sc.materials.index("white")
+    k, row = int(sc.materials.model_id[i_white]), int(sc.materials.row[i_white])
+    base = sc.materials.params[k]["rho_d"]
+
+    def set_s(s_, x):
+        params = list(s_.materials.params)
+        params[k] = dict(params[k], rho_d=base.at[row].multiply(x))
+        return eqx.tree_at(lambda y: y.materials.params, s_, tuple(params))
+
+    grad = jax.jit(jax.grad(lambda x, i: jnp.mean(path.samples(set_s(sc, x), i, jitter=True))))
+    x0, h = 1.0, 0.05
+    g = np.array([float(grad(jnp.float32(x0), i)) for i in range(24)])
+    fwd = lambda x, i: float(np.mean(np.asarray(path.samples_jit(set_s(sc, x), i, jitter=True), np.float64)))
+    fd = np.array([(fwd(x0 + h, i) - fwd(x0 - h, i)) / (2 * h) for i in range(1000, 1024)])
+    se = math.sqrt(g.var(ddof=1) / len(g) + fd.var(ddof=1) / len(fd))
+    assert abs(g.mean()) > 5 * se
+    assert abs(g.mean() - fd.mean()) < K * se + 0.01 * abs(fd.mean()), (g.mean(), fd.mean(), se)
+
+
 # --------------------------------------------------------------------------- Whitted equality
 
 

@@ -515,3 +515,20 @@ def test_emission_and_environment_build(tmp_path):
     assert sc.area_lights.count == sc.geometry.faces.shape[0]
     np.testing.assert_allclose(np.asarray(sc.area_lights.emission), [[1.0, 2.0, 3.0]])
     np.testing.assert_allclose(np.asarray(envmap.radiance(sc.environment, jnp.array([[0.0, 1.0, 0.0]]))), [[1, 1, 1]])
+
+
+def test_whitted_escaping_rays_see_the_environment(tmp_path):
+    # Whitted's shade uses escaped_radiance for rays that leave the scene: the environment when
+    # there is one (here a rotated lat-long map), else `background`
+    from jaxrt import image, integrators
+
+    image.write_exr(tmp_path / "sky.exr", _sky().astype(np.float32))
+    d = _base(environment={"file": "sky.exr", "rotate": 30.0}, render={"background": [0.1, 0.2, 0.3]})
+    sc = scene.load(d, base_dir=tmp_path)
+    theta, phi = np.array([0.3, 1.2, 2.5]), np.array([0.4, 2.0, 5.5])
+    dirs = _dirs(theta, phi) @ _rot_y(30.0).T
+    want = _sky()[(theta / np.pi * 16).astype(int), (phi / (2 * np.pi) * 32).astype(int)]
+    got = np.asarray(integrators.escaped_radiance(sc, jnp.asarray(dirs, jnp.float32)))
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    no_env = scene.load(_base(lights=[{"position": [0, 3, 0], "intensity": 1.0}], render={"background": 0.5}))
+    np.testing.assert_allclose(np.asarray(integrators.escaped_radiance(no_env, jnp.asarray(dirs, jnp.float32))), 0.5)

@@ -50,8 +50,6 @@ f is). Geometry and the camera are stop_gradient'ed (edge terms are not modelled
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp

@@ -157,9 +157,9 @@ def test_gradient_multibounce_cornell_vs_finite_differences(data_dir):
 
 
 def test_point_lights_depth_one_equals_whitted():
-    from jaxrt import render
-
     from test_render_util import lab_dict
+
+    from jaxrt import render
 
     # the lab scene: Lambert and Phong under a point light with hard shadows, a δ = 1 mirror and a
     # glass slab (both contribute nothing at depth 1 in either integrator), background 0
@@ -179,7 +179,6 @@ def test_point_lights_depth_one_equals_whitted():
 def _sky(h=16, w=32):
     """A synthetic sky: a vertical gradient plus a small bright sun."""
     v = (np.arange(h) + 0.5) / h
-    u = (np.arange(w) + 0.5) / w
     tex = np.zeros((h, w, 3))
     tex[...] = (0.2 + 0.8 * (1 - v))[:, None, None] * np.array([0.5, 0.7, 1.0])
     tex[3:5, 20:22] = [40.0, 35.0, 30.0]
@@ -222,7 +221,7 @@ def test_envmap_sampling_chi_square():
     env = envmap.from_array(_sky(), rotate=-50.0)
     n = 200_000
     u = jax.random.uniform(jax.random.key(7), (n, 2))
-    wi, rad, pdf = (np.asarray(x, np.float64) for x in envmap.sample(env, u))
+    wi, _, pdf = (np.asarray(x, np.float64) for x in envmap.sample(env, u))
     ok = pdf > 0
     assert ok.mean() > 0.999
     np.testing.assert_allclose(np.linalg.norm(wi[ok], axis=-1), 1.0, atol=1e-5)

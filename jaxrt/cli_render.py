@@ -13,8 +13,8 @@ AOV_NAMES = ("depth", "normal", "albedo", "object_id")
 
 EPILOG = """\
 SCENE is a path to a TOML scene file or the name of a shipped scene (spheres, bunny, dragon,
-cornell, showcase, instances, bunnies; `spheres` and `instances` need no data files, the others need
-$JAXRT_DATA).
+cornell, showcase, instances, bunnies, and the path-traced cornell_area and furnace; `spheres`, `textured`,
+`instances` and `furnace` need no data files, the others need $JAXRT_DATA).
 
 Outputs: -o sets the EXR (linear float32 RGB, plus AOV channels with --aovs); --png sets the PNG
 (sRGB, exposure applied). Without -o and --png, SCENE_STEM.exr and SCENE_STEM.png are written to the
@@ -39,6 +39,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--height", type=int, help="image height in pixels (overrides [camera] height)")
     parser.add_argument("--spp", type=int, help="samples per pixel, jittered when > 1 (overrides [render] spp)")
     parser.add_argument("--max-depth", type=int, help="ray tree depth, 1 = direct light only (overrides [render])")
+    parser.add_argument("--integrator", choices=("whitted", "path"),
+                        help="whitted (point lights, mirrors, glass) or path (path tracing with area and "
+                             "environment lights; overrides [render] integrator)")
     parser.add_argument("--seed", type=int, help="random seed for jittered samples (overrides [render] seed)")
     parser.add_argument("--exposure", type=float, default=0.0,
                         help="PNG exposure in stops: pixel values are scaled by 2^EXPOSURE (default 0)")
@@ -63,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
     overrides = {
         "camera.width": args.width, "camera.height": args.height, "render.spp": args.spp,
         "render.max_depth": args.max_depth, "render.seed": args.seed,
+        "render.integrator": args.integrator,
     }
     spec = _scene.parse(path, overrides=overrides)  # every input error surfaces here, before JAX work
     exr, png = args.output, args.png

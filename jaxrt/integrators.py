@@ -6,7 +6,8 @@ coefficient δ, and on glass with Fresnel reflectance R:
     L(x, wo) = δ·L(x, ω_r) + (1 − δ)·Σ_lights f_r(wi, wo)·I·cosθ_i / d² · V(x, light)
     L(x, wo) = R·L(x, ω_r) + (1 − R)·L(x, ω_t)                 (glass: Schlick R, Snell ω_t)
 
-Rays that escape return the background radiance.
+Rays that escape return the background radiance, or the environment's (`jaxrt.envmap`) if the
+scene has one.
 
 Trace once, shade many
 ----------------------
@@ -404,6 +405,16 @@ def _glass_r(scene, s, d):
     return r
 
 
+def escaped_radiance(scene, d: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
+    """Radiance of rays that leave the scene along d: the environment if the scene has one, else
+    the background."""
+    if getattr(scene, "environment", None) is None:
+        return jnp.broadcast_to(scene.settings.background, d.shape)
+    from jaxrt import envmap
+
+    return envmap.radiance(scene.environment, d)
+
+
 def shade(gbuffer: GBuffer, scene, aovs: bool = False):
     """Sum the traced ray tree into an image (differentiable in materials and lights).
 
@@ -436,7 +447,7 @@ def shade(gbuffer: GBuffer, scene, aovs: bool = False):
             glass = _is_glass(mats, s.material)
             delta = jnp.where(found & ~glass, mats.delta[s.material], 0.0)
             r = jnp.where(found & glass, _glass_r(scene, s, g["direction"]), 0.0)
-            local = jnp.where(found[:, None], (1.0 - delta)[:, None] * direct, st.background)
+            local = jnp.where(found[:, None], (1.0 - delta)[:, None] * direct, escaped_radiance(scene, g["direction"]))
             local = jnp.where(glass[:, None], 0.0, local)
             return local, delta, r
 

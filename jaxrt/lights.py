@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 
 class PointLights(eqx.Module):
@@ -45,3 +45,23 @@ def incident(
     wi = jnp.where(safe[..., None], delta / dist[..., None], 0.0)
     scale = jnp.where(safe[..., None], lights.intensity / d2s[..., None], 0.0)
     return wi, jnp.where(safe, dist, 0.0), scale
+
+
+class AreaLights(eqx.Module):
+    """Emissive triangles: any material may emit (scene-file `emission = [r, g, b]`).
+
+    Attributes:
+        emission: (M, 3) RGB radiance [W/(m²·sr)] per material (0 for non-emitters). A triangle
+            emits on the side its winding's normal points to (one-sided, as in pbrt and Mitsuba).
+        prims: (E,) int32 faces whose material emits at build time; E is static. The sampling
+            table (areas and the CDF by area·luminance(emission)) is derived from the current
+            vertices and emission values inside the integrator (`jaxrt.path.emitter_table`), so it
+            never goes stale when a value changes.
+    """
+
+    emission: Float[Array, "M 3"]
+    prims: Int[Array, " E"]
+
+    @property
+    def count(self) -> int:
+        return self.prims.shape[0]

@@ -16,8 +16,18 @@ from jaxtyping import Array, Float
 
 from jaxrt import integrators
 
+
+def _frame(scene, aovs: bool = False):
+    # the integrator is a static setting, so this branch is resolved at trace time
+    if scene.settings.integrator == "path":
+        from jaxrt import path
+
+        return path.render(scene, aovs=aovs)
+    return integrators.whitted(scene, aovs=aovs)
+
+
 # One compiled function per (scene structure, aovs); reused across calls.
-frame = jax.jit(integrators.whitted, static_argnames=("aovs",))
+frame = jax.jit(_frame, static_argnames=("aovs",))
 trace = jax.jit(integrators.trace)
 shade = jax.jit(integrators.shade, static_argnames=("aovs",))
 

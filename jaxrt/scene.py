@@ -32,10 +32,10 @@ from jaxtyping import Array, Float, Int
 
 from jaxrt.camera import Camera
 from jaxrt.errors import InputError
-from jaxrt.lights import PointLights
+from jaxrt.lights import AreaLights, PointLights
 
 SCENES_DIR = Path(__file__).resolve().parents[1] / "scenes"
-INTEGRATORS = ("whitted",)
+INTEGRATORS = ("whitted", "path")
 MAX_RESOLUTION = 16384
 
 # --------------------------------------------------------------------------- arrays (pytrees)
@@ -107,6 +107,10 @@ class Scene(eqx.Module):
     camera: Camera
     settings: Settings
     source: str = eqx.field(static=True, default="<scene>")
+    # emissive materials/triangles and the environment (None: no environment); used by the path
+    # tracer, and Whitted's escaping rays see the environment instead of `background`
+    area_lights: AreaLights | None = None
+    environment: Any = None
 
     # ---- value updates (validated, never recompile) ----
     def with_material(self, name: str, **values) -> "Scene":
@@ -223,6 +227,7 @@ class MaterialSpec:
     params: dict  # name -> float32 numpy array (validated); a textured parameter holds its texture's mean
     delta: float
     textures: dict = dataclasses.field(default_factory=dict)  # name -> TextureSpec
+    emission: tuple = (0.0, 0.0, 0.0)  # RGB radiance [W/(m²·sr)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -261,6 +266,14 @@ class RenderSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class EnvironmentSpec:
+    file: Path | None  # a lat-long OpenEXR map, or None for a constant environment
+    radiance: tuple  # constant RGB radiance (file is None)
+    scale: float
+    rotate: float  # degrees about +y
+
+
+@dataclasses.dataclass(frozen=True)
 class SceneSpec:
     source: str
     camera: CameraSpec
@@ -270,6 +283,7 @@ class SceneSpec:
     render: RenderSpec
     groups: tuple = ()  # jaxrt.instancing.GroupSpec
     instances: tuple = ()  # jaxrt.instancing.InstanceSpec
+    environment: EnvironmentSpec | None = None
 
 
 _REQ = object()
@@ -410,7 +424,7 @@ def parse(
     import brdfs  # cheap: no JAX tracing, only the parameter declarations
 
     top = _Checker(file, "top level", doc)
-    for k in ("camera", "lights", "materials", "objects", "render", "description", "groups", "instances"):
+    for k in ("camera", "lights", "materials", "objects", "render", "description", "groups", "instances", "environment"):
         top.used.add(k)
     top.done()
     if "description" in doc and not isinstance(doc["description"], str):
@@ -436,10 +450,34 @@ def parse(
     )
     c.done()
 
-    # ---- lights
-    raw_lights = top.raw("lights")
-    if not isinstance(raw_lights, list) or not raw_lights:
-        top.fail("lights", "expected one or more [[lights]] tables (point lights)")
+    # ---- environment (optional)
+    environment = None
+    if "environment" in doc:
+        ec = _Checker(file, "environment", doc["environment"])
+        env_file = ec.string("file", None)
+        env_rad = ec.vector("radiance", 3, default=None, lo=0.0, scalar_ok=True)
+        if (env_file is None) == (env_rad is None):
+            ec.fail(None, "give exactly one of file = \"map.exr\" (lat-long OpenEXR) or radiance = [r, g, b]")
+        env_path = None
+        if env_file is not None:
+            env_path = Path(env_file) if Path(env_file).is_absolute() else base / env_file
+            if env_path.suffix.lower() != ".exr":
+                ec.fail("file", f"{env_file!r}: only OpenEXR (.exr) lat-long maps are supported")
+            if not env_path.is_file():
+                ec.fail("file", f"{env_file!r}: no such file (looked for {env_path})")
+        environment = EnvironmentSpec(
+            file=env_path, radiance=env_rad or (0.0, 0.0, 0.0),
+            scale=ec.number("scale", 1.0, lo=0.0), rotate=ec.number("rotate", 0.0),
+        )
+        ec.done()
+
+    # ---- lights (point lights; optional when the scene has an environment or an emissive material)
+    raw_lights = top.raw("lights", [])
+    emissive = isinstance(doc.get("materials"), dict) and any(
+        isinstance(m, dict) and "emission" in m for m in doc["materials"].values())
+    if not isinstance(raw_lights, list) or (not raw_lights and environment is None and not emissive):
+        top.fail("lights", "expected one or more [[lights]] tables (point lights), unless the scene has an "
+                           "[environment] or a material with emission")
     lights = []
     for i, l in enumerate(raw_lights):
         lc = _Checker(file, f"[lights] #{i + 1}", l)
@@ -458,8 +496,10 @@ def parse(
         model = brdfs.get(model_name)
         if model.delta:
             delta = 0.0
+            emission = (0.0, 0.0, 0.0)
         else:
             delta = mc.number("delta", 0.0, lo=0.0, hi=1.0)
+            emission = mc.vector("emission", 3, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
         params, textures = {}, {}
         for p in model.spec:
             value = mc.raw(p.name, p.default)
@@ -473,7 +513,7 @@ def parse(
             except ValueError as e:
                 mc.fail(p.name, str(e).split(": ", 1)[-1])
         mc.done()
-        materials[name] = MaterialSpec(name, model_name, params, delta, textures)
+        materials[name] = MaterialSpec(name, model_name, params, delta, textures, emission=emission)
 
     # ---- objects (optional when [[instances]] place groups)
     raw_objs = top.raw("objects", None)
@@ -504,7 +544,7 @@ def parse(
     )
     rc.raw("ray_budget", None)
     rc.done()
-    return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances)
+    return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances, environment)
 
 
 def _parse_object(oc: "_Checker", materials: dict, base: Path, names_seen: set[str]) -> ObjectSpec:
@@ -763,9 +803,31 @@ def build(spec: SceneSpec) -> Scene:
         )
 
     lights = PointLights(
-        position=jnp.asarray([l[0] for l in spec.lights], jnp.float32),
-        intensity=jnp.asarray([l[1] for l in spec.lights], jnp.float32),
+        position=jnp.asarray(np.reshape([l[0] for l in spec.lights], (-1, 3)), jnp.float32),
+        intensity=jnp.asarray(np.reshape([l[1] for l in spec.lights], (-1, 3)), jnp.float32),
     )
+    emission = np.asarray([spec.materials[n].emission for n in mat_names], np.float32).reshape(-1, 3)
+    if spec.instances:
+        emitting = [n for n in mat_names if max(spec.materials[n].emission) > 0]
+        if emitting:
+            raise InputError(f"{spec.source}: materials.{emitting[0]}.emission: emissive materials are not "
+                             "supported in scenes with [[instances]] yet; use plain [[objects]] for lights")
+        fmat = np.zeros(0, np.int32)
+    else:
+        fmat = np.concatenate(face_mat)
+    area_lights = AreaLights(
+        emission=jnp.asarray(emission),
+        prims=jnp.asarray(np.nonzero(emission.max(axis=1)[fmat] > 0)[0].astype(np.int32)),
+    )
+    environment = None
+    if spec.environment is not None:
+        from jaxrt import envmap
+
+        e = spec.environment
+        if e.file is None:
+            environment = envmap.constant(np.asarray(e.radiance) * e.scale)
+        else:
+            environment = envmap.load(e.file, scale=e.scale, rotate=e.rotate)
     c = spec.camera
     camera = Camera(
         position=jnp.asarray(c.position, jnp.float32), look_at=jnp.asarray(c.look_at, jnp.float32),
@@ -783,7 +845,8 @@ def build(spec: SceneSpec) -> Scene:
         spp=r.spp,
         ray_budget=r.ray_budget if r.ray_budget is not None else (2 if has_glass else 1),
     )
-    return Scene(geometry, materials, lights, camera, settings, source=spec.source)
+    return Scene(geometry, materials, lights, camera, settings, source=spec.source, area_lights=area_lights,
+                 environment=environment)
 
 
 def load(

@@ -1,0 +1,205 @@
+"""Environment lighting: a latitude-longitude radiance map or a constant environment.
+
+Mapping (the same as Mitsuba 3's `envmap`, so one EXR lights both renderers identically): in the
+map's own frame (+y up) a unit direction d has
+
+    u = atan2(d_x, -d_z) / 2π  (mod 1)      v = acos(d_y) / π           (row 0 = straight up)
+
+and texel (row, col) = (floor(v·H), floor(u·W)) holds RGB radiance [W/(m²·sr)], looked up as a
+piecewise-constant function (nearest texel, so lookup and sampling density describe the same
+function). `rotate` turns the map about +y; `scale` multiplies it.
+
+Importance sampling (pbrt-v4 sec. 12.5): the 2D piecewise-constant distribution over (u, v) with
+weights luminance(texel)·sinθ(row centre), sampled through a marginal CDF over rows and one
+conditional CDF per row. A (u, v) density p_uv becomes a solid-angle density
+p_ω = p_uv / (2π² sinθ), the Jacobian of the lat-long map at the sampled θ. Directions with
+sinθ = 0 (the poles) have pdf 0 and are never returned (a failed sample has pdf 0).
+
+A constant environment (`radiance = [r, g, b]`) is sampled uniformly over the sphere, pdf 1/(4π).
+
+Only OpenEXR files are read (through OpenEXR, `jaxrt.image.read_exr`): no library in the stack
+reads Radiance .hdr (Pillow and matplotlib do not), so .hdr maps are refused with an InputError.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from jaxrt.errors import InputError
+
+_LUM = (0.2126, 0.7152, 0.0722)  # Rec. 709 luminance weights: all positive, so lum = 0 iff black
+
+
+def luminance(rgb: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """Rec. 709 luminance of linear RGB."""
+    return rgb[..., 0] * _LUM[0] + rgb[..., 1] * _LUM[1] + rgb[..., 2] * _LUM[2]
+
+
+class EnvMap(eqx.Module):
+    """Environment radiance (traced values; the texel shape and `uniform` are static).
+
+    Attributes:
+        texels: (H, W, 3) RGB radiance [W/(m²·sr)], scale applied; (1, 1, 3) for a constant one.
+        rotation: (3, 3) world -> map frame (a rotation about +y).
+        row_cdf: (H + 1,) marginal CDF over rows, from 0 to 1.
+        col_cdf: (H, W + 1) conditional CDF over columns of each row, from 0 to 1.
+        weight_sum: () Σ luminance·sinθ over all texels (0: a black map, nothing is sampled).
+        uniform: static; True for a constant environment (uniform sphere sampling).
+    """
+
+    texels: Float[Array, "H W 3"]
+    rotation: Float[Array, "3 3"]
+    row_cdf: Float[Array, " H1"]
+    col_cdf: Float[Array, "H W1"]
+    weight_sum: Float[Array, ""]
+    uniform: bool = eqx.field(static=True, default=False)
+
+    def radiance(self, d: Float[Array, "*B 3"]) -> Float[Array, "*B 3"]:
+        return radiance(self, d)
+
+    def sample(self, u: Float[Array, "*B 2"]):
+        return sample(self, u)
+
+    def pdf(self, wi: Float[Array, "*B 3"]) -> Float[Array, "*B"]:
+        return pdf(self, wi)
+
+
+def _rotation_y(degrees: float) -> np.ndarray:
+    # world -> map: the map turned by +degrees about +y means directions turn by -degrees
+    a = math.radians(-degrees)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], np.float32)
+
+
+def constant(radiance_rgb) -> EnvMap:
+    """A uniform environment of RGB radiance `radiance_rgb` [W/(m²·sr)]."""
+    tex = jnp.asarray(np.broadcast_to(np.asarray(radiance_rgb, np.float32), (3,))).reshape(1, 1, 3)
+    return EnvMap(tex, jnp.eye(3), jnp.array([0.0, 1.0]), jnp.array([[0.0, 1.0]]), jnp.asarray(1.0), uniform=True)
+
+
+def from_array(texels: Float[np.ndarray, "H W 3"], scale: float = 1.0, rotate: float = 0.0) -> EnvMap:
+    """A lat-long map from an (H, W, 3) array of non-negative finite radiance (host numpy)."""
+    tex = np.asarray(texels, np.float64) * float(scale)
+    if tex.ndim != 3 or tex.shape[-1] != 3 or tex.shape[0] < 1 or tex.shape[1] < 1:
+        raise InputError(f"environment map: expected an (H, W, 3) RGB image, got shape {tex.shape}")
+    if not np.all(np.isfinite(tex)) or np.any(tex < 0):
+        raise InputError("environment map: texels must be finite and non-negative")
+    h = tex.shape[0]
+    theta = (np.arange(h) + 0.5) / h * np.pi
+    f = (tex @ np.asarray(_LUM)) * np.sin(theta)[:, None]  # (H, W)
+    row = f.sum(1)
+    total = row.sum()
+    row_cdf = np.concatenate([[0.0], np.cumsum(row)]) / (total if total > 0 else 1.0)
+    col_cdf = np.concatenate([np.zeros((h, 1)), np.cumsum(f, 1)], 1) / np.where(row > 0, row, 1.0)[:, None]
+    row_cdf[-1] = 1.0 if total > 0 else 0.0
+    col_cdf[:, -1] = np.where(row > 0, 1.0, 0.0)
+    return EnvMap(jnp.asarray(tex, jnp.float32), jnp.asarray(_rotation_y(rotate)), jnp.asarray(row_cdf, jnp.float32),
+                  jnp.asarray(col_cdf, jnp.float32), jnp.asarray(total, jnp.float32), uniform=False)
+
+
+def load(path: str | os.PathLike, scale: float = 1.0, rotate: float = 0.0) -> EnvMap:
+    """Read a lat-long OpenEXR file (see module docstring); InputError naming the file otherwise."""
+    from jaxrt import image
+
+    path = Path(path)
+    if path.suffix.lower() != ".exr":
+        raise InputError(f"{path}: environment maps must be OpenEXR (.exr) files; no reader in the stack "
+                         f"handles {path.suffix or 'files without a suffix'}")
+    tex = image.read_exr(path)
+    try:
+        return from_array(tex, scale, rotate)
+    except InputError as e:
+        raise InputError(f"{path}: {e}") from None
+
+
+def _to_uv(env: EnvMap, d):
+    d = d @ env.rotation.T
+    u = jnp.arctan2(d[..., 0], -d[..., 2]) * (0.5 / math.pi)
+    u = u - jnp.floor(u)
+    cos_t = jnp.clip(d[..., 1], -1.0, 1.0)
+    v = jnp.arccos(cos_t) / math.pi
+    return u, v, jnp.sqrt(jnp.maximum(1.0 - cos_t * cos_t, 0.0))
+
+
+def _from_uv(env: EnvMap, u, v):
+    theta, phi = v * math.pi, u * 2.0 * math.pi
+    st = jnp.sin(theta)
+    d = jnp.stack([jnp.sin(phi) * st, jnp.cos(theta), -jnp.cos(phi) * st], axis=-1)
+    return d @ env.rotation, st  # map -> world (the inverse of a rotation is its transpose)
+
+
+def _texel(env: EnvMap, u, v):
+    h, w = env.texels.shape[:2]
+    r = jnp.clip(jnp.floor(v * h).astype(jnp.int32), 0, h - 1)
+    c = jnp.clip(jnp.floor(u * w).astype(jnp.int32), 0, w - 1)
+    return r, c
+
+
+def radiance(env: EnvMap, d: Float[Array, "*B 3"]) -> Float[Array, "*B 3"]:
+    """Radiance arriving from world direction d (unit, pointing away from the scene)."""
+    if env.uniform:
+        return jnp.broadcast_to(env.texels[0, 0], d.shape)
+    u, v, _ = _to_uv(env, d)
+    r, c = _texel(env, u, v)
+    return env.texels[r, c]
+
+
+def pdf(env: EnvMap, wi: Float[Array, "*B 3"]) -> Float[Array, "*B"]:
+    """Solid-angle density [1/sr] with which `sample` returns world direction wi."""
+    if env.uniform:
+        return jnp.full(wi.shape[:-1], 1.0 / (4.0 * math.pi))
+    h, w = env.texels.shape[:2]
+    u, v, st = _to_uv(env, wi)
+    r, c = _texel(env, u, v)
+    p_row = env.row_cdf[r + 1] - env.row_cdf[r]
+    p_col = env.col_cdf[r, c + 1] - env.col_cdf[r, c]
+    p_uv = p_row * p_col * (h * w)
+    ok = (st > 1e-7) & (env.weight_sum > 0)
+    return jnp.where(ok, p_uv / (2.0 * math.pi**2 * jnp.where(ok, st, 1.0)), 0.0)
+
+
+def _sample_cdf(cdf, u):
+    """Index i with cdf[i] <= u < cdf[i+1] and the offset of u within that bin in [0, 1)."""
+    n = cdf.shape[-1] - 1
+    i = jnp.clip(jnp.searchsorted(cdf, u, side="right") - 1, 0, n - 1)
+    lo, hi = cdf[i], cdf[i + 1]
+    width = hi - lo
+    t = jnp.where(width > 0, (u - lo) / jnp.where(width > 0, width, 1.0), 0.5)
+    return i, jnp.clip(t, 0.0, 1.0 - 1e-7)
+
+
+def sample(env: EnvMap, u: Float[Array, "*B 2"]):
+    """Importance-sample a direction from u in [0, 1)^2.
+
+    Returns:
+        wi (*B, 3) unit world direction towards the environment, radiance (*B, 3) arriving along
+        it, pdf (*B,) solid-angle density [1/sr]; pdf 0 marks a failed sample (black map, pole).
+    """
+    u = jax.lax.stop_gradient(u)
+    if env.uniform:
+        z = 1.0 - 2.0 * u[..., 0]
+        r = jnp.sqrt(jnp.maximum(1.0 - z * z, 0.0))
+        phi = 2.0 * math.pi * u[..., 1]
+        wi = jnp.stack([r * jnp.cos(phi), z, r * jnp.sin(phi)], axis=-1)
+        return wi, jnp.broadcast_to(env.texels[0, 0], wi.shape), jnp.full(wi.shape[:-1], 1.0 / (4.0 * math.pi))
+    h, w = env.texels.shape[:2]
+    row_cdf = jax.lax.stop_gradient(env.row_cdf)
+    col_cdf = jax.lax.stop_gradient(env.col_cdf)
+    r, tv = _sample_cdf(row_cdf, u[..., 0])
+    c, tu = jax.vmap(_sample_cdf)(col_cdf[r.reshape(-1)], u[..., 1].reshape(-1))
+    c, tu = c.reshape(r.shape), tu.reshape(r.shape)
+    uu = (c + tu) / w
+    vv = (r + tv) / h
+    wi, st = _from_uv(env, uu, vv)
+    p_uv = (row_cdf[r + 1] - row_cdf[r]) * (col_cdf[r, c + 1] - col_cdf[r, c]) * (h * w)
+    ok = (st > 1e-7) & (p_uv > 0) & (env.weight_sum > 0)
+    p = jnp.where(ok, p_uv / (2.0 * math.pi**2 * jnp.where(ok, st, 1.0)), 0.0)
+    return wi, jnp.where(ok[..., None], env.texels[r, c], 0.0), p

@@ -73,6 +73,8 @@ def test_highlight_follows_the_light(viewer):
 
 
 def test_model_switch_and_orbit_reuse_the_compiled_frame(viewer):
+    viewer.set_model("phong")
+    viewer.set_param("s", 30.0)  # set here, not by an earlier test: xdist may run tests apart
     before = viewer.image.copy()
     viewer.sliders["model"].set_active(brdfs.names().index("ward"))
     assert viewer.model == "ward"

@@ -86,13 +86,17 @@ class BVHStats:
     triangles: int
 
 
-def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, leaf_size: int = 1) -> BVH:
-    """Build a BVH over triangles `vertices[faces]` (host numpy, vectorised LBVH; see bvh_build).
+def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, leaf_size: int = 1,
+          builder: str = "lbvh") -> BVH:
+    """Build a BVH over triangles `vertices[faces]` (host numpy, vectorised; see bvh_build).
+
+    builder: "lbvh" (Morton-code splits, `jaxrt.bvh_build`) or "sah" (binned SAH for large nodes,
+    `jaxrt.bvh_sah`); same layout, so every traversal takes either.
 
     vertices (V,3) float, faces (F,3) int in [0, V). Raises InputError on NaN/Inf vertices,
     out-of-range indices or no faces. Zero-area faces are kept (they are never hit).
     """
-    a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size)
+    a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder)
     put = jax.device_put
     return BVH(node_box=put(a["node_box"]), node_leaf=put(a["node_leaf"]), links=put(a["links"]),
                triangles=put(a["triangles"]), prim_ids=put(a["prim_ids"]), leaf_size=leaf_size)

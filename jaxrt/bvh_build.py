@@ -50,8 +50,15 @@ def _highest_bit(x: np.ndarray) -> np.ndarray:
     return (np.frexp(x.astype(np.float64))[1] - 1).astype(np.uint64)
 
 
-def build_arrays(vertices, faces, leaf_size: int = 4) -> dict[str, np.ndarray]:
-    """Build the flat BVH arrays (see `jaxrt.bvh.BVH` for their layout). Host-side numpy."""
+BUILDERS = ("lbvh", "sah")
+
+
+def build_arrays(vertices, faces, leaf_size: int = 4, builder: str = "lbvh") -> dict[str, np.ndarray]:
+    """Build the flat BVH arrays (see `jaxrt.bvh.BVH` for their layout). Host-side numpy.
+
+    builder: "lbvh" (Morton-code splits, this module) or "sah" (binned SAH splits for large nodes,
+    Morton splits below; `jaxrt.bvh_sah`). Both give the same output layout.
+    """
     v = np.asarray(vertices)
     f = np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
@@ -64,6 +71,8 @@ def build_arrays(vertices, faces, leaf_size: int = 4) -> dict[str, np.ndarray]:
         raise InputError(f"bvh.build: face indices must be integers in [0, {len(v) - 1}]")
     if not 1 <= leaf_size <= 16:
         raise InputError(f"bvh.build: leaf_size must be in 1..16, got {leaf_size}")
+    if builder not in BUILDERS:
+        raise InputError(f"bvh.build: builder must be one of {BUILDERS}, got {builder!r}")
     v = v.astype(np.float32)
     tri = v[f]  # (F, 3, 3)
     nf = len(f)
@@ -72,6 +81,11 @@ def build_arrays(vertices, faces, leaf_size: int = 4) -> dict[str, np.ndarray]:
     cent = tmin + tmax  # twice the box centre; Morton quantisation is scale-free
     codes = morton_codes(cent)
     order = np.argsort(codes, kind="stable")
+    if builder == "sah":
+        from jaxrt import bvh_sah  # late: bvh_sah imports this module
+
+        order, left, start, count, levels = bvh_sah.topology(tmin, tmax, cent, codes, order, leaf_size)
+        return finish(tri, tmin, tmax, order, left, start, count, levels)
     cs = codes[order]
 
     # --- topology, one level at a time (breadth-first numbering: children > parent) ---------------
@@ -102,7 +116,19 @@ def build_arrays(vertices, faces, leaf_size: int = 4) -> dict[str, np.ndarray]:
         nn += 2 * k
         ids = np.stack([lid, lid + 1], axis=1).ravel()
         s, e = np.stack([s, split], axis=1).ravel(), np.stack([split, e], axis=1).ravel()
-    left, start, count, parent = left[:nn], start[:nn], count[:nn], parent[:nn]
+    return finish(tri, tmin, tmax, order, left[:nn], start[:nn], count[:nn], levels)
+
+
+def finish(tri, tmin, tmax, order, left, start, count, levels) -> dict[str, np.ndarray]:
+    """Bounds, threading and leaf-order triangles of a topology (shared by the builders).
+
+    tri (F,3,3) float32 and tmin/tmax (F,3) their boxes, order (F,) leaf order -> face index;
+    left/start/count (nn,) int64 per node: first child (children are left, left + 1; -1 for a
+    leaf), first position in `order` and triangle count; levels: node ids per depth, breadth-first
+    numbering (every child id > its parent's).
+    """
+    nn = len(left)
+    nf = len(order)
     is_leaf = left < 0
     count = np.where(is_leaf, count, 0)
 

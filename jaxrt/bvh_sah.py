@@ -24,7 +24,7 @@ import numpy as np
 from jaxrt.bvh_build import _highest_bit
 
 BINS = 16
-SAH_MIN = 64
+SAH_MIN = 16
 
 
 def _area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -57,11 +57,11 @@ def _sah_split(tmin, tmax, cent, order, s, e, bins):
     np.clip(b, 0, bins - 1, out=b)
     key = g * bins + b
     nb = np.bincount(key, minlength=k * bins).reshape(k, bins)
-    blo = np.full((k * bins, 3), np.inf, np.float32)
-    bhi = np.full((k * bins, 3), -np.inf, np.float32)
-    np.minimum.at(blo, key, tmin[tri])
-    np.maximum.at(bhi, key, tmax[tri])
-    blo, bhi = blo.reshape(k, bins, 3), bhi.reshape(k, bins, 3)
+    # bin boxes as one min-reduction of (lo, -hi): one scatter pass instead of two
+    box = np.full((k * bins, 6), np.inf, np.float32)
+    np.minimum.at(box, key, np.concatenate([tmin[tri], -tmax[tri]], axis=1))
+    box = box.reshape(k, bins, 6)
+    blo, bhi = box[..., :3], -box[..., 3:]
     # split after bin j: left = bins 0..j, right = bins j+1..
     llo = np.minimum.accumulate(blo, axis=1)[:, :-1]
     lhi = np.maximum.accumulate(bhi, axis=1)[:, :-1]

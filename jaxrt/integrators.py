@@ -272,7 +272,8 @@ def trace(scene) -> GBuffer:
         lit = found[:, None] & (_dot(wi, ng[:, None, :]) > 0) & ~_is_glass(mats, s.material)[:, None]
         so = jnp.broadcast_to(s.p[:, None, :] + ng[:, None, :] * eps[:, None, :], wi.shape)
         smax = jnp.where(lit, dist - 2.0 * eps, -1.0)
-        occ = bvh.occluded(geo.tree, so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1)).reshape(B, L)
+        occ = bvh.occluded(geo.tree, so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1),
+                           from_end=True).reshape(B, L)  # from the light: coherent origins
         visible = lit & ~occ
         buf = GBuffer(
             active=buf.active.at[k].set(act), prim=buf.prim.at[k].set(prim),

@@ -25,6 +25,7 @@ from jaxrt.bvh_build import _highest_bit
 
 BINS = 16
 SAH_MIN = 16
+ALL_AXES = False
 
 
 def _area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -49,32 +50,46 @@ def _sah_split(tmin, tmax, cent, order, s, e, bins):
     clo = np.minimum.reduceat(c, offs, axis=0)
     chi = np.maximum.reduceat(c, offs, axis=0)
     ext = chi - clo
-    axis = np.argmax(ext, axis=1)
-    ea = ext[np.arange(k), axis]
-    ca = c[np.arange(len(g)), axis[g]]
-    scale = np.where(ea > 0, bins * (1 - 1e-6) / np.where(ea > 0, ea, 1), 0.0)
-    b = ((ca - clo[g, axis[g]]) * scale[g]).astype(np.int64)
-    np.clip(b, 0, bins - 1, out=b)
-    key = g * bins + b
-    nb = np.bincount(key, minlength=k * bins).reshape(k, bins)
-    # bin boxes as one min-reduction of (lo, -hi): one scatter pass instead of two
-    box = np.full((k * bins, 6), np.inf, np.float32)
-    np.minimum.at(box, key, np.concatenate([tmin[tri], -tmax[tri]], axis=1))
-    box = box.reshape(k, bins, 6)
-    blo, bhi = box[..., :3], -box[..., 3:]
-    # split after bin j: left = bins 0..j, right = bins j+1..
-    llo = np.minimum.accumulate(blo, axis=1)[:, :-1]
-    lhi = np.maximum.accumulate(bhi, axis=1)[:, :-1]
-    rlo = np.minimum.accumulate(blo[:, ::-1], axis=1)[:, ::-1][:, 1:]
-    rhi = np.maximum.accumulate(bhi[:, ::-1], axis=1)[:, ::-1][:, 1:]
-    nl = np.cumsum(nb, axis=1)[:, :-1]
-    nr = cnt[:, None] - nl
-    cost = _area(llo.astype(np.float64), lhi) * nl + _area(rlo.astype(np.float64), rhi) * nr
-    cost = np.where((nl > 0) & (nr > 0), cost, np.inf)
-    j = np.argmin(cost, axis=1)
-    ok = np.isfinite(cost[np.arange(k), j])
+    lohi = np.concatenate([tmin[tri], -tmax[tri]], axis=1)
+    cands = range(3) if ALL_AXES else [None]
+    best_cost = np.full(k, np.inf)
+    best_j = np.zeros(k, np.int64)
+    best_nl = np.zeros(k, np.int64)
+    b_best = np.zeros(len(g), np.int64)
+    for cand in cands:
+        axis = np.argmax(ext, axis=1) if cand is None else np.full(k, cand)
+        ea = ext[np.arange(k), axis]
+        ca = c[np.arange(len(g)), axis[g]]
+        scale = np.where(ea > 0, bins * (1 - 1e-6) / np.where(ea > 0, ea, 1), 0.0)
+        b = ((ca - clo[g, axis[g]]) * scale[g]).astype(np.int64)
+        np.clip(b, 0, bins - 1, out=b)
+        key = g * bins + b
+        nb = np.bincount(key, minlength=k * bins).reshape(k, bins)
+        # bin boxes as one min-reduction of (lo, -hi): one scatter pass instead of two
+        box = np.full((k * bins, 6), np.inf, np.float32)
+        np.minimum.at(box, key, lohi)
+        box = box.reshape(k, bins, 6)
+        blo, bhi = box[..., :3], -box[..., 3:]
+        # split after bin j: left = bins 0..j, right = bins j+1..
+        llo = np.minimum.accumulate(blo, axis=1)[:, :-1]
+        lhi = np.maximum.accumulate(bhi, axis=1)[:, :-1]
+        rlo = np.minimum.accumulate(blo[:, ::-1], axis=1)[:, ::-1][:, 1:]
+        rhi = np.maximum.accumulate(bhi[:, ::-1], axis=1)[:, ::-1][:, 1:]
+        nl = np.cumsum(nb, axis=1)[:, :-1]
+        nr = cnt[:, None] - nl
+        cost = _area(llo.astype(np.float64), lhi) * nl + _area(rlo.astype(np.float64), rhi) * nr
+        cost = np.where((nl > 0) & (nr > 0), cost, np.inf)
+        j = np.argmin(cost, axis=1)
+        cj = cost[np.arange(k), j]
+        better = cj < best_cost
+        best_cost = np.where(better, cj, best_cost)
+        best_j = np.where(better, j, best_j)
+        best_nl = np.where(better, nl[np.arange(k), j], best_nl)
+        b_best = np.where(better[g], b, b_best)
+    ok = np.isfinite(best_cost)
+    j, b = best_j, b_best
     is_left = b <= j[g]
-    return np.where(ok, nl[np.arange(k), j], 0), is_left & ok[g], pos, g, offs
+    return np.where(ok, best_nl, 0), is_left & ok[g], pos, g, offs
 
 
 def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None, sah_min: int | None = None):

@@ -144,3 +144,51 @@ def test_builder_rejects_unknown_name():
     s = trimesh.creation.icosphere(subdivisions=1)
     with pytest.raises(bvh.InputError, match="builder"):
         bvh.build(s.vertices, s.faces, builder="median")
+
+
+def segment_blocked_f64(tri, p0, p1, margin):
+    """Brute-force float64: does segment p0->p1 cross a triangle at s in [0, 1]? Also flags rays
+    whose crossings lie within `margin` of either end or of a triangle edge (ties under float32)."""
+    d = p1 - p0
+    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    pv = np.cross(d[:, None], e2[None])
+    det = np.einsum("rfc,fc->rf", pv, e1)
+    inv = 1.0 / np.where(det == 0, np.inf, det)
+    tv = p0[:, None] - v0[None]
+    u = np.einsum("rfc,rfc->rf", tv, pv) * inv
+    qv = np.cross(tv, e1[None])
+    v = np.einsum("rc,rfc->rf", d, qv) * inv
+    s = np.einsum("fc,rfc->rf", e2, qv) * inv
+    inside = (u >= 0) & (v >= 0) & (u + v <= 1) & (s >= 0) & (s <= 1)
+    near = ((np.abs(s) < margin) | (np.abs(s - 1) < margin)) & (u > -margin) & (v > -margin) & (u + v < 1 + margin)
+    edge = (np.minimum(np.minimum(np.abs(u), np.abs(v)), np.abs(1 - u - v)) < margin) & (s > -margin) & (s < 1 + margin)
+    return inside.any(1), (near | edge).any(1)
+
+
+@pytest.mark.data
+def test_occluded_from_end_matches_brute_force(data_dir, monkeypatch):
+    """Shadow segments (surface point -> light) traced from the light end, against float64 brute force."""
+    monkeypatch.setenv("JAXRT_DATA", str(data_dir))
+    m = mesh.load(data.find("dragon_res4"))
+    tree = bvh.build(m.vertices, m.faces)
+    tri = m.vertices.astype(np.float64)[m.faces]
+    rng = np.random.default_rng(5)
+    n = 600
+    f = rng.integers(0, len(tri), n)
+    p = np.einsum("kj,kjc->kc", rng.dirichlet([1, 1, 1], n), tri[f])
+    lo, hi = m.vertices.min(0), m.vertices.max(0)
+    r = np.linalg.norm(hi - lo) / 2
+    light = (lo + hi) / 2 + np.array([-1.0, 2.0, 1.5]) * r
+    o = p.astype(np.float32)
+    d = (light - o).astype(np.float32)
+    tmin = np.float32(1e-3)
+    tmax = np.where(np.arange(n) % 7 == 0, np.inf, 1 - 1e-3).astype(np.float32)  # some infinite: forwards
+    fn = jax.jit(lambda o, d, hi: bvh.occluded(tree, o, d, hi, tmin, from_end=True))
+    got = np.asarray(fn(o, d, tmax))
+    fwd = np.asarray(jax.jit(lambda o, d, hi: bvh.occluded(tree, o, d, hi, tmin))(o, d, tmax))
+    o64, d64 = o.astype(np.float64), d.astype(np.float64)
+    far = np.where(np.isfinite(tmax), tmax, 1e3).astype(np.float64)
+    ref, tie = segment_blocked_f64(tri, o64 + tmin * d64, o64 + far[:, None] * d64, 1e-5)
+    assert 0.2 < ref.mean() < 0.8  # both outcomes occur
+    assert np.array_equal(got[~tie], ref[~tie]) and tie.mean() < 0.05
+    assert np.array_equal(got[~tie], fwd[~tie])

@@ -58,7 +58,7 @@ def peak_gb(dev):
 
 def bench_rays(name, res, impls, repeats, embree, builder=None):
     m = mesh.load(data.find(name))
-    kw = {} if builder is None else dict(builder=builder)
+    kw = {} if builder is None else dict(zip(("builder", "layout"), builder.split("/")))  # "sah/dfs"
     t = time.perf_counter()
     tree = jax.block_until_ready(bvh.build(m.vertices, m.faces, **kw))
     t_build = time.perf_counter() - t
@@ -181,8 +181,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--check-size", type=int, default=64)
     ap.add_argument("--skip", nargs="*", default=[], choices=["rays", "frames", "check"])
-    ap.add_argument("--builders", nargs="+", default=[None], help="bvh.build builders for the ray rows "
-                    "(default: bvh.build's default; frames always use the default)")
+    ap.add_argument("--builders", nargs="+", default=[None], help="bvh.build builders for the ray rows, "
+                    "BUILDER or BUILDER/LAYOUT, e.g. lbvh sah/dfs (default: bvh.build's; frames always use it)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     if args.cpu:  # before anything initialises a backend

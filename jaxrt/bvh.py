@@ -87,17 +87,19 @@ class BVHStats:
 
 
 def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, leaf_size: int = 1,
-          builder: str = "sah") -> BVH:
+          builder: str = "sah", layout: str = "bfs") -> BVH:
     """Build a BVH over triangles `vertices[faces]` (host numpy, vectorised; see bvh_build).
 
     builder: "sah" (default: binned SAH splits down to 16 triangles, Morton splits below;
     `jaxrt.bvh_sah`) or "lbvh" (Morton-code splits throughout, `jaxrt.bvh_build`; faster to build,
-    ~10 % more node visits per ray); same layout, so every traversal takes either.
+    ~10 % more node visits per ray); same layout, so every traversal takes either. layout: node
+    numbering, "bfs" (breadth-first) or "dfs" (depth-first: subtrees contiguous in memory).
 
     vertices (V,3) float, faces (F,3) int in [0, V). Raises InputError on NaN/Inf vertices,
     out-of-range indices or no faces. Zero-area faces are kept (they are never hit).
     """
-    a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder)
+    a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder,
+                                   layout=layout)
     put = jax.device_put
     return BVH(node_box=put(a["node_box"]), node_leaf=put(a["node_leaf"]), links=put(a["links"]),
                triangles=put(a["triangles"]), prim_ids=put(a["prim_ids"]), leaf_size=leaf_size)

@@ -1,6 +1,8 @@
 """The binned-SAH builder (`bvh.build(..., builder="sah")`): layout invariants, the SAH cost and the
 root split checked by independent numpy / brute force, and traversal against float64 brute force."""
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
@@ -43,10 +45,11 @@ def subtree_tris(tree, first, second, is_leaf, node):
     return np.array(out)
 
 
-@pytest.mark.parametrize("leaf_size", [1, 3])
-def test_sah_build_invariants(leaf_size):
+@pytest.mark.parametrize("leaf_size,builder,layout", [(1, "sah", "bfs"), (3, "sah", "bfs"), (1, "sah", "dfs"),
+                                                       (3, "lbvh", "dfs")])
+def test_sah_build_invariants(leaf_size, builder, layout):
     v, f = soup()
-    tree = bvh.build(v, f, leaf_size=leaf_size, builder="sah")
+    tree = bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout=layout)
     box = np.asarray(tree.node_box)
     leaf = np.asarray(tree.node_leaf)
     links = np.asarray(tree.links)
@@ -73,6 +76,13 @@ def test_sah_build_invariants(leaf_size):
             seen.append(n)
             n = lk[n, 0]
         assert sorted(seen) == list(range(nn))
+        if layout == "dfs" and c == 0:
+            assert seen == list(range(nn))  # depth-first numbering is class 0's visiting order
+    # the same tree whatever the numbering: equal stats and leaf order
+    other = bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout="bfs" if layout == "dfs" else "dfs")
+    a, b = dataclasses.asdict(other.stats), dataclasses.asdict(tree.stats)
+    assert a.pop("sah_cost") == pytest.approx(b.pop("sah_cost"), rel=1e-12) and a == b
+    np.testing.assert_array_equal(np.asarray(other.prim_ids), np.asarray(tree.prim_ids))
 
 
 def test_sah_cost_independent_and_better_than_lbvh():
@@ -129,7 +139,7 @@ def test_sah_root_split_is_the_best_binned_split():
 def test_sah_traversal_matches_brute_force(data_dir, monkeypatch):
     monkeypatch.setenv("JAXRT_DATA", str(data_dir))
     m = mesh.load(data.find("dragon_res4"))
-    tree = bvh.build(m.vertices, m.faces, builder="sah")
+    tree = bvh.build(m.vertices, m.faces, builder="sah", layout="dfs")
     o, d, tmin, tmax = ray_mix(m, 1500, seed=2)
     hit = jax.jit(bvh.intersect)(tree, o, d, tmin, tmax)
     tri = m.vertices.astype(np.float64)[m.faces]
@@ -188,7 +198,7 @@ def test_occluded_from_end_matches_brute_force(data_dir, monkeypatch):
     fwd = np.asarray(jax.jit(lambda o, d, hi: bvh.occluded(tree, o, d, hi, tmin))(o, d, tmax))
     o64, d64 = o.astype(np.float64), d.astype(np.float64)
     far = np.where(np.isfinite(tmax), tmax, 1e3).astype(np.float64)
-    ref, tie = segment_blocked_f64(tri, o64 + tmin * d64, o64 + far[:, None] * d64, 1e-5)
+    ref, tie = segment_blocked_f64(tri, o64 + tmin * d64, o64 + far[:, None] * d64, 1e-6)
     assert 0.2 < ref.mean() < 0.8  # both outcomes occur
-    assert np.array_equal(got[~tie], ref[~tie]) and tie.mean() < 0.05
+    assert np.array_equal(got[~tie], ref[~tie]) and tie.mean() < 0.1
     assert np.array_equal(got[~tie], fwd[~tie])

@@ -8,7 +8,9 @@ Rays (bunny, full dragon; camera framing the model, rays in 16x16 tile order): B
 (lower + compile of the jitted intersect), primary (closest hit) and shadow (any hit from the primary
 hits to a point light) Mrays/s for each traversal implementation (`bvh.intersect(..., impl=...)`:
 "xla" = the pure-JAX loop, "pallas" = the Triton kernel of jaxrt.bvh_pallas), the fraction of rays on
-which the implementations agree, and on CPU Embree's Mrays/s on the same rays in the same run.
+which the implementations agree, and on CPU Embree's Mrays/s on the same rays in the same run; the
+shadow rays are timed twice, from the surface and from the light end (`bvh.occluded(from_end=True)`).
+--builders times the rays on several trees (`bvh.build(builder=, layout=)`, e.g. `lbvh sah/dfs`).
 Frames (bunny, dragon, showcase scenes, `render.frame` = Whitted: point lights, shadows, mirror/glass
 bounces): compile s, frame ms, fps, GPU peak memory, and that changing the light and the camera position
 does not recompile. Check: each scene at --check-size² on the default device vs the CPU backend

@@ -1,5 +1,6 @@
-"""The binned-SAH builder (`bvh.build(..., builder="sah")`): layout invariants, the SAH cost and the
-root split checked by independent numpy / brute force, and traversal against float64 brute force."""
+"""The binned-SAH builder (`bvh.build(..., builder="sah")`) and depth-first numbering (`layout="dfs"`):
+layout invariants, the SAH cost and the root split checked by independent numpy / brute force,
+traversal against float64 brute force; and `bvh.occluded(from_end=True)` against brute-force segments."""
 
 import dataclasses
 
@@ -7,9 +8,9 @@ import jax
 import numpy as np
 import pytest
 import trimesh
+from test_bvh import check_against_reference, ray_mix
 
 from jaxrt import bvh, bvh_sah, data, mesh
-from test_bvh import check_against_reference, ray_mix
 
 
 def soup(n=600, seed=3):
@@ -94,7 +95,7 @@ def test_sah_cost_independent_and_better_than_lbvh():
         first, second, is_leaf = children(tree)
         tris = v.astype(np.float64)[f][np.asarray(tree.prim_ids)]
 
-        def area(idx):
+        def area(idx, tris=tris):
             p = tris[idx].reshape(-1, 3)
             e = p.max(0) - p.min(0)
             return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]

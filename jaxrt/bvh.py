@@ -99,8 +99,7 @@ def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, 
     vertices (V,3) float, faces (F,3) int in [0, V). Raises InputError on NaN/Inf vertices,
     out-of-range indices or no faces. Zero-area faces are kept (they are never hit).
     """
-    a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder,
-                                   layout=layout)
+    a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder, layout=layout)
     put = jax.device_put
     return BVH(node_box=put(a["node_box"]), node_leaf=put(a["node_leaf"]), links=put(a["links"]),
                triangles=put(a["triangles"]), prim_ids=put(a["prim_ids"]), leaf_size=leaf_size)

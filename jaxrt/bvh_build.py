@@ -14,6 +14,9 @@ that axis, and each node stores `links[c, node] = (hit, miss)`: where to go afte
 (the first child; for a leaf, the same as miss) and where to go after its box is missed or its
 leaf is done (the next node in that class's pre-order after the subtree, -1 at the end). This is
 the multiple-threaded BVH of Hachisuka (2015) in flat-array form.
+
+`finish` (bounds, threading, output) is shared with the binned-SAH topology of `jaxrt.bvh_sah`;
+nodes are numbered breadth-first, or depth-first with layout="dfs" (subtrees contiguous in memory).
 """
 
 from __future__ import annotations

@@ -8,7 +8,9 @@ Rays (bunny, full dragon; camera framing the model, rays in 16x16 tile order): B
 (lower + compile of the jitted intersect), primary (closest hit) and shadow (any hit from the primary
 hits to a point light) Mrays/s for each traversal implementation (`bvh.intersect(..., impl=...)`:
 "xla" = the pure-JAX loop, "pallas" = the Triton kernel of jaxrt.bvh_pallas), the fraction of rays on
-which the implementations agree, and on CPU Embree's Mrays/s on the same rays in the same run.
+which the implementations agree, and on CPU Embree's Mrays/s on the same rays in the same run; the
+shadow rays are timed twice, from the surface and from the light end (`bvh.occluded(from_end=True)`).
+--builders times the rays on several trees (`bvh.build(builder=, layout=)`, e.g. `lbvh sah/dfs`).
 Frames (bunny, dragon, showcase scenes, `render.frame` = Whitted: point lights, shadows, mirror/glass
 bounces): compile s, frame ms, fps, GPU peak memory, and that changing the light and the camera position
 does not recompile. Check: each scene at --check-size² on the default device vs the CPU backend
@@ -56,11 +58,14 @@ def peak_gb(dev):
     return (st or {}).get("peak_bytes_in_use", float("nan")) / 2**30
 
 
-def bench_rays(name, res, impls, repeats, embree):
+def bench_rays(name, res, impls, repeats, embree, builder=None):
     m = mesh.load(data.find(name))
+    kw = {} if builder is None else dict(zip(("builder", "layout"), builder.split("/")))  # "sah/dfs"
     t = time.perf_counter()
-    tree = jax.block_until_ready(bvh.build(m.vertices, m.faces))
+    tree = jax.block_until_ready(bvh.build(m.vertices, m.faces, **kw))
     t_build = time.perf_counter() - t
+    st = tree.stats
+    print(f"  tree {name} builder {builder or 'default'}: build {t_build:.3f} s, {st}", flush=True)
     o, d, light = camera_rays(m.vertices, res)
     od, dd = jnp.asarray(o), jnp.asarray(d)
     z = jnp.zeros(len(o), jnp.float32)
@@ -68,6 +73,8 @@ def bench_rays(name, res, impls, repeats, embree):
     for impl in impls:
         f_hit = jax.jit(lambda tr, o_, d_, lo, impl=impl: bvh.intersect(tr, o_, d_, lo, jnp.inf, impl=impl))
         f_occ = jax.jit(lambda tr, o_, d_, lo, hi, impl=impl: bvh.occluded(tr, o_, d_, hi, lo, impl=impl))
+        f_rev = jax.jit(lambda tr, o_, d_, lo, hi, impl=impl: bvh.occluded(tr, o_, d_, hi, lo, impl=impl,
+                                                                          from_end=True))
         t = time.perf_counter()
         c_hit = f_hit.lower(tree, od, dd, z).compile()
         t_compile = time.perf_counter() - t
@@ -85,11 +92,17 @@ def bench_rays(name, res, impls, repeats, embree):
         t_compile_occ = time.perf_counter() - t
         occ = np.asarray(c_occ(tree, sod, sdd, smin, smax))
         t_shadow = median_time(lambda: jax.block_until_ready(c_occ(tree, sod, sdd, smin, smax)), repeats)
+        # the same shadow segments traced from the light end (bvh.occluded(from_end=True))
+        occ_rev = np.asarray(f_rev(tree, sod, sdd, smin, smax))
+        t_rev = median_time(lambda: jax.block_until_ready(f_rev(tree, sod, sdd, smin, smax)), repeats)
         if ref is None:
             ref = (hit, occ)
-        row = dict(model=name, res=res, tris=int(m.num_faces), impl=impl, build_s=t_build, compile_s=t_compile,
+        row = dict(model=name, res=res, tris=int(m.num_faces), impl=impl, builder=builder or "default",
+                   sah_cost=st.sah_cost, build_s=t_build, compile_s=t_compile,
                    compile_occ_s=t_compile_occ, primary=len(o) / t_prim / 1e6, shadow=len(so) / t_shadow / 1e6,
-                   agree_prim=float(np.mean(hit.prim == ref[0].prim)), agree_occ=float(np.mean(occ == ref[1])))
+                   shadow_rev=len(so) / t_rev / 1e6,
+                   agree_prim=float(np.mean(hit.prim == ref[0].prim)), agree_occ=float(np.mean(occ == ref[1])),
+                   agree_rev=float(np.mean(occ_rev == ref[1])))
         rows.append(row)
         print("  rays", {k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
     if embree:
@@ -103,7 +116,8 @@ def bench_rays(name, res, impls, repeats, embree):
         t_ebuild = time.perf_counter() - t
         e_prim = median_time(lambda: esc.run(o, d, output=1), repeats)
         e_occ = median_time(lambda: esc.run(so + sd * eps, sd * (1 - 2 * eps), query="OCCLUDED"), repeats)
-        row = dict(model=name, res=res, tris=int(m.num_faces), impl="embree", build_s=t_ebuild, compile_s=0.0,
+        row = dict(model=name, res=res, tris=int(m.num_faces), impl="embree", builder="embree", sah_cost=float("nan"),
+                   build_s=t_ebuild, compile_s=0.0, shadow_rev=float("nan"), agree_rev=float("nan"),
                    compile_occ_s=0.0, primary=len(o) / e_prim / 1e6, shadow=len(so) / e_occ / 1e6,
                    agree_prim=float(np.mean(esc.run(o, d, output=1)["primID"].astype(np.int64) == ref[0].prim)),
                    agree_occ=float("nan"))
@@ -169,6 +183,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--check-size", type=int, default=64)
     ap.add_argument("--skip", nargs="*", default=[], choices=["rays", "frames", "check"])
+    ap.add_argument("--builders", nargs="+", default=[None], help="bvh.build builders for the ray rows, "
+                    "BUILDER or BUILDER/LAYOUT, e.g. lbvh sah/dfs (default: bvh.build's; frames always use it)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     if args.cpu:  # before anything initialises a backend
@@ -182,7 +198,8 @@ def main(argv=None) -> int:
     out = dict(device=dev.device_kind, jax=jax.__version__, res=res, rays=[], frames=[], check=[])
     if "rays" not in args.skip:
         for name in args.models:
-            out["rays"] += bench_rays(name, res, impls, args.repeats, embree=not gpu)
+            for b in args.builders:
+                out["rays"] += bench_rays(name, res, impls, args.repeats, embree=not gpu, builder=b)
     if "frames" not in args.skip:
         for name in args.scenes:
             for impl in args.frame_impls or ["auto"]:
@@ -196,13 +213,13 @@ def main(argv=None) -> int:
             Path(p).write_text(json.dumps(out, indent=1))
 
     print(f"\n{dev.device_kind}, {res}²")
-    print("| model | tris | traversal | build s | compile s (hit / occ) | primary Mrays/s | shadow Mrays/s "
-          "| agree prim / occ |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| model | tris | builder (SAH cost) | traversal | build s | compile s (hit / occ) | primary Mrays/s "
+          "| shadow Mrays/s | shadow from light Mrays/s | agree prim / occ / from light |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in out["rays"]:
-        print(f"| {r['model']} | {r['tris']} | {r['impl']} | {r['build_s']:.2f} | {r['compile_s']:.1f} / "
-              f"{r['compile_occ_s']:.1f} | {r['primary']:.4g} | {r['shadow']:.4g} | {r['agree_prim']:.4f} / "
-              f"{r['agree_occ']:.4f} |")
+        print(f"| {r['model']} | {r['tris']} | {r['builder']} ({r['sah_cost']:.1f}) | {r['impl']} | {r['build_s']:.2f} "
+              f"| {r['compile_s']:.1f} / {r['compile_occ_s']:.1f} | {r['primary']:.4g} | {r['shadow']:.4g} "
+              f"| {r['shadow_rev']:.4g} | {r['agree_prim']:.4f} / {r['agree_occ']:.4f} / {r['agree_rev']:.4f} |")
     for r in out["rays"]:
         e = next((x for x in out["rays"] if x["model"] == r["model"] and x["impl"] == "embree"), None)
         if e is not None and r["impl"] != "embree":

@@ -86,13 +86,20 @@ class BVHStats:
     triangles: int
 
 
-def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, leaf_size: int = 1) -> BVH:
-    """Build a BVH over triangles `vertices[faces]` (host numpy, vectorised LBVH; see bvh_build).
+def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, leaf_size: int = 1,
+          builder: str = "lbvh", layout: str = "bfs") -> BVH:
+    """Build a BVH over triangles `vertices[faces]` (host numpy, vectorised; see bvh_build).
+
+    builder: "lbvh" (default: Morton-code splits, `jaxrt.bvh_build`) or "sah" (binned SAH splits
+    down to 16 triangles, Morton splits below, `jaxrt.bvh_sah`: ~10 % fewer node visits per ray,
+    about twice the build time). layout: node numbering, "bfs" (default: breadth-first) or "dfs"
+    (depth-first: every subtree contiguous in memory). All give the same array layout, so every
+    traversal takes any of them; BENCHMARKS.md ("Tree quality") has the measurements.
 
     vertices (V,3) float, faces (F,3) int in [0, V). Raises InputError on NaN/Inf vertices,
     out-of-range indices or no faces. Zero-area faces are kept (they are never hit).
     """
-    a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size)
+    a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder, layout=layout)
     put = jax.device_put
     return BVH(node_box=put(a["node_box"]), node_leaf=put(a["node_leaf"]), links=put(a["links"]),
                triangles=put(a["triangles"]), prim_ids=put(a["prim_ids"]), leaf_size=leaf_size)
@@ -226,13 +233,26 @@ def occluded(
     lanes: int | None = None,
     steps_per_iter: int | None = None,
     impl: str | None = None,
+    from_end: bool = False,
 ) -> Bool[Array, " N"]:
     """True where any triangle is hit with t in [tmin, tmax] (any-hit, stops at the first hit).
 
     For a shadow ray from p towards a light at distance L along unit d, pass tmax = L*(1-eps)
     and tmin (or an offset origin) to skip the surface the ray starts on. lanes, steps_per_iter,
-    impl: as for `intersect`.
+    impl: as for `intersect`. from_end: trace each ray with finite tmax backwards, from
+    o + tmax*d along -d over [0, tmax - tmin] (the same segment; its far end rounded to float32):
+    shadow rays towards one light then share their origin, which a GPU warp traverses more
+    coherently, and find occluders nearer the light first. Rays with infinite tmax go forwards.
     """
+    if from_end:
+        o = jnp.asarray(origins, jnp.float32)
+        d = jnp.asarray(directions, jnp.float32)
+        lo = jnp.broadcast_to(jnp.asarray(tmin, jnp.float32), o.shape[:1])
+        hi = jnp.broadcast_to(jnp.asarray(tmax, jnp.float32), o.shape[:1])
+        fin = jnp.isfinite(hi)
+        origins = jnp.where(fin[:, None], o + jnp.where(fin, hi, 0.0)[:, None] * d, o)
+        directions = jnp.where(fin[:, None], -d, d)
+        tmin, tmax = jnp.where(fin, 0.0, lo), jnp.where(fin, hi - lo, hi)
     found, *_ = _run(tree, origins, directions, tmin, tmax, any_hit=True, lanes=lanes,
                      steps_per_iter=steps_per_iter, impl=impl)
     return found

@@ -14,6 +14,9 @@ that axis, and each node stores `links[c, node] = (hit, miss)`: where to go afte
 (the first child; for a leaf, the same as miss) and where to go after its box is missed or its
 leaf is done (the next node in that class's pre-order after the subtree, -1 at the end). This is
 the multiple-threaded BVH of Hachisuka (2015) in flat-array form.
+
+`finish` (bounds, threading, output) is shared with the binned-SAH topology of `jaxrt.bvh_sah`;
+nodes are numbered breadth-first, or depth-first with layout="dfs" (subtrees contiguous in memory).
 """
 
 from __future__ import annotations
@@ -50,8 +53,18 @@ def _highest_bit(x: np.ndarray) -> np.ndarray:
     return (np.frexp(x.astype(np.float64))[1] - 1).astype(np.uint64)
 
 
-def build_arrays(vertices, faces, leaf_size: int = 4) -> dict[str, np.ndarray]:
-    """Build the flat BVH arrays (see `jaxrt.bvh.BVH` for their layout). Host-side numpy."""
+BUILDERS = ("lbvh", "sah")
+LAYOUTS = ("bfs", "dfs")
+
+
+def build_arrays(vertices, faces, leaf_size: int = 4, builder: str = "lbvh",
+                 layout: str = "bfs") -> dict[str, np.ndarray]:
+    """Build the flat BVH arrays (see `jaxrt.bvh.BVH` for their layout). Host-side numpy.
+
+    builder: "lbvh" (Morton-code splits, this module) or "sah" (binned SAH splits for large nodes,
+    Morton splits below; `jaxrt.bvh_sah`). Both give the same output layout. layout: node
+    numbering, "bfs" (breadth-first) or "dfs" (depth-first; see `finish`).
+    """
     v = np.asarray(vertices)
     f = np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
@@ -64,6 +77,10 @@ def build_arrays(vertices, faces, leaf_size: int = 4) -> dict[str, np.ndarray]:
         raise InputError(f"bvh.build: face indices must be integers in [0, {len(v) - 1}]")
     if not 1 <= leaf_size <= 16:
         raise InputError(f"bvh.build: leaf_size must be in 1..16, got {leaf_size}")
+    if builder not in BUILDERS:
+        raise InputError(f"bvh.build: builder must be one of {BUILDERS}, got {builder!r}")
+    if layout not in LAYOUTS:
+        raise InputError(f"bvh.build: layout must be one of {LAYOUTS}, got {layout!r}")
     v = v.astype(np.float32)
     tri = v[f]  # (F, 3, 3)
     nf = len(f)
@@ -72,6 +89,11 @@ def build_arrays(vertices, faces, leaf_size: int = 4) -> dict[str, np.ndarray]:
     cent = tmin + tmax  # twice the box centre; Morton quantisation is scale-free
     codes = morton_codes(cent)
     order = np.argsort(codes, kind="stable")
+    if builder == "sah":
+        from jaxrt import bvh_sah  # late: bvh_sah imports this module
+
+        order, left, start, count, levels = bvh_sah.topology(tmin, tmax, cent, codes, order, leaf_size)
+        return finish(tri, tmin, tmax, order, left, start, count, levels, layout)
     cs = codes[order]
 
     # --- topology, one level at a time (breadth-first numbering: children > parent) ---------------
@@ -102,7 +124,20 @@ def build_arrays(vertices, faces, leaf_size: int = 4) -> dict[str, np.ndarray]:
         nn += 2 * k
         ids = np.stack([lid, lid + 1], axis=1).ravel()
         s, e = np.stack([s, split], axis=1).ravel(), np.stack([split, e], axis=1).ravel()
-    left, start, count, parent = left[:nn], start[:nn], count[:nn], parent[:nn]
+    return finish(tri, tmin, tmax, order, left[:nn], start[:nn], count[:nn], levels, layout)
+
+
+def finish(tri, tmin, tmax, order, left, start, count, levels, layout: str = "bfs") -> dict[str, np.ndarray]:
+    """Bounds, threading and leaf-order triangles of a topology (shared by the builders).
+
+    tri (F,3,3) float32 and tmin/tmax (F,3) their boxes, order (F,) leaf order -> face index;
+    left/start/count (nn,) int64 per node: first child (children are left, left + 1; -1 for a
+    leaf), first position in `order` and triangle count; levels: node ids per depth, breadth-first
+    numbering (every child id > its parent's). layout: "bfs" keeps that numbering in the output,
+    "dfs" renumbers the nodes in depth-first (class 0 pre-) order.
+    """
+    nn = len(left)
+    nf = len(order)
     is_leaf = left < 0
     count = np.where(is_leaf, count, 0)
 
@@ -152,14 +187,25 @@ def build_arrays(vertices, faces, leaf_size: int = 4) -> dict[str, np.ndarray]:
     at[off1 + pre] = np.arange(nn)[None]
     miss = at[off1 + pre + size[None]]
     first = first.reshape(NUM_RAY_CLASSES, nn)
-    links = np.stack([np.where(is_leaf[None], miss, first), miss], axis=-1).astype(np.int32)
+    links = np.stack([np.where(is_leaf[None], miss, first), miss], axis=-1)
+    box = np.concatenate([lo_pad, hi_pad], axis=1).astype(np.float32)
+    unpadded = np.concatenate([lo, hi], axis=1)
+    node_leaf = np.stack([start, count], axis=1)
+    if layout == "dfs":
+        # Renumber nodes in class 0's pre-order: every subtree is one contiguous run of rows, so
+        # a ray's nodes share cache lines (the breadth-first numbering spreads a subtree over
+        # every level). The root stays 0; links are node ids, so they are mapped too.
+        new = pre[0]
+        old = at[:nn]  # old id of each new id
+        links = np.where(links >= 0, new[np.maximum(links, 0)], -1)[:, old]
+        box, unpadded, node_leaf = box[old], unpadded[old], node_leaf[old]
 
     tri_sorted = tri[order]
     return dict(
-        node_box=np.concatenate([lo_pad, hi_pad], axis=1).astype(np.float32),  # (nn, 6)
-        node_leaf=np.stack([start, count], axis=1).astype(np.int32),  # (nn, 2)
-        links=links.reshape(NUM_RAY_CLASSES * nn, 2),
+        node_box=box,  # (nn, 6)
+        node_leaf=node_leaf.astype(np.int32),  # (nn, 2)
+        links=links.astype(np.int32).reshape(NUM_RAY_CLASSES * nn, 2),
         triangles=tri_sorted.reshape(nf, 9).astype(np.float32),
         prim_ids=order.astype(np.int32),
-        unpadded_box=np.concatenate([lo, hi], axis=1),
+        unpadded_box=unpadded,
     )

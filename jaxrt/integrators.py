@@ -240,10 +240,10 @@ def _intersect(tree, o, d, active):
     return bvh.intersect(tree, o, d, tmin=0.0, tmax=tmax)
 
 
-def _occluded(tree, o, d, tmax):
+def _occluded(tree, o, d, tmax, from_end: bool = False):
     if isinstance(tree, bvh_instanced.InstancedBVH):
         return bvh_instanced.occluded(tree, o, d, tmax)
-    return bvh.occluded(tree, o, d, tmax)
+    return bvh.occluded(tree, o, d, tmax, from_end=from_end)
 
 
 def trace(scene) -> GBuffer:
@@ -289,7 +289,9 @@ def trace(scene) -> GBuffer:
         lit = found[:, None] & (_dot(wi, ng[:, None, :]) > 0) & ~_is_glass(mats, s.material)[:, None]
         so = jnp.broadcast_to(s.p[:, None, :] + ng[:, None, :] * eps[:, None, :], wi.shape)
         smax = jnp.where(lit, dist - 2.0 * eps, -1.0)
-        occ = _occluded(geo.tree, so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1)).reshape(B, L)
+        # from the light: coherent origins (single-level BVH; the two-level one traces forwards)
+        occ = _occluded(geo.tree, so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1),
+                        from_end=True).reshape(B, L)
         visible = lit & ~occ
         buf = GBuffer(
             active=buf.active.at[k].set(act), prim=buf.prim.at[k].set(prim),

@@ -17,8 +17,9 @@ sinθ = 0 (the poles) have pdf 0 and are never returned (a failed sample has pdf
 
 A constant environment (`radiance = [r, g, b]`) is sampled uniformly over the sphere, pdf 1/(4π).
 
-Only OpenEXR files are read (through OpenEXR, `jaxrt.image.read_exr`): no library in the stack
-reads Radiance .hdr (Pillow and matplotlib do not), so .hdr maps are refused with an InputError.
+OpenEXR files are read through OpenEXR (`jaxrt.image.read_exr`); Radiance RGBE files (.hdr, .pic)
+through OpenCV (`pip install 'jaxrt[hdr]'`, opencv-python-headless), since nothing else in the stack
+reads them (Pillow and matplotlib do not). Both give linear RGB with row 0 at the top (+y).
 """
 
 from __future__ import annotations
@@ -105,15 +106,35 @@ def from_array(texels: Float[np.ndarray, "H W 3"], scale: float = 1.0, rotate: f
                   jnp.asarray(col_cdf, jnp.float32), jnp.asarray(total, jnp.float32), uniform=False)
 
 
+SUFFIXES = (".exr", ".hdr", ".pic")
+
+
+def _read_rgbe(path: Path):
+    """(H, W, 3) float32 linear RGB of a Radiance RGBE file, through OpenCV."""
+    try:
+        import cv2
+    except ImportError:
+        raise InputError(f"{path}: reading Radiance .hdr needs OpenCV: pip install 'jaxrt[hdr]' "
+                         "(opencv-python-headless), or convert the map to OpenEXR") from None
+    if not path.is_file():
+        raise InputError(f"{path}: no such environment map file")
+    bgr = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+    if bgr is None or bgr.ndim != 3 or bgr.dtype != np.float32:
+        raise InputError(f"{path}: not a readable Radiance RGBE (.hdr) image")
+    return np.ascontiguousarray(bgr[..., ::-1])  # OpenCV orders channels B, G, R
+
+
 def load(path: str | os.PathLike, scale: float = 1.0, rotate: float = 0.0) -> EnvMap:
-    """Read a lat-long OpenEXR file (see module docstring); InputError naming the file otherwise."""
+    """Read a lat-long OpenEXR (.exr) or Radiance RGBE (.hdr, .pic) file (see module docstring);
+    InputError naming the file otherwise."""
     from jaxrt import image
 
     path = Path(path)
-    if path.suffix.lower() != ".exr":
-        raise InputError(f"{path}: environment maps must be OpenEXR (.exr) files; no reader in the stack "
-                         f"handles {path.suffix or 'files without a suffix'}")
-    tex = image.read_exr(path)
+    suffix = path.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise InputError(f"{path}: environment maps must be OpenEXR (.exr) or Radiance RGBE (.hdr, .pic) "
+                         f"files, not {suffix or 'files without a suffix'}")
+    tex = image.read_exr(path) if suffix == ".exr" else _read_rgbe(path)
     try:
         return from_array(tex, scale, rotate)
     except InputError as e:

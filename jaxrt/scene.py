@@ -457,12 +457,15 @@ def parse(
         env_file = ec.string("file", None)
         env_rad = ec.vector("radiance", 3, default=None, lo=0.0, scalar_ok=True)
         if (env_file is None) == (env_rad is None):
-            ec.fail(None, "give exactly one of file = \"map.exr\" (lat-long OpenEXR) or radiance = [r, g, b]")
+            ec.fail(None, "give exactly one of file = \"map.exr\" (lat-long OpenEXR or .hdr) or radiance = [r, g, b]")
         env_path = None
         if env_file is not None:
             env_path = Path(env_file) if Path(env_file).is_absolute() else base / env_file
-            if env_path.suffix.lower() != ".exr":
-                ec.fail("file", f"{env_file!r}: only OpenEXR (.exr) lat-long maps are supported")
+            from jaxrt.envmap import SUFFIXES
+
+            if env_path.suffix.lower() not in SUFFIXES:
+                ec.fail("file", f"{env_file!r}: lat-long maps must be OpenEXR (.exr) or Radiance RGBE "
+                                "(.hdr, .pic)")
             if not env_path.is_file():
                 ec.fail("file", f"{env_file!r}: no such file (looked for {env_path})")
         environment = EnvironmentSpec(

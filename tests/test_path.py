@@ -492,7 +492,8 @@ def _base(**extra):
     ({}, "lights"),  # no point light, no environment, no emitter: nothing lights the scene
     ({"environment": {"radiance": 1.0, "file": "a.exr"}}, "exactly one of"),
     ({"environment": {}}, "exactly one of"),
-    ({"environment": {"file": "sky.hdr"}}, "OpenEXR"),
+    ({"environment": {"file": "sky.png"}}, "OpenEXR"),
+    ({"environment": {"file": "missing.hdr"}}, "no such file"),
     ({"environment": {"file": "missing.exr"}}, "no such file"),
     ({"environment": {"radiance": [1, -1, 1]}}, "radiance"),
     ({"environment": {"radiance": 1.0, "scale": -2.0}}, "scale"),
@@ -531,3 +532,38 @@ def test_whitted_escaping_rays_see_the_environment(tmp_path):
     np.testing.assert_allclose(got, want, rtol=1e-5)
     no_env = scene.load(_base(lights=[{"position": [0, 3, 0], "intensity": 1.0}], render={"background": 0.5}))
     np.testing.assert_allclose(np.asarray(integrators.escaped_radiance(no_env, jnp.asarray(dirs, jnp.float32))), 0.5)
+
+
+def _write_rgbe(path, rgb):
+    """A flat (uncompressed) Radiance RGBE file written from the format's definition (Ward, Graphics
+    Gems II): shared exponent e with mantissas floor(c / 2^e · 256), independent of OpenCV."""
+    m = rgb.max(-1)
+    e = np.where(m > 1e-32, np.floor(np.log2(np.maximum(m, 1e-32))) + 1, 0)
+    scale = np.where(m > 1e-32, 256.0 / np.exp2(e), 0.0)
+    mant = np.clip(np.floor(rgb * scale[..., None]), 0, 255).astype(np.uint8)
+    exp = np.where(m > 1e-32, e + 128, 0).astype(np.uint8)
+    h, w = rgb.shape[:2]
+    with open(path, "wb") as f:
+        f.write(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n" + f"-Y {h} +X {w}\n".encode())
+        f.write(np.concatenate([mant, exp[..., None]], axis=-1).tobytes())
+
+
+def test_radiance_hdr_environment_matches_the_exr_one(tmp_path):
+    """A .hdr map (written independently of the reader) lights the scene like the same map as EXR:
+    same orientation (row 0 = +y), channel order and scale, within RGBE's 8-bit mantissas."""
+    from jaxrt import image
+
+    sky = _sky().astype(np.float32) + np.asarray([0.0, 0.1, 0.3], np.float32)  # channels differ
+    _write_rgbe(tmp_path / "sky.hdr", sky)
+    image.write_exr(tmp_path / "sky.exr", sky)
+    hdr, exr = envmap.load(tmp_path / "sky.hdr"), envmap.load(tmp_path / "sky.exr")
+    # RGBE keeps 8 bits below the pixel's largest channel: error < max channel / 128 per channel
+    a, b = np.asarray(hdr.texels), np.asarray(exr.texels)
+    assert np.all(np.abs(a - b) <= b.max(-1, keepdims=True) * 2.0 ** -7 + 1e-6)
+    d = np.asarray([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]], np.float32)
+    la, lb = np.asarray(envmap.radiance(hdr, d)), np.asarray(envmap.radiance(exr, d))
+    assert np.all(np.abs(la - lb) <= lb.max(-1, keepdims=True) * 2.0 ** -7 + 1e-6)
+    assert np.ptp(lb[:, 2] - lb[:, 0]) >= 0 and np.all(lb[:, 2] > lb[:, 0])  # blue offset: channels not swapped
+    (tmp_path / "bad.hdr").write_bytes(b"not an image")
+    with pytest.raises(InputError, match="bad.hdr"):
+        envmap.load(tmp_path / "bad.hdr")

@@ -34,7 +34,6 @@ import brdfs
 from jaxrt import sweep as _sweep
 from jaxrt.errors import InputError
 
-
 MAX_SAMPLES = 1 << 16  # the idle timer stops refining here (samples per pixel)
 
 

@@ -382,27 +382,31 @@ def notebook_controls(viewer: Viewer, scale: int = 2):
         build_params()
 
     on("model", set_model)
-    pos = np.asarray(viewer.scene.lights.position[0], np.float64)
-    inten = float(np.mean(np.asarray(viewer.scene.lights.intensity[0])))
-    reach = max(float(np.max(np.abs(pos))), viewer.distance, 1.0) * 2.0
-    for k, axis in enumerate("xyz"):
-        sliders[f"light_{axis}"] = w.FloatSlider(value=pos[k], min=-reach, max=reach, step=reach / 100,
-                                                 description=f"light {axis}")
+    lit = viewer.scene.lights.count > 0  # no light widgets for a scene lit by emitters/environment only
+    if lit:
+        pos = np.asarray(viewer.scene.lights.position[0], np.float64)
+        inten = float(np.mean(np.asarray(viewer.scene.lights.intensity[0])))
+        reach = max(float(np.max(np.abs(pos))), viewer.distance, 1.0) * 2.0
+        for k, axis in enumerate("xyz"):
+            sliders[f"light_{axis}"] = w.FloatSlider(value=pos[k], min=-reach, max=reach, step=reach / 100,
+                                                     description=f"light {axis}")
 
-        def move(v, k=k):
-            q = np.asarray(viewer.scene.lights.position[0], np.float64).copy()
-            q[k] = v
-            viewer.set_light(position=q)
+            def move(v, k=k):
+                q = np.asarray(viewer.scene.lights.position[0], np.float64).copy()
+                q[k] = v
+                viewer.set_light(position=q)
 
-        on(f"light_{axis}", move)
-    sliders["intensity"] = w.FloatSlider(value=inten, min=0.0, max=max(4 * inten, 1.0), description="intensity")
-    on("intensity", lambda v: viewer.set_light(intensity=v))
+            on(f"light_{axis}", move)
+        sliders["intensity"] = w.FloatSlider(value=inten, min=0.0, max=max(4 * inten, 1.0),
+                                             description="intensity")
+        on("intensity", lambda v: viewer.set_light(intensity=v))
     sliders["azimuth"] = w.FloatSlider(value=viewer.azimuth, min=-180, max=180, description="azimuth")
     on("azimuth", lambda v: viewer.orbit(v, viewer.elevation))
     sliders["elevation"] = w.FloatSlider(value=viewer.elevation, min=-89, max=89, description="elevation")
     on("elevation", lambda v: viewer.orbit(viewer.azimuth, v))
     build_params()
-    fixed = w.VBox([sliders[k] for k in ("light_x", "light_y", "light_z", "intensity", "azimuth", "elevation")])
+    fixed = w.VBox([sliders[k] for k in ("light_x", "light_y", "light_z", "intensity", "azimuth", "elevation")
+                    if k in sliders])
     box = w.HBox([w.VBox([image, status]), w.VBox([sliders["model"], params, fixed])])
     return box, sliders
 

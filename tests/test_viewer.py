@@ -189,6 +189,17 @@ def test_progressive_furnace_closed_form_and_reset(furnace):
     assert v.compiles == v.compiled
 
 
+def test_notebook_controls_without_point_lights(furnace):
+    from jaxrt.viewer import notebook_controls
+
+    _, sliders = notebook_controls(furnace)
+    assert "light_x" not in sliders and "intensity" not in sliders and "rho_d" in sliders
+    furnace.refine()
+    sliders["elevation"].value = 10.0  # a widget change restarts the accumulation
+    assert furnace.samples == SPP and furnace.elevation == pytest.approx(10.0)
+    assert furnace.compiles == furnace.compiled
+
+
 def test_whitted_viewer_does_not_refine(viewer):
     before = viewer.image.copy()
     assert not viewer.progressive and viewer.accumulation is None

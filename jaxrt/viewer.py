@@ -12,6 +12,11 @@ from the object's own material where parameter names agree, so a model switch is
 structure never changes and every update re-runs the one compiled `jaxrt.render.frame`. Slider
 ranges and log/linear scales come from each model's `Param` declarations; a log-scale parameter's
 slider moves over log10(value) and its label shows the value itself. RGB parameters are set grey.
+
+Path-traced scenes (`[render] integrator = "path"`, or `integrator="path"` / `jaxrt view --integrator
+path`) render progressively: every change starts a new `jaxrt.path.Accumulation` with pass 0, each
+`refine()` (called by the window's idle timer) adds the next pass through the one compiled
+`jaxrt.path.samples_jit`, and `image` is the running mean, sum/count. The title shows the count.
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ from jaxtyping import Float
 import brdfs
 from jaxrt import sweep as _sweep
 from jaxrt.errors import InputError
+
+MAX_SAMPLES = 1 << 16  # the idle timer stops refining here (samples per pixel)
 
 
 def orbit_position(look_at, distance: float, azimuth: float, elevation: float) -> np.ndarray:
@@ -68,16 +75,23 @@ class Viewer:
         exposure: display exposure [stops].
         frame: point the camera at the object, zoomed to fit it (`jaxrt.sweep.frame_object`); the
             orbit then turns about the object's centre.
+        integrator: "whitted" or "path" (default: the scene file's); spp: samples per pixel of one
+            pass (default: the scene file's).
     Attributes:
-        image: (H, W, 3) float32 linear RGB of the current state; frame_time: seconds of the last render.
+        image: (H, W, 3) float32 linear RGB of the current state; frame_time: seconds of the last
+            render (of the last pass when progressive).
         model: current model name; values: {param: value} of the current model (RGB shown as channel mean).
+        progressive: True for a path-traced scene; accumulation: its `jaxrt.path.Accumulation`
+            (None otherwise); samples: samples per pixel in `image` (settings.spp for Whitted).
     """
 
     def __init__(self, scene: str | os.PathLike, object: str | None = None, width: int | None = None,
-                 height: int | None = None, exposure: float = 0.0, frame: bool = False):
+                 height: int | None = None, exposure: float = 0.0, frame: bool = False,
+                 integrator: str | None = None, spp: int | None = None):
         from jaxrt import scene as _scene
 
-        spec = _scene.parse(_scene.find_scene(scene), overrides={"camera.width": width, "camera.height": height})
+        spec = _scene.parse(_scene.find_scene(scene), overrides={
+            "camera.width": width, "camera.height": height, "render.integrator": integrator, "render.spp": spp})
         spec, self.object, self.model = _sweep.substitute(spec, None, object, inherit=True)
         self.scene = _scene.build(spec)
         if frame:
@@ -89,6 +103,9 @@ class Viewer:
         self._fig = None
         self.sliders: dict[str, Any] = {}
         self.frame_time = float("nan")
+        self._timer = None
+        self.progressive = self.scene.settings.integrator == "path"
+        self.accumulation = None
         self.render()
 
     # ---- state -------------------------------------------------------------------------------
@@ -110,22 +127,54 @@ class Viewer:
 
     @property
     def compiles(self) -> int:
-        """Number of compiled variants of `jaxrt.render.frame` so far (process-wide)."""
+        """Number of compiled variants (process-wide) of the function this viewer renders with:
+        `jaxrt.render.frame`, or the pass `jaxrt.path.samples_jit` when progressive."""
+        from jaxrt import path as _path
         from jaxrt import render as _render
 
-        return _render.frame._cache_size()
+        return (_path.samples_jit if self.progressive else _render.frame)._cache_size()
+
+    @property
+    def samples(self) -> int:
+        if self.accumulation is None:
+            return self.scene.settings.spp
+        return int(self.accumulation.count)
 
     def render(self) -> Float[np.ndarray, "H W 3"]:
-        """Re-render the current state with the compiled frame; sets `image` and `frame_time`."""
+        """Re-render the current state with the compiled frame; sets `image` and `frame_time`.
+        Progressive: drop the accumulation and start again from pass 0 (one pass)."""
         from jaxrt import render as _render
 
+        if self.progressive:
+            self.accumulation = None
+            return self.refine()
         t0 = time.perf_counter()
         img = _render.frame(self.scene)
         img.block_until_ready()
         self.frame_time = time.perf_counter() - t0
+        self._show(img)
+        return self.image
+
+    def refine(self) -> Float[np.ndarray, "H W 3"]:
+        """Add the next pass (settings.spp samples per pixel, pass index = passes so far) to the
+        accumulation and show the running mean; a Whitted viewer's image is final, so it returns
+        it unchanged. The pass index is traced: no pass recompiles."""
+        from jaxrt import path as _path
+
+        if not self.progressive:
+            return self.image
+        t0 = time.perf_counter()
+        acc = _path.accumulate(self.scene, self.accumulation)
+        img = acc.image
+        img.block_until_ready()
+        self.frame_time = time.perf_counter() - t0
+        self.accumulation = acc
+        self._show(img)
+        return self.image
+
+    def _show(self, img) -> None:
         self.image = np.nan_to_num(np.asarray(img), nan=0.0, posinf=0.0, neginf=0.0)
         self._refresh()
-        return self.image
 
     def set_param(self, name: str, value: float) -> None:
         """Set a parameter of the current model (or "delta") and re-render; InputError if out of range."""
@@ -175,7 +224,10 @@ class Viewer:
         return buf.getvalue()
 
     def status(self) -> str:
-        return f"{self.object}: {self.model}   frame {1e3 * self.frame_time:.1f} ms"
+        s = f"{self.object}: {self.model}   frame {1e3 * self.frame_time:.1f} ms"
+        if self.progressive:
+            s += f"   {self.samples} spp"
+        return s
 
     # ---- matplotlib window -------------------------------------------------------------------
     def figure(self):
@@ -201,15 +253,20 @@ class Viewer:
         radio = RadioButtons(rax, names, active=names.index(self.model))
         radio.on_clicked(self.set_model)
         self.sliders["model"] = radio
-        # light and camera sliders (bottom right); ranges from the scene's own extent
-        pos = np.asarray(self.scene.lights.position[0], np.float64)
-        inten = float(np.mean(np.asarray(self.scene.lights.intensity[0])))
-        reach = max(float(np.max(np.abs(pos))), self.distance, 1.0) * 2.0
-        rows = [
-            ("light_x", -reach, reach, pos[0], lambda v: self._light_axis(0, v)),
-            ("light_y", -reach, reach, pos[1], lambda v: self._light_axis(1, v)),
-            ("light_z", -reach, reach, pos[2], lambda v: self._light_axis(2, v)),
-            ("intensity", 0.0, max(4.0 * inten, 1.0), inten, lambda v: self.set_light(intensity=v)),
+        # light and camera sliders (bottom right); ranges from the scene's own extent. A scene lit
+        # only by emitters or an environment (path-traced scenes often are) has no light sliders.
+        rows = []
+        if self.scene.lights.count > 0:
+            pos = np.asarray(self.scene.lights.position[0], np.float64)
+            inten = float(np.mean(np.asarray(self.scene.lights.intensity[0])))
+            reach = max(float(np.max(np.abs(pos))), self.distance, 1.0) * 2.0
+            rows = [
+                ("light_x", -reach, reach, pos[0], lambda v: self._light_axis(0, v)),
+                ("light_y", -reach, reach, pos[1], lambda v: self._light_axis(1, v)),
+                ("light_z", -reach, reach, pos[2], lambda v: self._light_axis(2, v)),
+                ("intensity", 0.0, max(4.0 * inten, 1.0), inten, lambda v: self.set_light(intensity=v)),
+            ]
+        rows += [
             ("azimuth", -180.0, 180.0, self.azimuth, lambda v: self.orbit(v, self.elevation)),
             ("elevation", -89.0, 89.0, self.elevation, lambda v: self.orbit(self.azimuth, v)),
         ]
@@ -220,7 +277,17 @@ class Viewer:
             self.sliders[name] = s
         self._param_axes: list = []
         self._rebuild_param_sliders()
+        if self.progressive:
+            # a 1 ms timer runs between GUI events, so each tick adds one pass while the user is
+            # idle; a change resets the accumulation through render(). Agg's timer never fires.
+            self._timer = fig.canvas.new_timer(interval=1)
+            self._timer.add_callback(self._tick)
+            self._timer.start()
         return fig
+
+    def _tick(self) -> None:
+        if self.samples < MAX_SAMPLES:
+            self.refine()
 
     def _light_axis(self, axis: int, value: float) -> None:
         pos = np.asarray(self.scene.lights.position[0], np.float64).copy()
@@ -315,27 +382,31 @@ def notebook_controls(viewer: Viewer, scale: int = 2):
         build_params()
 
     on("model", set_model)
-    pos = np.asarray(viewer.scene.lights.position[0], np.float64)
-    inten = float(np.mean(np.asarray(viewer.scene.lights.intensity[0])))
-    reach = max(float(np.max(np.abs(pos))), viewer.distance, 1.0) * 2.0
-    for k, axis in enumerate("xyz"):
-        sliders[f"light_{axis}"] = w.FloatSlider(value=pos[k], min=-reach, max=reach, step=reach / 100,
-                                                 description=f"light {axis}")
+    lit = viewer.scene.lights.count > 0  # no light widgets for a scene lit by emitters/environment only
+    if lit:
+        pos = np.asarray(viewer.scene.lights.position[0], np.float64)
+        inten = float(np.mean(np.asarray(viewer.scene.lights.intensity[0])))
+        reach = max(float(np.max(np.abs(pos))), viewer.distance, 1.0) * 2.0
+        for k, axis in enumerate("xyz"):
+            sliders[f"light_{axis}"] = w.FloatSlider(value=pos[k], min=-reach, max=reach, step=reach / 100,
+                                                     description=f"light {axis}")
 
-        def move(v, k=k):
-            q = np.asarray(viewer.scene.lights.position[0], np.float64).copy()
-            q[k] = v
-            viewer.set_light(position=q)
+            def move(v, k=k):
+                q = np.asarray(viewer.scene.lights.position[0], np.float64).copy()
+                q[k] = v
+                viewer.set_light(position=q)
 
-        on(f"light_{axis}", move)
-    sliders["intensity"] = w.FloatSlider(value=inten, min=0.0, max=max(4 * inten, 1.0), description="intensity")
-    on("intensity", lambda v: viewer.set_light(intensity=v))
+            on(f"light_{axis}", move)
+        sliders["intensity"] = w.FloatSlider(value=inten, min=0.0, max=max(4 * inten, 1.0),
+                                             description="intensity")
+        on("intensity", lambda v: viewer.set_light(intensity=v))
     sliders["azimuth"] = w.FloatSlider(value=viewer.azimuth, min=-180, max=180, description="azimuth")
     on("azimuth", lambda v: viewer.orbit(v, viewer.elevation))
     sliders["elevation"] = w.FloatSlider(value=viewer.elevation, min=-89, max=89, description="elevation")
     on("elevation", lambda v: viewer.orbit(viewer.azimuth, v))
     build_params()
-    fixed = w.VBox([sliders[k] for k in ("light_x", "light_y", "light_z", "intensity", "azimuth", "elevation")])
+    fixed = w.VBox([sliders[k] for k in ("light_x", "light_y", "light_z", "intensity", "azimuth", "elevation")
+                    if k in sliders])
     box = w.HBox([w.VBox([image, status]), w.VBox([sliders["model"], params, fixed])])
     return box, sliders
 
@@ -347,10 +418,13 @@ Sliders: the selected object's material parameters (log sliders for exponents an
 the value, not its log), δ, the model (radio buttons), light 0's position and intensity, and a
 camera orbit about the look-at point. Every change re-runs the compiled frame; the first frame
 compiles (tens of seconds on a CPU for big scenes). Use a small --width/--height on a CPU.
+Path-traced scenes (or --integrator path) refine progressively while idle: each timer tick adds
+one pass of --spp samples per pixel; the title shows the count; any change starts again.
 
 Examples:
   jaxrt view spheres --object phong --width 256 --height 192
   jaxrt view scenes/dragon.toml
+  jaxrt view furnace --width 64 --height 64 --spp 1
 """
     parser.add_argument("scene", metavar="SCENE", help="scene file (.toml) or shipped scene name")
     parser.add_argument("--object", help="object whose material the sliders edit (default: the first non-plane object)")
@@ -358,6 +432,8 @@ Examples:
     parser.add_argument("--height", type=int, help="render height in pixels (default: the scene's)")
     parser.add_argument("--exposure", type=float, default=0.0, help="display exposure in stops")
     parser.add_argument("--frame", action="store_true", help="zoom the camera onto the selected object")
+    parser.add_argument("--integrator", help="whitted or path (default: the scene's; path refines progressively)")
+    parser.add_argument("--spp", type=int, help="samples per pixel of one (progressive) pass (default: the scene's)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -367,7 +443,7 @@ def run(args: argparse.Namespace) -> int:
     if not math.isfinite(args.exposure):
         raise InputError(f"--exposure: expected a finite number of stops, got {args.exposure}")
     v = Viewer(args.scene, object=args.object, width=args.width, height=args.height, exposure=args.exposure,
-               frame=args.frame)
+               frame=args.frame, integrator=args.integrator, spp=args.spp)
     v.figure()
     if matplotlib.get_backend().lower() == "agg":
         print("jaxrt view: no interactive matplotlib backend (is a display available?); "

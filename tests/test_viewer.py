@@ -3,6 +3,8 @@
 Expectations are independent of the renderer's numbers: more diffuse albedo never darkens a pixel,
 a specular highlight follows the light, a log slider's position is log10 of the value declared in
 the model's `Param`, and `jaxrt.render.frame`'s compile cache does not grow after the first frame.
+A path-traced scene refines progressively: k refine() passes equal `jaxrt.path.accumulate` called k
+times, the mean over the sphere matches the closed-form furnace radiance, and any change restarts.
 """
 
 import matplotlib
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 
 import brdfs
+from jaxrt import path
 from jaxrt.cli import main
 from jaxrt.errors import InputError
 from jaxrt.viewer import Viewer, from_slider, orbit_angles, orbit_position, slider_spec
@@ -116,3 +119,94 @@ def test_cli_view_headless(capsys):
     assert "no interactive matplotlib backend" in capsys.readouterr().out
     assert main(["view", "spheres", "--object", "nope"]) == 2
     assert "no object named 'nope'" in capsys.readouterr().err
+
+
+# ---- progressive path tracing ------------------------------------------------------------------
+PW, SPP = 16, 2
+
+
+@pytest.fixture(scope="module")
+def furnace():
+    # a white-furnace sphere lit only by a uniform environment of radiance 1 (scenes/furnace.toml)
+    v = Viewer("furnace", width=PW, height=PW, spp=SPP)
+    v.figure()
+    v.compiled = v.compiles  # the first pass compiled; no later pass or value change may
+    return v
+
+
+def _direct(scene, k):
+    """k passes through jaxrt.path itself, outside the viewer."""
+    acc = None
+    for _ in range(k):
+        acc = path.accumulate(scene, acc)
+    return np.asarray(acc.image), int(acc.count)
+
+
+def test_refine_accumulates_the_path_tracer_passes(furnace):
+    v = furnace
+    v.set_param("rho_d", 1.0)  # a change: starts again from pass 0
+    assert v.progressive and v.samples == SPP and int(v.accumulation.passes) == 1
+    first = v.image.copy()
+    counts = [v.samples]
+    for _ in range(4):
+        v.refine()
+        counts.append(v.samples)
+    assert counts == [SPP * k for k in range(1, 6)]
+    assert f"{5 * SPP} spp" in v._title.get_text()
+    img, count = _direct(v.scene, 5)
+    assert count == 5 * SPP
+    np.testing.assert_array_equal(v.image, img)
+    assert not np.array_equal(first, v.image)  # later passes use new random streams
+    v._tick()  # what the window's idle timer calls
+    assert v.samples == 6 * SPP
+    assert v.compiles == v.compiled
+
+
+def test_progressive_furnace_closed_form_and_reset(furnace):
+    # A convex Lambert sphere under a uniform environment L_e = 1 reflects L = rho_d * L_e (every
+    # reflected ray escapes); pixels that miss the sphere see L_e exactly.
+    v = furnace
+    v.sliders["rho_d"].set_val(0.5)
+    assert v.samples == SPP and int(v.accumulation.passes) == 1  # the slider restarted the accumulation
+    np.testing.assert_array_equal(v.image, _direct(v.scene, 1)[0])
+    for _ in range(7):
+        v.refine()
+    y, x = np.mgrid[:PW, :PW] + 0.5
+    r = np.hypot(x - PW / 2, y - PW / 2)
+    # the sphere's image radius is tan(asin(1/4)) / tan(vfov/2) * PW/2 = 6.55 pixels
+    inside, outside = r < 5.0, r > 8.0
+    assert np.isfinite(v.image).all()
+    assert abs(float(v.image[inside].mean()) - 0.5) < 0.02
+    np.testing.assert_allclose(v.image[outside], 1.0, rtol=1e-6)
+    n = v.samples
+    v.refine()
+    v.orbit(v.azimuth + 20.0, v.elevation)  # camera, model and value changes restart too
+    assert v.samples == SPP
+    v.refine()
+    v.set_model("phong")
+    assert v.samples == SPP and v.model == "phong" and n == 8 * SPP
+    v.set_model("lambert")
+    assert v.compiles == v.compiled
+
+
+def test_notebook_controls_without_point_lights(furnace):
+    from jaxrt.viewer import notebook_controls
+
+    _, sliders = notebook_controls(furnace)
+    assert "light_x" not in sliders and "intensity" not in sliders and "rho_d" in sliders
+    furnace.refine()
+    sliders["elevation"].value = 10.0  # a widget change restarts the accumulation
+    assert furnace.samples == SPP and furnace.elevation == pytest.approx(10.0)
+    assert furnace.compiles == furnace.compiled
+
+
+def test_whitted_viewer_does_not_refine(viewer):
+    before = viewer.image.copy()
+    assert not viewer.progressive and viewer.accumulation is None
+    assert viewer.refine() is viewer.image and np.array_equal(before, viewer.image)
+    assert "spp" not in viewer.status()
+
+
+def test_cli_view_integrator_option(capsys):
+    assert main(["view", "furnace", "--integrator", "bidir"]) == 2
+    assert "integrator: 'bidir' is not allowed; allowed: whitted, path" in capsys.readouterr().err

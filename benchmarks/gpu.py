@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -40,17 +39,7 @@ import jax.numpy as jnp  # noqa: E402
 
 from jaxrt import bvh, data, integrators, mesh  # noqa: E402
 from jaxrt import scene as S  # noqa: E402
-from rays import camera_rays  # noqa: E402
-
-
-def median_time(fn, repeats):
-    fn()
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return statistics.median(ts)
+from rays import camera_rays, embree_scene, median_time  # noqa: E402
 
 
 def peak_gb(dev):
@@ -106,14 +95,7 @@ def bench_rays(name, res, impls, repeats, embree, builder=None):
         rows.append(row)
         print("  rays", {k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
     if embree:
-        from embreex import rtcore_scene as rtcs
-        from embreex.mesh_construction import TriangleMesh
-
-        t = time.perf_counter()
-        esc = rtcs.EmbreeScene()
-        TriangleMesh(esc, m.vertices.astype(np.float32), m.faces.astype(np.int32))
-        esc.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # Embree builds lazily
-        t_ebuild = time.perf_counter() - t
+        esc, t_ebuild = embree_scene(m.vertices, m.faces)
         e_prim = median_time(lambda: esc.run(o, d, output=1), repeats)
         e_occ = median_time(lambda: esc.run(so + sd * eps, sd * (1 - 2 * eps), query="OCCLUDED"), repeats)
         row = dict(model=name, res=res, tris=int(m.num_faces), impl="embree", builder="embree", sah_cost=float("nan"),

@@ -65,6 +65,18 @@ def median_time(fn, repeats):
     return statistics.median(ts)
 
 
+def embree_scene(vertices: np.ndarray, faces: np.ndarray):
+    """An Embree scene of the mesh (built now; Embree builds lazily) and its build time [s]."""
+    from embreex import rtcore_scene as rtcs
+    from embreex.mesh_construction import TriangleMesh
+
+    t = time.perf_counter()
+    esc = rtcs.EmbreeScene()
+    TriangleMesh(esc, vertices.astype(np.float32), faces.astype(np.int32))
+    esc.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # Embree builds lazily
+    return esc, time.perf_counter() - t
+
+
 def brute_force(tri: np.ndarray, o: np.ndarray, d: np.ndarray, tmin: np.ndarray):
     """Closest hit in float64 (Moller-Trumbore, all rays x all triangles)."""
     v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
@@ -101,9 +113,6 @@ def main(argv=None):
     print(f"# backend {backend}, device {getattr(dev, 'device_kind', dev)}, jax {jax.__version__}, "
           f"cpus {os.cpu_count()}, lanes {args.lanes or 'default'}, steps/iter {args.steps or 'default'}")
     use_embree = backend == "cpu" and not args.no_embree
-    if use_embree:
-        from embreex import rtcore_scene as rtcs
-        from embreex.mesh_construction import TriangleMesh
     rows = []
     kw = dict(lanes=args.lanes, steps_per_iter=args.steps)
     f_hit = jax.jit(lambda tr, o, d, tmin: bvh.intersect(tr, o, d, tmin, jnp.inf, **kw))
@@ -122,11 +131,7 @@ def main(argv=None):
         st = tree.stats
         print(f"# {name}: {m.num_faces} triangles, load {t_load:.2f} s, build {t_build:.3f} s, {st}")
         if use_embree:
-            t = time.perf_counter()
-            esc = rtcs.EmbreeScene()
-            TriangleMesh(esc, m.vertices.astype(np.float32), m.faces.astype(np.int32))
-            esc.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # Embree builds lazily
-            t_ebuild = time.perf_counter() - t
+            esc, t_ebuild = embree_scene(m.vertices, m.faces)
         for res in args.res:
             o, d, light = camera_rays(m.vertices, res)
             n = len(o)

@@ -102,7 +102,7 @@ def parse(doc: dict, file: str, materials: dict, base, parse_object, names_seen:
     (groups, instances) as tuples of GroupSpec / InstanceSpec; ((), ()) when the scene has none.
     Raises InputError naming the file, table and key.
     """
-    from jaxrt.scene import _Checker
+    from jaxrt.scene import _Checker, _parse_transform, _unique_name
 
     raw_groups, raw_inst = doc.get("groups"), doc.get("instances")
     if raw_groups is None and raw_inst is None:
@@ -148,17 +148,8 @@ def parse(doc: dict, file: str, materials: dict, base, parse_object, names_seen:
             name = f"{group}.{counts[group]}"
         if not name or "/" in name:
             ic.fail("name", f"{name!r}: expected a non-empty name without '/'")
-        base_name, k = name, 2
-        while name in names_seen:
-            name, k = f"{base_name}.{k}", k + 1
-        names_seen.add(name)
-        scale = ic.raw("scale", None)
-        if scale is not None:
-            scale = ic.vector("scale", 3, lo=1e-30, scalar_ok=True)
-            if any(s <= 0 for s in scale):
-                ic.fail("scale", "every component must be > 0")
-        rotate = ic.vector("rotate", 3, default=None)
-        translate = ic.vector("translate", 3, default=None)
+        name = _unique_name(name, names_seen)
+        scale, rotate, translate = _parse_transform(ic)
         material = ic.string("material", None, choices=tuple(materials))
         ic.done()
         instances.append(InstanceSpec(name, group, scale, rotate, translate, material))

@@ -550,6 +550,25 @@ def parse(
     return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances, environment)
 
 
+def _unique_name(name: str, names_seen: set[str]) -> str:
+    """`name`, or name.2, name.3, ... if taken; the result is added to `names_seen`."""
+    base_name, k = name, 2
+    while name in names_seen:
+        name, k = f"{base_name}.{k}", k + 1
+    names_seen.add(name)
+    return name
+
+
+def _parse_transform(c: "_Checker") -> tuple:
+    """(scale, rotate, translate) of an object or instance table, each None when absent."""
+    scale = c.raw("scale", None)
+    if scale is not None:
+        scale = c.vector("scale", 3, lo=1e-30, scalar_ok=True)
+        if any(s <= 0 for s in scale):
+            c.fail("scale", "every component must be > 0")
+    return scale, c.vector("rotate", 3, default=None), c.vector("translate", 3, default=None)
+
+
 def _parse_object(oc: "_Checker", materials: dict, base: Path, names_seen: set[str]) -> ObjectSpec:
     """One [[objects]] (or [[groups.objects]]) table; `names_seen` makes names unique (adds .2, .3)."""
     mesh_ref = oc.string("mesh", None)
@@ -559,10 +578,7 @@ def _parse_object(oc: "_Checker", materials: dict, base: Path, names_seen: set[s
     name = oc.string("name", mesh_ref if prim is None else prim)
     if isinstance(name, str) and mesh_ref is not None and name == mesh_ref:
         name = Path(mesh_ref).stem
-    base_name, k = name, 2
-    while name in names_seen:
-        name, k = f"{base_name}.{k}", k + 1
-    names_seen.add(name)
+    name = _unique_name(name, names_seen)
     material = oc.string("material", choices=tuple(materials))
     prim_args: dict = {}
     mesh_path = None
@@ -591,13 +607,7 @@ def _parse_object(oc: "_Checker", materials: dict, base: Path, names_seen: set[s
             if mat not in materials:
                 oc.fail(f"part_materials.{part}", f"{mat!r} is not a material; allowed: {', '.join(materials)}")
         part_materials = dict(pm)
-    scale = oc.raw("scale", None)
-    if scale is not None:
-        scale = oc.vector("scale", 3, lo=1e-30, scalar_ok=True)
-        if any(s <= 0 for s in scale):
-            oc.fail("scale", "every component must be > 0")
-    rotate = oc.vector("rotate", 3, default=None)
-    translate = oc.vector("translate", 3, default=None)
+    scale, rotate, translate = _parse_transform(oc)
     oc.done()
     return ObjectSpec(name, material, mesh_path, prim, prim_args, scale, rotate, translate, flat, parts,
                       part_materials)

@@ -5,8 +5,9 @@ model at one resolution, primary rays; prints Mrays/s per variant (median of --r
     JAXRT_DATA=... python benchmarks/gpu_sweep.py --pallas      # the Pallas kernel's knobs, primary + shadow
 
 The first form sweeps the XLA loop (impl="xla"); --pallas sweeps jaxrt.bvh_pallas.traverse (rays per
-program, Triton warps, steps per predicate check, packed node/triangle rows) on primary rays and on
-shadow rays from their hits to a point light (kernel time only; bvh.intersect adds the t refinement).
+program, Triton warps, steps per predicate check, node-row layout) on primary rays and on shadow rays
+between their hits and a point light, traced from the hits and from the light (kernel time only;
+bvh.intersect adds the t refinement); --builder picks the tree.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--pallas", action="store_true")
     ap.add_argument("--variants", type=int, nargs="*", default=None, help="indices into PALLAS_VARIANTS")
+    ap.add_argument("--builder", default=None, help="--pallas: bvh.build builder[/layout], e.g. sah/dfs")
     args = ap.parse_args()
     if args.pallas:
         return sweep_pallas(args)
@@ -62,21 +64,24 @@ def main():
                   f"({dt * 1e3:.2f} ms, compile {tc:.1f} s, agree {agree:.5f})", flush=True)
 
 
-PALLAS_VARIANTS = [  # (block, num_warps, steps_per_iter, vec_nodes, vec_tris, inline leaves, gated exact signs)
-    (32, 1, 2, False, False, False, False), (128, 4, 2, False, False, False, False),
-    (32, 1, 2, False, False, True, False), (32, 1, 1, False, False, True, False),
-    (32, 1, 4, False, False, True, False), (64, 2, 2, False, False, True, False),
-    (128, 4, 2, False, False, True, False), (16, 1, 2, False, False, True, False),
-    (64, 1, 2, False, False, True, False), (32, 1, 2, True, False, False, False),
-    (32, 1, 2, False, False, True, True), (32, 1, 1, False, False, True, True),
-    (64, 2, 2, False, False, True, True), (32, 1, 2, False, False, False, True),
+PALLAS_VARIANTS = [  # bvh_pallas.traverse keyword arguments; BENCHMARKS.md has the earlier variants' numbers
+    dict(steps_per_iter=2, layout="inline"),  # the previous default kernel
+    dict(layout="childbox"),  # 1 step per predicate check
+    dict(layout="childbox", skip_tri=True),
+    dict(layout="childbox", skip_tri=True, steps_per_iter=2),
+    dict(layout="childbox", skip_tri=True, gate_exact=False),
+    dict(layout="inline", skip_tri=True, steps_per_iter=2),
+    dict(layout="childbox", persistent=True, refill_at=16),
+    dict(layout="childbox", skip_tri=True, block=64, num_warps=2),
 ]
 
 
 def sweep_pallas(args):
     m = mesh.load(data.find(args.model))
-    tree = bvh.build(m.vertices, m.faces)
-    arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
+    kw = dict(zip(("builder", "layout"), args.builder.split("/"))) if args.builder else {}
+    tree = bvh.build(m.vertices, m.faces, **kw)
+    arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles,
+                  rows=tree.rows)
     o, d, light = camera_rays(m.vertices, args.res)
     n = len(o)
     od, dd = jnp.asarray(o), jnp.asarray(d)
@@ -86,29 +91,34 @@ def sweep_pallas(args):
     p = o[ok] + np.asarray(h.t)[ok, None] * d[ok]
     so, sd = jnp.asarray(p, jnp.float32), jnp.asarray(light[None] - p, jnp.float32)
     slo, shi = jnp.full(len(p), 1e-4, jnp.float32), jnp.full(len(p), 1 - 1e-4, jnp.float32)
+    # the same segments from the light end (what the Whitted integrator traces: bvh.occluded(from_end=True))
+    lo_o, lo_d = so + shi[:, None] * sd, -sd
+    l_lo, l_hi = jnp.zeros(len(p), jnp.float32), shi - slo
     ref_occ = np.asarray(bvh.occluded(tree, so, sd, shi, slo, impl="xla"))
     ref_prim = np.asarray(h.prim)
-    print(f"# {jax.devices()[0].device_kind}, {args.model} {args.res}², {n} primary, {len(p)} shadow rays")
-    for k, (blk, warps, spi, vn, vt, inl, gate) in enumerate(PALLAS_VARIANTS):
+    print(f"# {jax.devices()[0].device_kind}, {args.model} ({args.builder or 'default tree'}) {args.res}², "
+          f"{n} primary, {len(p)} shadow rays", flush=True)
+    kinds = (("primary", False, (od, dd, lo, hi)), ("shadow", True, (so, sd, slo, shi)),
+             ("from-light", True, (lo_o, lo_d, l_lo, l_hi)))
+    for k, var in enumerate(PALLAS_VARIANTS):
         if args.variants and k not in args.variants:
             continue
-        line = (f"block {blk:>3} warps {warps} steps {spi} vec_nodes {vn:d} vec_tris {vt:d} inline {inl:d} "
-                f"gate {gate:d}:")
+        line = " ".join(f"{a}={b}" for a, b in var.items()) + ":"
         try:
-            for any_hit, args_ in ((False, (od, dd, lo, hi)), (True, (so, sd, slo, shi))):
-                f = jax.jit(lambda *a, ah=any_hit: bvh_pallas.traverse(
-                    arrays, *a, any_hit=ah, leaf_size=1, block=blk, num_warps=warps, steps_per_iter=spi,
-                    vec_nodes=vn, vec_tris=vt, inline=inl, gate_exact=gate))
+            for kind, any_hit, args_ in kinds:
+                # The tables are arguments, not constants, as in a renderer's jitted frame.
+                f = jax.jit(lambda arr, *a, ah=any_hit, var=var: bvh_pallas.traverse(
+                    arr, *a, any_hit=ah, leaf_size=1, **var))
                 t = time.perf_counter()
-                r = jax.block_until_ready(f(*args_))
+                r = jax.block_until_ready(f(arrays, *args_))
                 tc = time.perf_counter() - t
-                dt = median_time(lambda: jax.block_until_ready(f(*args_)), args.repeats)
+                dt = median_time(lambda: jax.block_until_ready(f(arrays, *args_)), args.repeats)
                 if any_hit:
                     agree = np.mean(np.asarray(r[0]) == ref_occ)
                 else:
                     agree = np.mean(np.where(np.asarray(r[0]), np.asarray(tree.prim_ids)[np.asarray(r[2])], -1)
                                     == ref_prim)
-                line += (f" {'shadow' if any_hit else 'primary'} {len(args_[0]) / dt / 1e6:7.1f} Mrays/s "
+                line += (f" {kind} {len(args_[0]) / dt / 1e6:7.1f} Mrays/s "
                          f"(compile {tc:.1f} s, agree {agree:.5f})")
         except Exception as e:  # a variant Triton cannot compile is reported, not fatal
             line += f" FAILED {type(e).__name__}: {str(e)[:300]}"

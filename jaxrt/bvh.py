@@ -47,6 +47,9 @@ class BVH(eqx.Module):
                                 (next node if the box is hit, next node if missed); -1 ends
     triangles (F, 9) float32    v0, v1, v2 of each triangle in leaf order
     prim_ids  (F,) int32        original face index of each leaf-order triangle
+    rows      (nn, 16) float32  the GPU kernel's node table (`bvh_pallas.pack_rows`: children's boxes
+                                in each interior row, the triangle in each leaf row); (0, 16) when
+                                leaf_size > 1. Packed once here, not per traversal call.
     leaf_size: static, the largest leaf
     """
 
@@ -55,6 +58,7 @@ class BVH(eqx.Module):
     links: Int[Array, "nn6 2"]
     triangles: Float[Array, "F 9"]
     prim_ids: Int[Array, " F"]
+    rows: Float[Array, "nn 16"]
     leaf_size: int = eqx.field(static=True)
 
     @property
@@ -101,8 +105,12 @@ def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, 
     """
     a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder, layout=layout)
     put = jax.device_put
-    return BVH(node_box=put(a["node_box"]), node_leaf=put(a["node_leaf"]), links=put(a["links"]),
-               triangles=put(a["triangles"]), prim_ids=put(a["prim_ids"]), leaf_size=leaf_size)
+    arrays = {k: put(a[k]) for k in ("node_box", "node_leaf", "links", "triangles")}
+    rows = _pack_rows(**arrays) if leaf_size == 1 else jnp.zeros((0, 16), jnp.float32)
+    return BVH(**arrays, prim_ids=put(a["prim_ids"]), rows=rows, leaf_size=leaf_size)
+
+
+_pack_rows = jax.jit(bvh_pallas.pack_rows)
 
 
 def stats(tree: BVH) -> BVHStats:
@@ -163,6 +171,8 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         z = jnp.zeros(0, jnp.float32)
         return jnp.zeros(0, bool), z, jnp.zeros(0, jnp.int32), z, z, jnp.zeros(0, jnp.int32)
     arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
+    if tree.leaf_size == 1:
+        arrays["rows"] = tree.rows
 
     def xla(o, d, lo, hi):
         return bvh_traverse.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
@@ -171,7 +181,7 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
 
     def pallas(o, d, lo, hi, interpret=False):
         # The interpreter runs program instances one after another: few, wide blocks are fastest.
-        kw = dict(block=1024, steps_per_iter=1) if interpret else {}
+        kw = dict(block=1024) if interpret else {}
         out = bvh_pallas.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
                                   interpret=interpret, **kw)
         return (*out, jnp.zeros(n, jnp.int32))

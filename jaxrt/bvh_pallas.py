@@ -28,12 +28,15 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
 from jaxtyping import Array, Float
 
 from jaxrt import bvh_traverse
+from jaxrt.bvh_build import NUM_RAY_CLASSES as NUM_CLASSES
 
 _FAR_SCALE = bvh_traverse._FAR_SCALE
 _ROW = 12  # words per node row with inline leaves: 9 (box or triangle), first, count, pad
+_CB_ROW = 16  # words per node row with child boxes (see pack_rows)
 _HI_MASK = -4096  # 0xFFFFF000 as int32: keeps sign, exponent and the top 11 mantissa bits
 
 
@@ -74,32 +77,21 @@ def _pick(k, x, y, z):
     return jnp.where(k == 0, x, jnp.where(k == 1, y, z))
 
 
-def _load_row(ref, idx, width):
-    """Columns of rows `idx` of a flat (rows*width,) table, as one (block, width) gather (vector loads)."""
-    x = ref[idx[:, None] * width + lax.broadcasted_iota(jnp.int32, (1, width), 1)]
-    return [c.reshape(idx.shape) for c in jnp.split(x, width, axis=1)]
+_RAY_FIELDS = 14  # o (3), inv (3), shear (3), kx, ky, kz, class, tmin; then tmax
 
 
-def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz_r, base_r, tmin_r, tmax_r,
-            box_r, leaf_r, links_r, tri_r,
-            t_o, best_o, u_o, v_o,
-            *, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, vec_nodes: bool, vec_tris: bool,
-            inline: bool, gate_exact: bool):
-    ox, oy, oz = ox_r[...], oy_r[...], oz_r[...]
-    ix, iy, iz = ix_r[...], iy_r[...], iz_r[...]
-    sx, sy, sz = sx_r[...], sy_r[...], sz_r[...]
-    kx, ky, kz = kx_r[...], ky_r[...], kz_r[...]
-    base = base_r[...]
-    t_lo = tmin_r[...]
-    zero = lax.shift_right_logical(kz, jnp.int32(8))  # 0, unknown to the compiler
+def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str,
+            gate_exact: bool, persistent: bool, n_rays: int, refill_at: int, block: int, skip_tri: bool):
+    ray_refs = refs[:_RAY_FIELDS + 1]
+    box_r, leaf_r, links_r, tri_r = refs[_RAY_FIELDS + 1:_RAY_FIELDS + 5]
+    if persistent:
+        t_o, best_o, u_o, v_o, counter_r = refs[_RAY_FIELDS + 6:]  # outputs (the counter aliases input 19)
+    else:
+        t_o, best_o, u_o, v_o = refs[_RAY_FIELDS + 5:]
 
-    def tri_load(idx):
-        if vec_tris:
-            return _load_row(tri_r, idx, 16)[:9]
-        i9 = idx * 9
-        return [tri_r[i9 + k] for k in range(9)]
-
-    def tri_test(vs, valid, t_best):
+    def tri_test(ray, vs, valid, t_best):
+        ox, oy, oz, _, _, _, sx, sy, sz, kx, ky, kz, _, t_lo = ray
+        zero = lax.shift_right_logical(kz, jnp.int32(8))  # 0, unknown to the compiler
         px, py, pz = [], [], []
         for j in range(3):
             qx, qy, qz = vs[3 * j] - ox, vs[3 * j + 1] - oy, vs[3 * j + 2] - oz
@@ -128,28 +120,12 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
         det_safe = jnp.where(ok, det, 1.0)
         t = (U * az + V * bz + W * cz) / det_safe
         hit = valid & ok & (t >= t_lo) & (t <= t_best)
-        return hit, t, V / det_safe, W / det_safe
+        # u = V/det and v = W/det are divided once per ray at the end (same values), not per test.
+        return hit, t, V, W, det_safe
 
-    def step(st):
-        node, t_best, best, bu, bv = st
-        active = node >= 0
-        n = jnp.maximum(node, 0)
-        if inline:
-            r12 = n * _ROW
-            w = [box_r[r12 + k] for k in range(9)]
-            bb = w[:6]
-            first = lax.bitcast_convert_type(box_r[r12 + 9], jnp.int32)
-            count = lax.bitcast_convert_type(box_r[r12 + 10], jnp.int32)
-        elif vec_nodes:
-            row = _load_row(box_r, n, 8)
-            bb = row[:6]
-            first = lax.bitcast_convert_type(row[6], jnp.int32)
-            count = lax.bitcast_convert_type(row[7], jnp.int32)
-        else:
-            b6 = n * 6
-            bb = [box_r[b6 + k] for k in range(6)]
-            first = leaf_r[n * 2]
-            count = leaf_r[n * 2 + 1]
+    def slab(ray, bb, t_best):
+        ox, oy, oz, ix, iy, iz = ray[:6]
+        t_lo = ray[13]
         t0x = (bb[0] - ox) * ix
         t0y = (bb[1] - oy) * iy
         t0z = (bb[2] - oz) * iz
@@ -159,75 +135,218 @@ def _kernel(ox_r, oy_r, oz_r, ix_r, iy_r, iz_r, sx_r, sy_r, sz_r, kx_r, ky_r, kz
         t_near = jnp.maximum(jnp.maximum(jnp.maximum(jnp.minimum(t0x, t1x), jnp.minimum(t0y, t1y)),
                                          jnp.minimum(t0z, t1z)), t_lo)
         t_far = jnp.minimum(jnp.minimum(jnp.maximum(t0x, t1x), jnp.maximum(t0y, t1y)), jnp.maximum(t0z, t1z))
-        t_far = jnp.minimum(t_far * _FAR_SCALE, t_best)
-        if inline:
+        return t_near <= jnp.minimum(t_far * _FAR_SCALE, t_best)
+
+    def keep(h, t, bary, idx, hit):
+        # hit: (t, triangle, V, W, det) of the best so far; strict < keeps the earlier triangle on
+        # exact ties (the XLA path's argmin).
+        better = h & ((t < hit[0]) | (hit[1] < 0))
+        return tuple(jnp.where(better, x, y) for x, y in zip((t, idx) + bary, hit))
+
+    def test_leaf(ray, vs, valid, hit):
+        if not skip_tri:
+            h, t, *bary = tri_test(ray, vs, valid, hit[0])
+            return h, t, tuple(bary)
+        # Only lanes at a leaf need the triangle test: a warp with none skips its arithmetic.
+        z = jnp.zeros_like(hit[0])
+        return lax.cond(jnp.max(valid.astype(jnp.int32)) > 0,
+                        lambda: (lambda h, t, *b: (h, t, tuple(b)))(*tri_test(ray, vs, valid, hit[0])),
+                        lambda: (jnp.zeros_like(valid), z, (z, z, z + 1.0)))
+
+    def step_childbox(ray, node, hit):
+        # A node's row holds its children's boxes: one load tests both, and the ray moves straight to
+        # the nearer child that is hit (or the farther, or the miss link), so children whose boxes
+        # miss are never loaded. The farther child, when the nearer was hit, is reached later by the
+        # nearer's miss link without its own box test: its row then tests its children instead.
+        cls = ray[12]
+        active = node >= 0
+        n = jnp.maximum(node, 0)
+        r16 = n * _CB_ROW
+        w = [box_r[r16 + k] for k in range(_CB_ROW)]
+        is_leaf = lax.bitcast_convert_type(w[15], jnp.int32) > 0
+        h_a = slab(ray, w[0:6], hit[0])
+        h_b = slab(ray, w[6:12], hit[0])
+        child_a = lax.bitcast_convert_type(w[12], jnp.int32)
+        child_b = lax.bitcast_convert_type(w[13], jnp.int32)
+        swap = (lax.shift_right_logical(lax.bitcast_convert_type(w[14], jnp.int32), cls) & 1) > 0
+        near, far = jnp.where(swap, child_b, child_a), jnp.where(swap, child_a, child_b)
+        h_near, h_far = jnp.where(swap, h_b, h_a), jnp.where(swap, h_a, h_b)
+        h, t, bary = test_leaf(ray, w[:9], active & is_leaf, hit)
+        hit = keep(h, t, bary, lax.bitcast_convert_type(w[9], jnp.int32), hit)
+        miss = links_r[(cls * nn + n) * 2 + 1]
+        nxt_leaf = jnp.where(h, -1, miss) if any_hit else miss
+        nxt = jnp.where(is_leaf, nxt_leaf, jnp.where(h_near, near, jnp.where(h_far, far, miss)))
+        return jnp.where(active, nxt, -1), hit
+
+    def step_nodes(ray, node, hit):
+        # layout "inline": one 12-word row per node, an interior node's box or a leaf's triangle;
+        # "tables": separate box, leaf-range and triangle tables (any leaf size).
+        cls = ray[12]
+        active = node >= 0
+        n = jnp.maximum(node, 0)
+        if layout == "inline":
+            r12 = n * _ROW
+            w = [box_r[r12 + k] for k in range(9)]
+            bb = w[:6]
+            first = lax.bitcast_convert_type(box_r[r12 + 9], jnp.int32)
+            count = lax.bitcast_convert_type(box_r[r12 + 10], jnp.int32)
+        else:
+            b6 = n * 6
+            bb = [box_r[b6 + k] for k in range(6)]
+            first = leaf_r[n * 2]
+            count = leaf_r[n * 2 + 1]
+        box_in = slab(ray, bb, hit[0])
+        if layout == "inline":
             # A leaf's row holds its triangle, not its box: the triangle test alone decides (the
             # padded box test is implied by a hit in [tmin, t_best]) and a leaf's hit and miss links
             # are the same node, so box_hit only matters for interior nodes.
-            box_hit = active & ((count > 0) | (t_near <= t_far))
+            box_hit = active & ((count > 0) | box_in)
         else:
-            box_hit = active & (t_near <= t_far)
+            box_hit = active & box_in
         leaf_hit = box_hit & (count > 0)
         first = jnp.where(leaf_hit, first, 0)  # lanes not testing a leaf read triangle 0 (cached)
         any_h = jnp.zeros_like(active)
         for j in range(leaf_size):
             idx = jnp.minimum(first + j, nf - 1)
-            vs = w if inline else tri_load(idx)
-            h, t, u, v = tri_test(vs, leaf_hit & (count > j), t_best)
-            # Strict < keeps the earlier triangle on exact ties (the XLA path's argmin).
-            better = h & ((t < t_best) | (best < 0))
-            t_best = jnp.where(better, t, t_best)
-            best = jnp.where(better, idx, best)
-            bu = jnp.where(better, u, bu)
-            bv = jnp.where(better, v, bv)
+            if layout == "inline":
+                vs = w
+            else:
+                i9 = idx * 9
+                vs = [tri_r[i9 + k] for k in range(9)]
+            h, t, bary = test_leaf(ray, vs, leaf_hit & (count > j), hit)
+            hit = keep(h, t, bary, idx, hit)
             any_h = any_h | h
-        row = (base + n) * 2
+        row = (cls * nn + n) * 2
         nxt = jnp.where(box_hit, links_r[row], links_r[row + 1])
         if any_hit:
             nxt = jnp.where(any_h, -1, nxt)
-        node = jnp.where(active, nxt, -1)
-        return node, t_best, best, bu, bv
+        return jnp.where(active, nxt, -1), hit
+
+    step = step_childbox if layout == "childbox" else step_nodes
+
+    def finish(hit):
+        t, best, bv, bw, det = hit
+        return t, best, bv / det, bw / det
+
+    def steps(ray, node, hit):
+        for _ in range(steps_per_iter):
+            node, hit = step(ray, node, hit)
+        return node, hit
+
+    if not persistent:
+        # One block of consecutive rays per program, traced until the slowest of them ends.
+        ray = tuple(r[...] for r in ray_refs[:_RAY_FIELDS])
+        shape = ray[0].shape
+        z = jnp.zeros(shape, jnp.float32)
+        hit = (ray_refs[_RAY_FIELDS][...], jnp.full(shape, -1, jnp.int32), z, z, z + 1.0)
+        node, hit = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s),
+                                   (jnp.zeros(shape, jnp.int32), hit))
+        t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
+        return
+
+    # Persistent lanes: a program's lane whose ray has ended stores its result and takes the next
+    # ray of a global queue (one atomic add per program and refill, ranks by a prefix sum), so a
+    # program no longer idles while its slowest ray finishes; a refill waits until `refill_at`
+    # lanes are free (or none is busy), which amortises its loads.
+    lane_shape = (block,)
+
+    def store(idx, hit, mask):
+        at = jnp.maximum(idx, 0)
+        for ref, x in zip((t_o, best_o, u_o, v_o), finish(hit)):
+            plgpu.store(ref.at[at], x, mask=mask)
+
+    def refill(st):
+        ray, node, hit, idx = st
+        free = node < 0
+        store(idx, hit, free & (idx >= 0))
+        free_i = free.astype(jnp.int32)
+        first = plgpu.atomic_add(counter_r, jnp.int32(0), jnp.sum(free_i))
+        new = first + jnp.cumsum(free_i) - 1
+        live = free & (new < n_rays)
+        at = jnp.where(live, new, 0)
+        fresh = [r[at] for r in ray_refs]
+        ray = tuple(jnp.where(live, f, x) for f, x in zip(fresh, ray))
+        hit = (jnp.where(live, fresh[_RAY_FIELDS], hit[0]), jnp.where(live, -1, hit[1]),
+               jnp.where(live, 0.0, hit[2]), jnp.where(live, 0.0, hit[3]), jnp.where(live, 1.0, hit[4]))
+        return ray, jnp.where(live, 0, node), hit, jnp.where(free, jnp.where(live, new, -1), idx)
 
     def body(st):
-        for _ in range(steps_per_iter):
-            st = step(st)
-        return st
+        ray, node, hit, idx = st
+        node, hit = steps(ray, node, hit)
+        ended = jnp.sum(((node < 0) & (idx >= 0)).astype(jnp.int32))
+        busy = jnp.sum((node >= 0).astype(jnp.int32))
+        return lax.cond((ended >= refill_at) | (busy == 0), refill, lambda s: s, (ray, node, hit, idx))
 
-    shape = ox.shape
-    st = (jnp.zeros(shape, jnp.int32), tmax_r[...], jnp.full(shape, -1, jnp.int32),
-          jnp.zeros(shape, jnp.float32), jnp.zeros(shape, jnp.float32))
-    st = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, body, st)
-    _, t_best, best, bu, bv = st
-    t_o[...] = t_best
-    best_o[...] = best
-    u_o[...] = bu
-    v_o[...] = bv
+    zf, zi = jnp.zeros(lane_shape, jnp.float32), jnp.zeros(lane_shape, jnp.int32)
+    ray = (zf,) * 9 + (zi,) * 4 + (zf,)
+    st = refill((ray, jnp.full(lane_shape, -1, jnp.int32), (zf, zi - 1, zf, zf, zf + 1.0), zi - 1))
+    ray, node, hit, idx = lax.while_loop(lambda s: jnp.max(s[1]) >= 0, body, st)
+    store(idx, hit, idx >= 0)
+
+
+def pack_rows(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"]) -> Float[Array, "nn 16"]:
+    """The kernel's node table (nn, 16) float32 (int fields stored bit-cast), one row per node:
+
+    interior: box of child a (6), box of child b (6), a, b, order bits, 0 — child a is the first child
+              of ray class 0; bit c of `order` set where class c visits b first
+    leaf:     its triangle v0 v1 v2 (9), its leaf-order triangle index, 0 ... 0, 1
+
+    From a BVH's arrays (see bvh.BVH; leaf_size 1). Built once per tree (`bvh.build` stores it as
+    `BVH.rows`), not per traversal call: for the full dragon it is 111 MB.
+    """
+    nn = node_box.shape[0]
+    lk = links.reshape(NUM_CLASSES, nn, 2)
+    is_leaf = node_leaf[:, 1] > 0
+    a = jnp.where(is_leaf, 0, lk[0, :, 0])  # class 0's hit link of an interior node: its first child
+    b = jnp.where(is_leaf, 0, lk[0, a, 1])  # whose miss link is the sibling
+    order = jnp.zeros(nn, jnp.int32)
+    for c in range(NUM_CLASSES):
+        order = order | ((lk[c, :, 0] != a) & ~is_leaf).astype(jnp.int32) << c
+    f32 = lambda x: lax.bitcast_convert_type(x.astype(jnp.int32), jnp.float32)  # noqa: E731
+    inner = jnp.concatenate([node_box[a], node_box[b], f32(a)[:, None], f32(b)[:, None], f32(order)[:, None],
+                             jnp.zeros((nn, 1), jnp.float32)], axis=1)
+    first = jnp.where(is_leaf, node_leaf[:, 0], 0)
+    leaf = jnp.concatenate([triangles[first], f32(first)[:, None], jnp.zeros((nn, 5), jnp.float32),
+                            f32(jnp.ones(nn))[:, None]], axis=1)
+    return jnp.where(is_leaf[:, None], leaf, inner)
+
+
+LAYOUTS = ("childbox", "inline", "tables")
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
-                                             "interpret", "vec_nodes", "vec_tris", "inline", "gate_exact"))
+                                             "interpret", "layout", "gate_exact", "persistent", "programs",
+                                             "refill_at", "skip_tri"))
 def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"], tmin: Float[Array, " N"],
              tmax: Float[Array, " N"], *, any_hit: bool, leaf_size: int, block: int = 32,
-             steps_per_iter: int = 2, num_warps: int = 1, interpret: bool = False, vec_nodes: bool = False,
-             vec_tris: bool = False, inline: bool | None = None, gate_exact: bool = True):
+             steps_per_iter: int = 1, num_warps: int = 1, interpret: bool = False, layout: str | None = None,
+             gate_exact: bool = True, persistent: bool = False, programs: int = 4096, refill_at: int = 8,
+             skip_tri: bool = False):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `bvh_traverse.traverse` (without the step counts).
 
-    arrays: node_box (nn,6), node_leaf (nn,2), links (6nn,2), triangles (F,9) (see bvh.BVH);
-    origins, directions (N,3) float32; tmin, tmax (N,) float32. block: rays per program instance
-    (a power of 2); steps_per_iter: traversal steps between two checks of the block's loop
-    predicate; num_warps: Triton warps per program; interpret: run the kernel with the Pallas
-    interpreter (any backend; slow, for tests). vec_nodes / vec_tris: read each node as one
-    8-word row (box + leaf) / each triangle as one 16-word row, repacked per call (layout
-    experiments; results are the same). inline (default: leaf_size == 1): one 12-word row per node
-    holding an interior node's box or a leaf's triangle, so a step makes one round of dependent
-    loads instead of two (node, then triangle); repacked per call. gate_exact: evaluate the
-    exact edge signs only in programs where a rounded-product tie occurs (else always).
+    arrays: node_box (nn,6), node_leaf (nn,2), links (6nn,2), triangles (F,9), optionally rows
+    (nn,16) (see bvh.BVH); origins, directions (N,3) float32; tmin, tmax (N,) float32.
+    block: rays per program instance (a power of 2); steps_per_iter: traversal steps between two
+    checks of the loop predicate; num_warps: Triton warps per program; interpret: run the kernel
+    with the Pallas interpreter (any backend; slow, for tests). gate_exact: evaluate the exact
+    edge signs only in programs where a rounded-product tie occurs (else always).
+    layout (default "childbox" for leaf_size 1, else "tables"): the node table a step reads —
+      "childbox": each node's row holds its children's boxes (`pack_rows`; arrays["rows"] when
+                  present, else packed per call): a step tests both children and moves straight
+                  to the nearer one that is hit, so missed children are never loaded;
+      "inline":   one 12-word row per node, an interior node's box or a leaf's triangle (packed
+                  per call);
+      "tables":   separate box / leaf-range / triangle tables, any leaf size.
+    persistent: `programs` programs take rays from a global queue lane by lane, refilling when
+    `refill_at` lanes are free, instead of one block of rays per program traced until its
+    slowest ray ends. All options give the same results; BENCHMARKS.md has their speeds.
     """
-    if inline is None:
-        inline = leaf_size == 1 and not (vec_nodes or vec_tris)
-    if inline and leaf_size != 1:
-        raise ValueError("bvh_pallas: inline rows need leaf_size 1")
+    layout = layout or ("childbox" if leaf_size == 1 else "tables")
+    if layout not in LAYOUTS:
+        raise ValueError(f"bvh_pallas: layout must be one of {LAYOUTS}, got {layout!r}")
+    if layout != "tables" and leaf_size != 1:
+        raise ValueError(f"bvh_pallas: layout {layout!r} needs leaf_size 1")
     nn = arrays["node_box"].shape[0]
     nf = arrays["triangles"].shape[0]
     n = origins.shape[0]
@@ -241,39 +360,52 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     # Padding rays have an empty interval (tmin 1 > tmax 0): they miss the root box and end.
     per_ray = [col(ray["o"][:, i], 0.0) for i in range(3)] + [col(ray["inv"][:, i], 1.0) for i in range(3)]
     per_ray += [col(ray["shear"][:, i], 0.0) for i in range(3)]
-    per_ray += [col(ray[k], 0) for k in ("kx", "ky", "kz")] + [col(ray["ray_class"] * nn, 0)]
+    per_ray += [col(ray[k], 0) for k in ("kx", "ky", "kz")] + [col(ray["ray_class"], 0)]
     per_ray += [col(tmin.astype(jnp.float32), 1.0), col(tmax.astype(jnp.float32), 0.0)]
     box, leaf, tri = arrays["node_box"], arrays["node_leaf"], arrays["triangles"]
-    if inline:
+    if layout == "childbox":
+        box = arrays["rows"] if "rows" in arrays else pack_rows(box, leaf, arrays["links"], tri)
+        leaf, tri = leaf[:1], tri[:1]  # unused by this layout
+    elif layout == "inline":
         is_leaf = (leaf[:, 1] > 0)[:, None]
         body = jnp.where(is_leaf, tri[jnp.where(is_leaf[:, 0], leaf[:, 0], 0)],
                          jnp.pad(box, ((0, 0), (0, 3))))
         box = jnp.concatenate([body, lax.bitcast_convert_type(leaf, jnp.float32), jnp.zeros((nn, 1), jnp.float32)],
                               axis=1)
-    elif vec_nodes:
-        box = jnp.concatenate([box, lax.bitcast_convert_type(leaf, jnp.float32)], axis=1)
-    if vec_tris:
-        tri = jnp.pad(tri, ((0, 0), (0, 7)))
+        leaf, tri = leaf[:1], tri[:1]
     tables = [box.reshape(-1), leaf.reshape(-1), arrays["links"].reshape(-1), tri.reshape(-1)]
-    ray_spec = pl.BlockSpec((block,), lambda i: (i,))
-    in_specs = [ray_spec] * len(per_ray) + [pl.BlockSpec(tb.shape, lambda i: (0,)) for tb in tables]
+    whole = lambda x: pl.BlockSpec(x.shape, lambda i: (0,))  # noqa: E731
     f32 = jax.ShapeDtypeStruct((n_pad,), jnp.float32)
     i32 = jax.ShapeDtypeStruct((n_pad,), jnp.int32)
     kw = {}
     if not interpret:
-        from jax.experimental.pallas import triton as plgpu
-
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
-    t, best, u, v = pl.pallas_call(
-        functools.partial(_kernel, any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf,
-                          vec_nodes=vec_nodes, vec_tris=vec_tris, inline=inline, gate_exact=gate_exact),
-        out_shape=(f32, i32, f32, f32),
-        grid=(n_pad // block,),
-        in_specs=in_specs,
-        out_specs=(ray_spec,) * 4,
-        interpret=interpret,
-        name="bvh_any_hit" if any_hit else "bvh_closest_hit",
-        **kw,
-    )(*per_ray, *tables)
+    static = dict(any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf, nn=nn, layout=layout,
+                  gate_exact=gate_exact, persistent=persistent, n_rays=n_pad, refill_at=refill_at, block=block,
+                  skip_tri=skip_tri)
+    name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
+    if persistent:
+        grid = min(programs, n_pad // block)
+        counter = jnp.zeros((1,), jnp.int32)
+        out = pl.pallas_call(
+            functools.partial(_kernel, **static),
+            out_shape=(f32, i32, f32, f32, jax.ShapeDtypeStruct((1,), jnp.int32)),
+            grid=(grid,),
+            in_specs=[whole(x) for x in per_ray + tables + [counter]],
+            out_specs=(whole(f32),) * 4 + (whole(counter),),
+            input_output_aliases={len(per_ray) + len(tables): 4},
+            interpret=interpret, name=name, **kw,
+        )(*per_ray, *tables, counter)
+        t, best, u, v = out[:4]
+    else:
+        ray_spec = pl.BlockSpec((block,), lambda i: (i,))
+        t, best, u, v = pl.pallas_call(
+            functools.partial(_kernel, **static),
+            out_shape=(f32, i32, f32, f32),
+            grid=(n_pad // block,),
+            in_specs=[ray_spec] * len(per_ray) + [whole(tb) for tb in tables],
+            out_specs=(ray_spec,) * 4,
+            interpret=interpret, name=name, **kw,
+        )(*per_ray, *tables)
     t, best, u, v = t[:n], best[:n], u[:n], v[:n]
     return best >= 0, t, best, u, v

@@ -7,15 +7,20 @@ state in registers and loops on the GPU until all of the block's rays end; the G
 scheduler starts the next block on a free multiprocessor, which is the lane refill of the XLA path
 done by hardware.
 
-Results are the XLA path's: the same stackless links, node order, box test (same slab formula and
-far-distance widening) and watertight triangle test with exact edge signs (as there, the exact
+Results are the XLA path's: the same stackless links and node order, box test (same slab formula
+and far-distance widening) and watertight triangle test with exact edge signs (as there, the exact
 path runs only where some tested pair's rounded products tie: here a branch per program of 32
-rays). With one triangle per leaf, a leaf's node row holds its triangle instead of its box, so a
-traversal step makes one round of dependent loads; the box test a leaf skips is implied by a
-triangle hit (the boxes are padded outward) and a leaf's hit and miss links are the same node. The hit distance is float32 and may differ from
-the XLA path's in the last ulp where the compiler contracts a multiply-add differently, so two
-triangles at the same distance to within an ulp may be chosen differently (ties); `bvh.intersect`
-then refines t of the chosen triangle in double-float in XLA for both paths.
+rays). The default node table (`pack_rows`, stored once per tree as `BVH.rows`) puts each interior
+node's two children's boxes in its row and each leaf's triangle in the leaf's row: a step loads one
+row, tests both children and moves straight to the nearer child that is hit, so children whose
+boxes miss are never loaded (27 % fewer steps than one box per row, measured with the dragon's camera
+and shadow rays); the miss links of the threaded tree still order the traversal. The kernel is
+bound by instruction issue more than by memory (BENCHMARKS.md): the triangle test runs only in
+warps where some ray is at a leaf, and u, v are divided once per ray at the end. The hit distance
+is float32 and may differ from the XLA path's in the last ulp where the compiler contracts a
+multiply-add differently, so two triangles at the same distance to within an ulp may be chosen
+differently (ties); `bvh.intersect` then refines t of the chosen triangle in double-float in XLA
+for both paths.
 
 Tables are read with vector gathers from flat row-major arrays (`ref[index_vector]`).
 """
@@ -81,13 +86,10 @@ _RAY_FIELDS = 14  # o (3), inv (3), shear (3), kx, ky, kz, class, tmin; then tma
 
 
 def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str,
-            gate_exact: bool, persistent: bool, n_rays: int, refill_at: int, block: int, skip_tri: bool):
+            gate_exact: bool, skip_tri: bool):
     ray_refs = refs[:_RAY_FIELDS + 1]
     box_r, leaf_r, links_r, tri_r = refs[_RAY_FIELDS + 1:_RAY_FIELDS + 5]
-    if persistent:
-        t_o, best_o, u_o, v_o, counter_r = refs[_RAY_FIELDS + 6:]  # outputs (the counter aliases input 19)
-    else:
-        t_o, best_o, u_o, v_o = refs[_RAY_FIELDS + 5:]
+    t_o, best_o, u_o, v_o = refs[_RAY_FIELDS + 5:]
 
     def tri_test(ray, vs, valid, t_best):
         ox, oy, oz, _, _, _, sx, sy, sz, kx, ky, kz, _, t_lo = ray
@@ -144,13 +146,16 @@ def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, 
         return tuple(jnp.where(better, x, y) for x, y in zip((t, idx) + bary, hit))
 
     def test_leaf(ray, vs, valid, hit):
-        if not skip_tri:
+        def test():
             h, t, *bary = tri_test(ray, vs, valid, hit[0])
             return h, t, tuple(bary)
-        # Only lanes at a leaf need the triangle test: a warp with none skips its arithmetic.
+
+        if not skip_tri:
+            return test()
+        # The kernel is bound by instruction issue, and the triangle test is half a step's work:
+        # a warp none of whose rays is at a leaf skips it.
         z = jnp.zeros_like(hit[0])
-        return lax.cond(jnp.max(valid.astype(jnp.int32)) > 0,
-                        lambda: (lambda h, t, *b: (h, t, tuple(b)))(*tri_test(ray, vs, valid, hit[0])),
+        return lax.cond(jnp.max(valid.astype(jnp.int32)) > 0, test,
                         lambda: (jnp.zeros_like(valid), z, (z, z, z + 1.0)))
 
     def step_childbox(ray, node, hit):
@@ -233,55 +238,14 @@ def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, 
             node, hit = step(ray, node, hit)
         return node, hit
 
-    if not persistent:
-        # One block of consecutive rays per program, traced until the slowest of them ends.
-        ray = tuple(r[...] for r in ray_refs[:_RAY_FIELDS])
-        shape = ray[0].shape
-        z = jnp.zeros(shape, jnp.float32)
-        hit = (ray_refs[_RAY_FIELDS][...], jnp.full(shape, -1, jnp.int32), z, z, z + 1.0)
-        node, hit = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s),
-                                   (jnp.zeros(shape, jnp.int32), hit))
-        t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
-        return
-
-    # Persistent lanes: a program's lane whose ray has ended stores its result and takes the next
-    # ray of a global queue (one atomic add per program and refill, ranks by a prefix sum), so a
-    # program no longer idles while its slowest ray finishes; a refill waits until `refill_at`
-    # lanes are free (or none is busy), which amortises its loads.
-    lane_shape = (block,)
-
-    def store(idx, hit, mask):
-        at = jnp.maximum(idx, 0)
-        for ref, x in zip((t_o, best_o, u_o, v_o), finish(hit)):
-            plgpu.store(ref.at[at], x, mask=mask)
-
-    def refill(st):
-        ray, node, hit, idx = st
-        free = node < 0
-        store(idx, hit, free & (idx >= 0))
-        free_i = free.astype(jnp.int32)
-        first = plgpu.atomic_add(counter_r, jnp.int32(0), jnp.sum(free_i))
-        new = first + jnp.cumsum(free_i) - 1
-        live = free & (new < n_rays)
-        at = jnp.where(live, new, 0)
-        fresh = [r[at] for r in ray_refs]
-        ray = tuple(jnp.where(live, f, x) for f, x in zip(fresh, ray))
-        hit = (jnp.where(live, fresh[_RAY_FIELDS], hit[0]), jnp.where(live, -1, hit[1]),
-               jnp.where(live, 0.0, hit[2]), jnp.where(live, 0.0, hit[3]), jnp.where(live, 1.0, hit[4]))
-        return ray, jnp.where(live, 0, node), hit, jnp.where(free, jnp.where(live, new, -1), idx)
-
-    def body(st):
-        ray, node, hit, idx = st
-        node, hit = steps(ray, node, hit)
-        ended = jnp.sum(((node < 0) & (idx >= 0)).astype(jnp.int32))
-        busy = jnp.sum((node >= 0).astype(jnp.int32))
-        return lax.cond((ended >= refill_at) | (busy == 0), refill, lambda s: s, (ray, node, hit, idx))
-
-    zf, zi = jnp.zeros(lane_shape, jnp.float32), jnp.zeros(lane_shape, jnp.int32)
-    ray = (zf,) * 9 + (zi,) * 4 + (zf,)
-    st = refill((ray, jnp.full(lane_shape, -1, jnp.int32), (zf, zi - 1, zf, zf, zf + 1.0), zi - 1))
-    ray, node, hit, idx = lax.while_loop(lambda s: jnp.max(s[1]) >= 0, body, st)
-    store(idx, hit, idx >= 0)
+    # One block of consecutive rays per program, traced until the slowest of them ends.
+    ray = tuple(r[...] for r in ray_refs[:_RAY_FIELDS])
+    shape = ray[0].shape
+    z = jnp.zeros(shape, jnp.float32)
+    hit = (ray_refs[_RAY_FIELDS][...], jnp.full(shape, -1, jnp.int32), z, z, z + 1.0)
+    _, hit = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s),
+                               (jnp.zeros(shape, jnp.int32), hit))
+    t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
 
 
 def pack_rows(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"]) -> Float[Array, "nn 16"]:
@@ -315,13 +279,11 @@ LAYOUTS = ("childbox", "inline", "tables")
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
-                                             "interpret", "layout", "gate_exact", "persistent", "programs",
-                                             "refill_at", "skip_tri"))
+                                             "interpret", "layout", "gate_exact", "skip_tri"))
 def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"], tmin: Float[Array, " N"],
              tmax: Float[Array, " N"], *, any_hit: bool, leaf_size: int, block: int = 32,
              steps_per_iter: int = 1, num_warps: int = 1, interpret: bool = False, layout: str | None = None,
-             gate_exact: bool = True, persistent: bool = False, programs: int = 4096, refill_at: int = 8,
-             skip_tri: bool = False):
+             gate_exact: bool = True, skip_tri: bool = True):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `bvh_traverse.traverse` (without the step counts).
 
@@ -338,9 +300,8 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
       "inline":   one 12-word row per node, an interior node's box or a leaf's triangle (packed
                   per call);
       "tables":   separate box / leaf-range / triangle tables, any leaf size.
-    persistent: `programs` programs take rays from a global queue lane by lane, refilling when
-    `refill_at` lanes are free, instead of one block of rays per program traced until its
-    slowest ray ends. All options give the same results; BENCHMARKS.md has their speeds.
+    skip_tri: a warp none of whose rays is at a leaf skips the triangle test's arithmetic (a
+    warp-uniform branch). All options give the same results; BENCHMARKS.md has their speeds.
     """
     layout = layout or ("childbox" if leaf_size == 1 else "tables")
     if layout not in LAYOUTS:
@@ -381,31 +342,16 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     if not interpret:
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
     static = dict(any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf, nn=nn, layout=layout,
-                  gate_exact=gate_exact, persistent=persistent, n_rays=n_pad, refill_at=refill_at, block=block,
-                  skip_tri=skip_tri)
+                  gate_exact=gate_exact, skip_tri=skip_tri)
     name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
-    if persistent:
-        grid = min(programs, n_pad // block)
-        counter = jnp.zeros((1,), jnp.int32)
-        out = pl.pallas_call(
-            functools.partial(_kernel, **static),
-            out_shape=(f32, i32, f32, f32, jax.ShapeDtypeStruct((1,), jnp.int32)),
-            grid=(grid,),
-            in_specs=[whole(x) for x in per_ray + tables + [counter]],
-            out_specs=(whole(f32),) * 4 + (whole(counter),),
-            input_output_aliases={len(per_ray) + len(tables): 4},
-            interpret=interpret, name=name, **kw,
-        )(*per_ray, *tables, counter)
-        t, best, u, v = out[:4]
-    else:
-        ray_spec = pl.BlockSpec((block,), lambda i: (i,))
-        t, best, u, v = pl.pallas_call(
-            functools.partial(_kernel, **static),
-            out_shape=(f32, i32, f32, f32),
-            grid=(n_pad // block,),
-            in_specs=[ray_spec] * len(per_ray) + [whole(tb) for tb in tables],
-            out_specs=(ray_spec,) * 4,
-            interpret=interpret, name=name, **kw,
-        )(*per_ray, *tables)
+    ray_spec = pl.BlockSpec((block,), lambda i: (i,))
+    t, best, u, v = pl.pallas_call(
+        functools.partial(_kernel, **static),
+        out_shape=(f32, i32, f32, f32),
+        grid=(n_pad // block,),
+        in_specs=[ray_spec] * len(per_ray) + [whole(tb) for tb in tables],
+        out_specs=(ray_spec,) * 4,
+        interpret=interpret, name=name, **kw,
+    )(*per_ray, *tables)
     t, best, u, v = t[:n], best[:n], u[:n], v[:n]
     return best >= 0, t, best, u, v

@@ -111,8 +111,8 @@ def plane_distance(tri9, o, d):
 
 
 def test_pallas_layout_variants_agree():
-    """The kernel's speed options (node-row layouts, exact signs always on, persistent lanes taking rays
-    from a queue) give the default's hits, on rays aimed at vertices and edges (where the exact signs
+    """The kernel's speed options (node-row layouts, exact signs always on, the triangle test in every
+    warp) give the default's hits, on rays aimed at vertices and edges (where the exact signs
     matter), with and without the tree's packed rows."""
     from jaxrt import bvh_pallas
 
@@ -131,8 +131,8 @@ def test_pallas_layout_variants_agree():
     found, t, tri, u, v_ = run()
     assert 0.5 < found.mean() < 1
     variants = (dict(arr=dict(arrays, rows=tree.rows)), dict(gate_exact=False), dict(layout="inline"),
-                dict(layout="tables"), dict(skip_tri=True), dict(persistent=True, refill_at=1, block=32),
-                dict(persistent=True, refill_at=8, programs=2, block=32))
+                dict(layout="tables"), dict(skip_tri=False), dict(layout="tables", block=32),
+                dict(layout="inline", steps_per_iter=3))
     for kw in variants:
         r = run(**kw)
         assert np.array_equal(r[0], found), kw

@@ -66,10 +66,10 @@ def main():
 
 PALLAS_VARIANTS = [  # bvh_pallas.traverse keyword arguments; BENCHMARKS.md has the earlier variants' numbers
     dict(steps_per_iter=2, layout="inline", skip_tri=False),  # the kernel before child-box rows
-    dict(layout="childbox", skip_tri=False),
-    dict(layout="childbox"),  # the default: skip_tri, 1 step per loop-predicate check
+    dict(layout="childbox"),
+    dict(layout="quad"),
+    dict(layout="quad", steps_per_iter=2),
     dict(layout="childbox", steps_per_iter=2),
-    dict(layout="inline", steps_per_iter=2),
 ]
 
 
@@ -77,8 +77,9 @@ def sweep_pallas(args):
     m = mesh.load(data.find(args.model))
     kw = dict(zip(("builder", "layout"), args.builder.split("/"))) if args.builder else {}
     tree = bvh.build(m.vertices, m.faces, **kw)
-    arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles,
-                  rows=tree.rows)
+    arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
+    arrays["rows"] = jax.jit(bvh_pallas.pack_rows)(**arrays)
+    arrays["quad_rows"] = jax.jit(bvh_pallas.pack_quad_rows)(**arrays)
     o, d, light = camera_rays(m.vertices, args.res)
     n = len(o)
     od, dd = jnp.asarray(o), jnp.asarray(d)

@@ -78,8 +78,8 @@ def sweep_pallas(args):
     kw = dict(zip(("builder", "layout"), args.builder.split("/"))) if args.builder else {}
     tree = bvh.build(m.vertices, m.faces, **kw)
     arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
-    arrays["rows"] = jax.jit(bvh_pallas.pack_rows)(**arrays)
-    arrays["quad_rows"] = jax.jit(bvh_pallas.pack_quad_rows)(**arrays)
+    arrays = dict(arrays, rows=jax.jit(bvh_pallas.pack_rows)(**arrays),
+                  quad_rows=jax.jit(bvh_pallas.pack_quad_rows)(**arrays))
     o, d, light = camera_rays(m.vertices, args.res)
     n = len(o)
     od, dd = jnp.asarray(o), jnp.asarray(d)

@@ -48,8 +48,9 @@ class BVH(eqx.Module):
     triangles (F, 9) float32    v0, v1, v2 of each triangle in leaf order
     prim_ids  (F,) int32        original face index of each leaf-order triangle
     rows      (nn, 16) float32  the GPU kernel's node table (`bvh_pallas.pack_rows`: children's boxes
-                                in each interior row, the triangle in each leaf row); (0, 16) when
-                                leaf_size > 1. Packed once here, not per traversal call.
+                                in each interior row, the triangle in each leaf row), or None: packed
+                                once by `build` when the default backend is a GPU and leaf_size is 1
+                                (111 MB for the full dragon), else per call by the kernel.
     leaf_size: static, the largest leaf
     """
 
@@ -58,7 +59,7 @@ class BVH(eqx.Module):
     links: Int[Array, "nn6 2"]
     triangles: Float[Array, "F 9"]
     prim_ids: Int[Array, " F"]
-    rows: Float[Array, "nn 16"]
+    rows: Float[Array, "nn 16"] | None
     leaf_size: int = eqx.field(static=True)
 
     @property
@@ -106,7 +107,7 @@ def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, 
     a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder, layout=layout)
     put = jax.device_put
     arrays = {k: put(a[k]) for k in ("node_box", "node_leaf", "links", "triangles")}
-    rows = _pack_rows(**arrays) if leaf_size == 1 else jnp.zeros((0, 16), jnp.float32)
+    rows = _pack_rows(**arrays) if leaf_size == 1 and jax.default_backend() == "gpu" else None
     return BVH(**arrays, prim_ids=put(a["prim_ids"]), rows=rows, leaf_size=leaf_size)
 
 
@@ -171,7 +172,7 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         z = jnp.zeros(0, jnp.float32)
         return jnp.zeros(0, bool), z, jnp.zeros(0, jnp.int32), z, z, jnp.zeros(0, jnp.int32)
     arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
-    if tree.leaf_size == 1:
+    if tree.rows is not None:
         arrays["rows"] = tree.rows
 
     def xla(o, d, lo, hi):

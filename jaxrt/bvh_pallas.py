@@ -42,7 +42,6 @@ from jaxrt.bvh_build import NUM_RAY_CLASSES as NUM_CLASSES
 _FAR_SCALE = bvh_traverse._FAR_SCALE
 _ROW = 12  # words per node row with inline leaves: 9 (box or triangle), first, count, pad
 _CB_ROW = 16  # words per node row with child boxes (see pack_rows)
-_Q_ROW = 32  # words per node row with grandchild boxes (see pack_quad_rows)
 _HI_MASK = -4096  # 0xFFFFF000 as int32: keeps sign, exponent and the top 11 mantissa bits
 
 
@@ -228,42 +227,7 @@ def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, 
             nxt = jnp.where(any_h, -1, nxt)
         return jnp.where(active, nxt, -1), hit
 
-    def step_quad(ray, node, hit):
-        # A node's row holds the boxes of the (up to) four nodes two levels down (a leaf child stands
-        # for itself): one load tests four boxes and the ray moves straight to the first one hit in
-        # its class's order, skipping a level of the binary tree; the others are reached later by
-        # the binary tree's miss links, without their own box test.
-        cls = ray[12]
-        active = node >= 0
-        n = jnp.maximum(node, 0)
-        r32 = n * _Q_ROW
-        w = [box_r[r32 + k] for k in range(29)] + [box_r[r32 + 31]]
-        is_leaf = lax.bitcast_convert_type(w[29], jnp.int32) > 0
-        ids = [lax.bitcast_convert_type(w[24 + k], jnp.int32) for k in range(4)]
-        hits = [slab(ray, w[6 * k:6 * k + 6], hit[0]) & (ids[k] >= 0) for k in range(4)]
-        bits = lax.shift_right_logical(lax.bitcast_convert_type(w[28], jnp.int32), cls * 3)
-        top, sa, sb = ((lax.shift_right_logical(bits, jnp.int32(j)) & 1) > 0 for j in range(3))
-
-        def pair(x, y, swap):
-            return jnp.where(swap, y, x), jnp.where(swap, x, y)
-
-        # class order: pair (a's slots) then pair (b's slots), each pair and the two pairs swapped by bits
-        a0, a1 = pair(ids[0], ids[1], sa)
-        ha0, ha1 = pair(hits[0], hits[1], sa)
-        b0, b1 = pair(ids[2], ids[3], sb)
-        hb0, hb1 = pair(hits[2], hits[3], sb)
-        c0, c2 = pair(a0, b0, top)
-        c1, c3 = pair(a1, b1, top)
-        h0, h2 = pair(ha0, hb0, top)
-        h1, h3 = pair(ha1, hb1, top)
-        h, t, bary = test_leaf(ray, w[:9], active & is_leaf, hit)
-        hit = keep(h, t, bary, lax.bitcast_convert_type(w[9], jnp.int32), hit)
-        miss = links_r[(cls * nn + n) * 2 + 1]
-        nxt_leaf = jnp.where(h, -1, miss) if any_hit else miss
-        nxt_in = jnp.where(h0, c0, jnp.where(h1, c1, jnp.where(h2, c2, jnp.where(h3, c3, miss))))
-        return jnp.where(active, jnp.where(is_leaf, nxt_leaf, nxt_in), -1), hit
-
-    step = {"childbox": step_childbox, "quad": step_quad}.get(layout, step_nodes)
+    step = step_childbox if layout == "childbox" else step_nodes
 
     def finish(hit):
         t, best, bv, bw, det = hit
@@ -311,44 +275,7 @@ def pack_rows(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float
     return jnp.where(is_leaf[:, None], leaf, inner)
 
 
-def pack_quad_rows(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"]
-                   ) -> Float[Array, "nn 32"]:
-    """The "quad" node table (nn, 32) float32 (int fields bit-cast), one row per node:
-
-    interior: boxes of four slots (24), their node ids (4; -1 = empty), order bits, 0, 0, 0 — the
-              slots are the children of child a (its first, second child in ray class 0), then of
-              child b; a leaf child takes its pair's first slot itself. Bits 3c, 3c+1, 3c+2: ray
-              class c visits b's pair first / swaps a's pair / swaps b's pair.
-    leaf:     its triangle v0 v1 v2 (9), its leaf-order triangle index, 0 ... 0, 1
-
-    From a BVH's arrays (leaf_size 1); a, b as in `pack_rows`.
-    """
-    nn = node_box.shape[0]
-    lk = links.reshape(NUM_CLASSES, nn, 2)
-    is_leaf = node_leaf[:, 1] > 0
-    a = jnp.where(is_leaf, 0, lk[0, :, 0])
-    b = jnp.where(is_leaf, 0, lk[0, a, 1])
-    slots, order = [], jnp.zeros(nn, jnp.int32)
-    for k, x in enumerate((a, b)):
-        x_leaf = is_leaf[x]
-        x1 = jnp.where(x_leaf, x, lk[0, x, 0])
-        x2 = jnp.where(x_leaf, -1, lk[0, jnp.where(x_leaf, 0, x1), 1])
-        slots += [x1, x2]
-        for c in range(NUM_CLASSES):
-            order = order | ((lk[c, x, 0] != x1) & ~x_leaf & ~is_leaf).astype(jnp.int32) << (3 * c + 1 + k)
-    for c in range(NUM_CLASSES):
-        order = order | ((lk[c, :, 0] != a) & ~is_leaf).astype(jnp.int32) << (3 * c)
-    f32 = lambda x: lax.bitcast_convert_type(x.astype(jnp.int32), jnp.float32)  # noqa: E731
-    slots = [jnp.where(is_leaf, -1, x) for x in slots]
-    inner = jnp.concatenate([node_box[jnp.maximum(x, 0)] for x in slots] + [f32(x)[:, None] for x in slots]
-                            + [f32(order)[:, None], jnp.zeros((nn, 3), jnp.float32)], axis=1)
-    first = jnp.where(is_leaf, node_leaf[:, 0], 0)
-    leaf = jnp.concatenate([triangles[first], f32(first)[:, None], jnp.zeros((nn, 21), jnp.float32),
-                            f32(jnp.ones(nn))[:, None]], axis=1)
-    return jnp.where(is_leaf[:, None], leaf, inner)
-
-
-LAYOUTS = ("childbox", "quad", "inline", "tables")
+LAYOUTS = ("childbox", "inline", "tables")
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
@@ -400,9 +327,6 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     if layout == "childbox":
         box = arrays["rows"] if "rows" in arrays else pack_rows(box, leaf, arrays["links"], tri)
         leaf, tri = leaf[:1], tri[:1]  # unused by this layout
-    elif layout == "quad":
-        box = arrays["quad_rows"] if "quad_rows" in arrays else pack_quad_rows(box, leaf, arrays["links"], tri)
-        leaf, tri = leaf[:1], tri[:1]
     elif layout == "inline":
         is_leaf = (leaf[:, 1] > 0)[:, None]
         body = jnp.where(is_leaf, tri[jnp.where(is_leaf[:, 0], leaf[:, 0], 0)],

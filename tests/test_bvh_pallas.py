@@ -130,7 +130,7 @@ def test_pallas_layout_variants_agree():
         arr, o, d, lo, hi, any_hit=any_hit, leaf_size=1, block=block, interpret=True, **kw)]
     found, t, tri, u, v_ = run()
     assert 0.5 < found.mean() < 1
-    variants = (dict(arr=dict(arrays, rows=tree.rows)), dict(gate_exact=False), dict(layout="inline"),
+    variants = (dict(arr=dict(arrays, rows=bvh_pallas.pack_rows(**arrays))), dict(gate_exact=False), dict(layout="inline"),
                 dict(layout="tables"), dict(skip_tri=False), dict(layout="tables", block=32),
                 dict(layout="inline", steps_per_iter=3))
     for kw in variants:

@@ -35,7 +35,10 @@ from jaxrt.bvh_build import _highest_bit
 BINS = 16  # 32 measured no better
 SAH_MIN = 16  # nodes with more triangles are binned; a module setting so benchmarks can vary it
 ALL_AXES = False  # bin all three axes: lower SAH cost, but no fewer node visits (measured)
-_COMPACT = 0.2  # drop finished triangles from the working arrays once they are this fraction
+_COMPACT = 0.2  # drop finished units from the working arrays once they are this fraction
+FAN = 8  # triangles per unit grow by this factor per unit level
+UNIT_LEVELS = 3  # unit sizes 1, FAN, FAN**2
+_DEBUG = False
 
 
 def _area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -70,6 +73,33 @@ def _sweep(nb: np.ndarray, blo: np.ndarray, bhi: np.ndarray, cnt: np.ndarray):
     return cost[np.arange(k), j], j, nl[np.arange(k), j]
 
 
+def _reduce_runs(rows: np.ndarray, fan: int, ufunc) -> np.ndarray:
+    """ufunc.reduce of rows (r, n) over runs of `fan` consecutive columns (the last run may be
+    shorter): (r, ceil(n / fan))."""
+    q = rows.shape[1] // fan
+    out = ufunc.reduce(rows[:, :q * fan].reshape(len(rows), q, fan), axis=2)
+    if rows.shape[1] > q * fan:
+        out = np.concatenate([out, ufunc.reduce(rows[:, q * fan:], axis=1, keepdims=True)], axis=1)
+    return out
+
+
+def _unit_levels(x: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray | None]]:
+    """Rows and triangle counts of the units of each level (see `topology`). x (9, F): lo, hi
+    and centroid rows of the triangles in Morton order (level 0); higher levels have 12 rows: lo,
+    hi, lowest and highest centroid of their FAN**l triangles."""
+    rows, cnt = [x], [None]
+    lo, hi, cmin, cmax, c = x[:3], x[3:6], x[6:9], x[6:9], np.ones(x.shape[1], np.int64)
+    for _ in range(1, UNIT_LEVELS):
+        if lo.shape[1] <= 1:
+            break
+        lo, hi = _reduce_runs(lo, FAN, np.minimum), _reduce_runs(hi, FAN, np.maximum)
+        cmin, cmax = _reduce_runs(cmin, FAN, np.minimum), _reduce_runs(cmax, FAN, np.maximum)
+        c = _reduce_runs(c[None], FAN, np.add)[0]
+        rows.append(np.concatenate([lo, hi, cmin, cmax]))
+        cnt.append(c)
+    return rows, cnt
+
+
 def _stable_order(key: np.ndarray) -> np.ndarray:
     """Stable argsort of non-negative integer keys below 2**32 by two 16-bit radix passes (numpy's
     stable sort is a radix sort for 16-bit types; for wider ones it is a much slower timsort)."""
@@ -100,51 +130,117 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
     ntemp = 1
     split_levels = []  # (parents, their left children) per SAH level, for the starts
 
-    # --- phase 1: SAH levels on triangles in Morton order, labelled with their node -------------
-    label = np.zeros(nf, np.int64)  # final phase-1 node of each triangle (Morton position)
-    pos = np.arange(nf)  # Morton positions of the working triangles
-    # rows: lo xyz, hi xyz, centre xyz of the working triangles, in Morton order
+    # --- phase 1: SAH levels on units of triangles, each labelled with its node ---------------
+    # A unit is a run of FAN**l consecutive triangles of the Morton order (level l; level 0: one
+    # triangle) with its box and centroid bounds. While a unit's centroids fall in one bin of its
+    # node (the bin of its lowest and of its highest centroid agree: binning is monotone) it is
+    # binned as a whole, which gives the same counts and bin boxes as its triangles; otherwise it
+    # is replaced by its FAN sub-units. Near the root most of the work is on units of FAN**2.
     x = np.take(np.concatenate([tmin.T, tmax.T, cent.T]).astype(np.float32), order, axis=1)
-    lab = np.zeros(nf, np.int64)
+    lev_rows, lev_cnt = _unit_levels(x)
+    nlev = len(lev_rows)
+    top = nlev - 1
+    m_top = lev_rows[top].shape[1]
+    g_rows = [np.zeros((len(r), 0), np.float32) for r in lev_rows]
+    g_idx = [np.zeros(0, np.int64) for _ in range(nlev)]
+    g_lab = [np.zeros(0, np.int64) for _ in range(nlev)]
+    g_rows[top], g_idx[top], g_lab[top] = lev_rows[top], np.arange(m_top), np.zeros(m_top, np.int64)
+    done = [[] for _ in range(nlev)]  # (unit index, final phase-1 node) of finished units
+
+    def cnt_of(lv):
+        return None if lv == 0 else lev_cnt[lv][g_idx[lv]]
+
+    def cmin(lv):  # rows of the lowest centroids (level 0: the centroids themselves)
+        return g_rows[lv][6:9]
+
+    def cmax(lv):
+        return g_rows[lv][9:12] if lv else g_rows[lv][6:9]
+
     big = np.array([0]) if nf > big_min else np.zeros(0, np.int64)
     while len(big):
         k = len(big)
-        loc_of = np.full(ntemp, k, np.int64)  # node id -> row of this level's tables (k: not binned)
+        loc_of = np.full(ntemp + 1, k, np.int64)  # node id -> row of this level's tables; k: none
         loc_of[big] = np.arange(k)
-        loc = loc_of[lab]
-        n_big = int(tcount[big].sum())
-        if len(lab) - n_big > _COMPACT * len(lab):  # drop triangles whose nodes are finished
-            keep = loc < k
-            gone = ~keep
-            label[pos[gone]] = lab[gone]
-            idx = np.flatnonzero(keep)
-            x, pos, lab, loc = np.take(x, idx, axis=1), pos[idx], lab[idx], loc[idx]
-        n = len(lab)
+        g_loc = []
+        for lv in range(nlev):
+            loc = loc_of[g_lab[lv]]
+            gone = loc == k  # units of finished nodes (or replaced: label -1)
+            if gone.sum() > _COMPACT * len(loc):
+                fin = gone & (g_lab[lv] >= 0)
+                done[lv].append((g_idx[lv][fin], g_lab[lv][fin]))
+                keep = np.flatnonzero(~gone)
+                g_rows[lv], g_idx[lv], g_lab[lv] = np.take(g_rows[lv], keep, axis=1), g_idx[lv][keep], g_lab[lv][keep]
+                loc = loc[keep]
+            g_loc.append(loc)
+        if _DEBUG:
+            print("level", len(split_levels), "k", k, "units", [len(q) for q in g_loc])
         cnt = tcount[big]
-        clo = _segment_reduce(np.minimum, x[6:], loc, k + 1)
-        chi = _segment_reduce(np.maximum, x[6:], loc, k + 1)
+        clo = np.full((3, k + 1), np.inf, np.float32)
+        chi = np.full((3, k + 1), -np.inf, np.float32)
+        for lv in range(nlev):
+            for r in range(3):
+                np.minimum.at(clo[r], g_loc[lv], cmin(lv)[r])
+                np.maximum.at(chi[r], g_loc[lv], cmax(lv)[r])
         ext = chi[:, :k] - clo[:, :k]  # (3, k) centroid extents
-        cands = range(3) if ALL_AXES else [None]
-        best_cost = np.full(k, np.inf)
-        best_j = np.zeros(k, np.int64)
-        best_nl = np.zeros(k, np.int64)
-        b_best = None
-        rows = np.arange(n)
-        for cand in cands:
+        # per candidate axis: per-row tables, with a last row for units not binned at this level
+        tabs = []
+        for cand in (range(3) if ALL_AXES else [None]):
             axis = np.argmax(ext, axis=0) if cand is None else np.full(k, cand)
             ea = ext[axis, np.arange(k)]
             scale = np.where(ea > 0, bins * (1 - 1e-6) / np.where(ea > 0, ea, 1), 0.0).astype(np.float32)
-            # per-row tables with a last row for the triangles of nodes not binned at this level
-            axis_t = np.append(axis, 0)
-            clo_t = np.append(clo[axis, np.arange(k)], np.float32(0))
-            scale_t = np.append(scale, np.float32(0))
-            ca = np.take(x[6:].reshape(-1), axis_t[loc] * n + rows)
+            tabs.append((np.append(axis, 0), np.append(clo[axis, np.arange(k)], np.float32(0)),
+                         np.append(scale, np.float32(0))))
+
+        def bin_of(rows, loc, tab, bins=bins):
+            axis_t, clo_t, scale_t = tab
+            n = len(loc)
+            ca = np.take(rows.reshape(-1), axis_t[loc] * n + np.arange(n))
             b = ((ca - clo_t[loc]) * scale_t[loc]).astype(np.int64)
-            np.clip(b, 0, bins - 1, out=b)
-            key = loc * bins + b
-            nb = np.bincount(key, minlength=(k + 1) * bins).reshape(k + 1, bins)[:k]
-            blo = _segment_reduce(np.minimum, x[:3], key, (k + 1) * bins)
-            bhi = _segment_reduce(np.maximum, x[3:6], key, (k + 1) * bins)
+            return np.clip(b, 0, bins - 1, out=b)
+
+        def push(lv, parents, lab, loc):
+            """Append the sub-units of units `parents` of level lv + 1 to level lv's working set."""
+            child = (parents[:, None] * FAN + np.arange(FAN)).ravel()
+            ok_c = child < lev_rows[lv].shape[1]
+            child = child[ok_c]
+            g_rows[lv] = np.concatenate([g_rows[lv], np.take(lev_rows[lv], child, axis=1)], axis=1)
+            g_idx[lv] = np.concatenate([g_idx[lv], child])
+            g_lab[lv] = np.concatenate([g_lab[lv], np.repeat(lab, FAN)[ok_c]])
+            g_loc[lv] = np.concatenate([g_loc[lv], np.repeat(loc, FAN)[ok_c]])
+
+        # bins of every unit for every candidate axis, top level first: a unit whose centroids
+        # span more than one bin is replaced by its sub-units (binned when their level comes)
+        g_b = [None] * nlev
+        for lv in reversed(range(nlev)):
+            bs = [bin_of(cmin(lv), g_loc[lv], tab) for tab in tabs]
+            if lv:
+                split = np.zeros(len(g_loc[lv]), bool)
+                for tab, b in zip(tabs, bs):
+                    split |= b != bin_of(cmax(lv), g_loc[lv], tab)
+                if split.any():
+                    sel = np.flatnonzero(split)
+                    push(lv - 1, g_idx[lv][sel], g_lab[lv][sel], g_loc[lv][sel])
+                    g_lab[lv][sel] = -1
+                    g_loc[lv][sel] = k
+                    for b in bs:
+                        b[sel] = 0
+            g_b[lv] = bs
+        best_cost = np.full(k, np.inf)
+        best_j = np.zeros(k, np.int64)
+        best_nl = np.zeros(k, np.int64)
+        b_best = [b[0] for b in g_b]
+        for ci in range(len(tabs)):
+            nb = np.zeros((k + 1) * bins, np.int64)
+            blo = np.full((3, (k + 1) * bins), np.inf, np.float32)
+            bhi = np.full((3, (k + 1) * bins), -np.inf, np.float32)
+            for lv in range(nlev):
+                key = g_loc[lv] * bins + g_b[lv][ci]
+                w = cnt_of(lv)
+                nb += np.bincount(key, w, minlength=(k + 1) * bins).astype(np.int64)
+                for r in range(3):
+                    np.minimum.at(blo[r], key, g_rows[lv][r])
+                    np.maximum.at(bhi[r], key, g_rows[lv][3 + r])
+            nb = nb.reshape(k + 1, bins)[:k]
             blo = blo.reshape(3, k + 1, bins)[:, :k].transpose(1, 2, 0)  # (k, bins, 3)
             bhi = bhi.reshape(3, k + 1, bins)[:, :k].transpose(1, 2, 0)
             cj, j, nl = _sweep(nb, blo, bhi, cnt)
@@ -152,31 +248,52 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
             best_cost = np.where(better, cj, best_cost)
             best_j = np.where(better, j, best_j)
             best_nl = np.where(better, nl, best_nl)
-            if b_best is None:
-                b_best = b
-            elif better.any():
-                b_best = np.where(np.append(better, False)[loc], b, b_best)
+            if ci and better.any():
+                for lv in range(nlev):
+                    b_best[lv] = np.where(np.append(better, False)[g_loc[lv]], g_b[lv][ci], b_best[lv])
         ok = np.isfinite(best_cost)
         # Nodes whose centroids all coincide (no bin split) take the LBVH's split for equal codes:
-        # the middle of their Morton range.
+        # the middle of their Morton range, so their units are taken down to single triangles.
         nl = np.where(ok, best_nl, cnt // 2)
         lid = ntemp + 2 * np.arange(k)
         tleft[big] = lid
         tcount[lid], tcount[lid + 1] = nl, cnt - nl
         split_levels.append((big, lid))
         ntemp += 2 * k
-        right = b_best > np.append(np.where(ok, best_j, bins), bins)[loc]
+        ok_t = np.append(ok, True)
         if not ok.all():
-            sel = np.flatnonzero(~np.append(ok, True)[loc])  # in Morton order
-            g = loc[sel]
-            o = np.argsort(g, kind="stable")
-            g = g[o]
-            first = np.searchsorted(g, g)  # index of each group's first element
-            right[sel[o]] = (np.arange(len(sel)) - first) >= nl[g]
-        lab = np.where(loc < k, np.append(lid, 0)[loc] + right, lab)
+            for lv in reversed(range(1, nlev)):
+                sel = np.flatnonzero(~ok_t[g_loc[lv]])
+                if len(sel):
+                    n0 = len(g_loc[lv - 1])
+                    push(lv - 1, g_idx[lv][sel], g_lab[lv][sel], g_loc[lv][sel])
+                    b_best[lv - 1] = np.concatenate([b_best[lv - 1], np.zeros(len(g_loc[lv - 1]) - n0, np.int64)])
+                    g_lab[lv][sel] = -1
+                    g_loc[lv][sel] = k
+        j_t = np.append(np.where(ok, best_j, bins), bins)
+        child_t = np.append(lid, 0)
+        for lv in range(nlev):
+            loc = g_loc[lv]
+            right = b_best[lv] > j_t[loc]
+            if lv == 0 and not ok.all():
+                sel = np.flatnonzero(~ok_t[loc])
+                o = np.lexsort((g_idx[0][sel], loc[sel]))  # by node, then Morton position
+                sel = sel[o]
+                g = loc[sel]
+                first = np.searchsorted(g, g)  # index of each node's first triangle
+                right[sel] = (np.arange(len(sel)) - first) >= nl[g]
+            g_lab[lv] = np.where(loc < k, child_t[loc] + right, g_lab[lv])
         nxt = np.concatenate([lid, lid + 1])
         big = nxt[tcount[nxt] > big_min]
-    label[pos] = lab
+    label = np.empty(nf, np.int64)  # final phase-1 node of each triangle (Morton position)
+    for lv in range(nlev):
+        live = g_lab[lv] >= 0
+        idx = np.concatenate([g_idx[lv][live]] + [d[0] for d in done[lv]])
+        lab = np.concatenate([g_lab[lv][live]] + [d[1] for d in done[lv]])
+        run = FAN ** lv
+        p = (idx[:, None] * run + np.arange(run)).ravel()
+        inside = p < nf
+        label[p[inside]] = np.repeat(lab, run)[inside]
 
     # starts: a left child starts where its parent does, the right child after the left
     for par, lid in split_levels:

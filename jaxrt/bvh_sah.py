@@ -35,10 +35,8 @@ from jaxrt.bvh_build import _highest_bit
 BINS = 16  # 32 measured no better
 SAH_MIN = 16  # nodes with more triangles are binned; a module setting so benchmarks can vary it
 ALL_AXES = False  # bin all three axes: lower SAH cost, but no fewer node visits (measured)
-_COMPACT = 0.2  # drop finished units from the working arrays once they are this fraction
-FAN = 8  # triangles per unit grow by this factor per unit level
-UNIT_LEVELS = 3  # unit sizes 1, FAN, FAN**2
-_DEBUG = False
+EXACT_BOUNDS = False  # True: exact centroid bounds per node (6 more scatter passes a level)
+_COMPACT = 0.2  # drop finished triangles from the working arrays once they are this fraction
 
 
 def _area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -57,9 +55,10 @@ def _segment_reduce(ufunc, rows: np.ndarray, key: np.ndarray, size: int) -> np.n
 
 
 def _sweep(nb: np.ndarray, blo: np.ndarray, bhi: np.ndarray, cnt: np.ndarray):
-    """Best binned split per node: (cost (k,) float64, inf where no split separates the
-    triangles; bin j (k,): left = bins 0..j; left count (k,)). nb (k, bins) counts, blo/bhi
-    (k, bins, 3) float32 bin boxes, cnt (k,) triangles per node."""
+    """Best binned split per node: cost (k,) float64 (inf where no split separates the
+    triangles), bin j (k,) (left = bins 0..j), left count (k,) and the children's boxes (k, 2, 6)
+    [lo xyz, hi xyz] float32. nb (k, bins) counts, blo/bhi (k, bins, 3) float32 bin boxes (+inf /
+    -inf where empty), cnt (k,) triangles per node."""
     k = len(cnt)
     llo = np.minimum.accumulate(blo, axis=1)[:, :-1]
     lhi = np.maximum.accumulate(bhi, axis=1)[:, :-1]
@@ -70,34 +69,9 @@ def _sweep(nb: np.ndarray, blo: np.ndarray, bhi: np.ndarray, cnt: np.ndarray):
     cost = _area(llo.astype(np.float64), lhi) * nl + _area(rlo.astype(np.float64), rhi) * nr
     cost = np.where((nl > 0) & (nr > 0), cost, np.inf)
     j = np.argmin(cost, axis=1)
-    return cost[np.arange(k), j], j, nl[np.arange(k), j]
-
-
-def _reduce_runs(rows: np.ndarray, fan: int, ufunc) -> np.ndarray:
-    """ufunc.reduce of rows (r, n) over runs of `fan` consecutive columns (the last run may be
-    shorter): (r, ceil(n / fan))."""
-    q = rows.shape[1] // fan
-    out = ufunc.reduce(rows[:, :q * fan].reshape(len(rows), q, fan), axis=2)
-    if rows.shape[1] > q * fan:
-        out = np.concatenate([out, ufunc.reduce(rows[:, q * fan:], axis=1, keepdims=True)], axis=1)
-    return out
-
-
-def _unit_levels(x: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray | None]]:
-    """Rows and triangle counts of the units of each level (see `topology`). x (9, F): lo, hi
-    and centroid rows of the triangles in Morton order (level 0); higher levels have 12 rows: lo,
-    hi, lowest and highest centroid of their FAN**l triangles."""
-    rows, cnt = [x], [None]
-    lo, hi, cmin, cmax, c = x[:3], x[3:6], x[6:9], x[6:9], np.ones(x.shape[1], np.int64)
-    for _ in range(1, UNIT_LEVELS):
-        if lo.shape[1] <= 1:
-            break
-        lo, hi = _reduce_runs(lo, FAN, np.minimum), _reduce_runs(hi, FAN, np.maximum)
-        cmin, cmax = _reduce_runs(cmin, FAN, np.minimum), _reduce_runs(cmax, FAN, np.maximum)
-        c = _reduce_runs(c[None], FAN, np.add)[0]
-        rows.append(np.concatenate([lo, hi, cmin, cmax]))
-        cnt.append(c)
-    return rows, cnt
+    r = np.arange(k)
+    boxes = np.stack([np.concatenate([llo[r, j], lhi[r, j]], 1), np.concatenate([rlo[r, j], rhi[r, j]], 1)], 1)
+    return cost[r, j], j, nl[r, j], boxes
 
 
 def _stable_order(key: np.ndarray) -> np.ndarray:
@@ -110,10 +84,27 @@ def _stable_order(key: np.ndarray) -> np.ndarray:
     return p1[p2]
 
 
+def _child_bounds(clo, chi, axis, scale, j, boxes):
+    """Centroid bounds (k, 2, 6) of both children of a binned split, without a pass over the
+    triangles: the parent's (clo, chi (3, k)), cut at the split plane (the edge of bin j + 1 on
+    `axis`) and inside twice the child's box (a centroid here is lo + hi)."""
+    k = len(j)
+    r = np.arange(k)
+    cut = (clo[axis, r] + (j + 1) / np.where(scale > 0, scale, 1)).astype(np.float32)
+    cb = np.empty((k, 2, 6), np.float32)
+    cb[:, :, :3] = clo.T[:, None]
+    cb[:, :, 3:] = chi.T[:, None]
+    cb[r, 0, 3 + axis] = np.minimum(cb[r, 0, 3 + axis], cut)
+    cb[r, 1, axis] = np.maximum(cb[r, 1, axis], cut)
+    cb[..., :3] = np.maximum(cb[..., :3], 2 * boxes[..., :3])
+    cb[..., 3:] = np.minimum(cb[..., 3:], 2 * boxes[..., 3:])
+    return cb
+
+
 def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None, sah_min: int | None = None):
     """Node topology by binned SAH (nodes above sah_min triangles) and Morton splits (below).
 
-    tmin/tmax (F,3) float32 triangle boxes, cent (F,3) float32 their centres (any fixed scale),
+    tmin/tmax (F,3) float32 triangle boxes, cent (F,3) float32 their centres as tmin + tmax,
     codes (F,) uint64 Morton codes, order (F,) the Morton sort. Returns (order, left, start,
     count, levels) in `bvh_build.finish`'s form; `order` is a new array (leaf order -> face index).
     """
@@ -130,170 +121,105 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
     ntemp = 1
     split_levels = []  # (parents, their left children) per SAH level, for the starts
 
-    # --- phase 1: SAH levels on units of triangles, each labelled with its node ---------------
-    # A unit is a run of FAN**l consecutive triangles of the Morton order (level l; level 0: one
-    # triangle) with its box and centroid bounds. While a unit's centroids fall in one bin of its
-    # node (the bin of its lowest and of its highest centroid agree: binning is monotone) it is
-    # binned as a whole, which gives the same counts and bin boxes as its triangles; otherwise it
-    # is replaced by its FAN sub-units. Near the root most of the work is on units of FAN**2.
+    # --- phase 1: SAH levels on triangles in Morton order, labelled with their node -------------
+    label = np.zeros(nf, np.int64)  # final phase-1 node of each triangle (Morton position)
+    pos = np.arange(nf)  # Morton positions of the working triangles
+    # rows: lo xyz, hi xyz, centroid xyz of the working triangles, in Morton order
     x = np.take(np.concatenate([tmin.T, tmax.T, cent.T]).astype(np.float32), order, axis=1)
-    lev_rows, lev_cnt = _unit_levels(x)
-    nlev = len(lev_rows)
-    top = nlev - 1
-    m_top = lev_rows[top].shape[1]
-    g_rows = [np.zeros((len(r), 0), np.float32) for r in lev_rows]
-    g_idx = [np.zeros(0, np.int64) for _ in range(nlev)]
-    g_lab = [np.zeros(0, np.int64) for _ in range(nlev)]
-    g_rows[top], g_idx[top], g_lab[top] = lev_rows[top], np.arange(m_top), np.zeros(m_top, np.int64)
-    done = [[] for _ in range(nlev)]  # (unit index, final phase-1 node) of finished units
-
-    def cnt_of(lv):
-        return None if lv == 0 else lev_cnt[lv][g_idx[lv]]
-
-    def cmin(lv):  # rows of the lowest centroids (level 0: the centroids themselves)
-        return g_rows[lv][6:9]
-
-    def cmax(lv):
-        return g_rows[lv][9:12] if lv else g_rows[lv][6:9]
-
+    lab = np.zeros(nf, np.int64)  # node of each working triangle
+    codes_m = codes[order]
     big = np.array([0]) if nf > big_min else np.zeros(0, np.int64)
+    cb = np.concatenate([x[6:].min(1), x[6:].max(1)])[None]  # centroid bounds of the big nodes
+    ar = np.arange(nf)
     while len(big):
         k = len(big)
-        loc_of = np.full(ntemp + 1, k, np.int64)  # node id -> row of this level's tables; k: none
-        loc_of[big] = np.arange(k)
-        g_loc = []
-        for lv in range(nlev):
-            loc = loc_of[g_lab[lv]]
-            gone = loc == k  # units of finished nodes (or replaced: label -1)
-            if gone.sum() > _COMPACT * len(loc):
-                fin = gone & (g_lab[lv] >= 0)
-                done[lv].append((g_idx[lv][fin], g_lab[lv][fin]))
-                keep = np.flatnonzero(~gone)
-                g_rows[lv], g_idx[lv], g_lab[lv] = np.take(g_rows[lv], keep, axis=1), g_idx[lv][keep], g_lab[lv][keep]
-                loc = loc[keep]
-            g_loc.append(loc)
-        if _DEBUG:
-            print("level", len(split_levels), "k", k, "units", [len(q) for q in g_loc])
         cnt = tcount[big]
-        clo = np.full((3, k + 1), np.inf, np.float32)
-        chi = np.full((3, k + 1), -np.inf, np.float32)
-        for lv in range(nlev):
-            for r in range(3):
-                np.minimum.at(clo[r], g_loc[lv], cmin(lv)[r])
-                np.maximum.at(chi[r], g_loc[lv], cmax(lv)[r])
-        ext = chi[:, :k] - clo[:, :k]  # (3, k) centroid extents
-        # per candidate axis: per-row tables, with a last row for units not binned at this level
-        tabs = []
-        for cand in (range(3) if ALL_AXES else [None]):
+        n = len(lab)
+        loc_of = np.full(ntemp, k, np.int64)  # node id -> row of this level's tables (k: not binned)
+        loc_of[big] = np.arange(k)
+        loc = loc_of[lab]
+        n_big = int(cnt.sum())
+        if n - n_big > _COMPACT * n:  # drop the triangles of finished nodes
+            gone = loc == k
+            label[pos[gone]] = lab[gone]
+            keep = np.flatnonzero(~gone)
+            x, pos, lab, loc = np.take(x, keep, axis=1), pos[keep], lab[keep], loc[keep]
+            n = len(lab)
+        if EXACT_BOUNDS and split_levels:
+            clo = _segment_reduce(np.minimum, x[6:], loc, k + 1)[:, :k]
+            chi = _segment_reduce(np.maximum, x[6:], loc, k + 1)[:, :k]
+        else:
+            clo, chi = np.ascontiguousarray(cb[:, :3].T), np.ascontiguousarray(cb[:, 3:].T)
+        ext = chi - clo  # (3, k)
+        xc = x[6:].reshape(-1)
+        rows = ar[:n]
+        for ci, cand in enumerate(range(3) if ALL_AXES else [None]):
             axis = np.argmax(ext, axis=0) if cand is None else np.full(k, cand)
             ea = ext[axis, np.arange(k)]
             scale = np.where(ea > 0, bins * (1 - 1e-6) / np.where(ea > 0, ea, 1), 0.0).astype(np.float32)
-            tabs.append((np.append(axis, 0), np.append(clo[axis, np.arange(k)], np.float32(0)),
-                         np.append(scale, np.float32(0))))
-
-        def bin_of(rows, loc, tab, bins=bins):
-            axis_t, clo_t, scale_t = tab
-            n = len(loc)
-            ca = np.take(rows.reshape(-1), axis_t[loc] * n + np.arange(n))
-            b = ((ca - clo_t[loc]) * scale_t[loc]).astype(np.int64)
-            return np.clip(b, 0, bins - 1, out=b)
-
-        def push(lv, parents, lab, loc):
-            """Append the sub-units of units `parents` of level lv + 1 to level lv's working set."""
-            child = (parents[:, None] * FAN + np.arange(FAN)).ravel()
-            ok_c = child < lev_rows[lv].shape[1]
-            child = child[ok_c]
-            g_rows[lv] = np.concatenate([g_rows[lv], np.take(lev_rows[lv], child, axis=1)], axis=1)
-            g_idx[lv] = np.concatenate([g_idx[lv], child])
-            g_lab[lv] = np.concatenate([g_lab[lv], np.repeat(lab, FAN)[ok_c]])
-            g_loc[lv] = np.concatenate([g_loc[lv], np.repeat(loc, FAN)[ok_c]])
-
-        # bins of every unit for every candidate axis, top level first: a unit whose centroids
-        # span more than one bin is replaced by its sub-units (binned when their level comes)
-        g_b = [None] * nlev
-        for lv in reversed(range(nlev)):
-            bs = [bin_of(cmin(lv), g_loc[lv], tab) for tab in tabs]
-            if lv:
-                split = np.zeros(len(g_loc[lv]), bool)
-                for tab, b in zip(tabs, bs):
-                    split |= b != bin_of(cmax(lv), g_loc[lv], tab)
-                if split.any():
-                    sel = np.flatnonzero(split)
-                    push(lv - 1, g_idx[lv][sel], g_lab[lv][sel], g_loc[lv][sel])
-                    g_lab[lv][sel] = -1
-                    g_loc[lv][sel] = k
-                    for b in bs:
-                        b[sel] = 0
-            g_b[lv] = bs
-        best_cost = np.full(k, np.inf)
-        best_j = np.zeros(k, np.int64)
-        best_nl = np.zeros(k, np.int64)
-        b_best = [b[0] for b in g_b]
-        for ci in range(len(tabs)):
-            nb = np.zeros((k + 1) * bins, np.int64)
-            blo = np.full((3, (k + 1) * bins), np.inf, np.float32)
-            bhi = np.full((3, (k + 1) * bins), -np.inf, np.float32)
-            for lv in range(nlev):
-                key = g_loc[lv] * bins + g_b[lv][ci]
-                w = cnt_of(lv)
-                nb += np.bincount(key, w, minlength=(k + 1) * bins).astype(np.int64)
-                for r in range(3):
-                    np.minimum.at(blo[r], key, g_rows[lv][r])
-                    np.maximum.at(bhi[r], key, g_rows[lv][3 + r])
-            nb = nb.reshape(k + 1, bins)[:k]
+            # per-node tables with a last row for the triangles of nodes not binned at this level
+            ca = np.take(xc, np.append(axis * n, 0)[loc] + rows)
+            ca -= np.append(clo[axis, np.arange(k)], np.float32(0))[loc]
+            ca *= np.append(scale, np.float32(0))[loc]
+            b = ca.astype(np.int64)
+            np.clip(b, 0, bins - 1, out=b)
+            key = loc * bins
+            key += b
+            nb = np.bincount(key, minlength=(k + 1) * bins).reshape(k + 1, bins)[:k]
+            blo = _segment_reduce(np.minimum, x[:3], key, (k + 1) * bins)
+            bhi = _segment_reduce(np.maximum, x[3:6], key, (k + 1) * bins)
             blo = blo.reshape(3, k + 1, bins)[:, :k].transpose(1, 2, 0)  # (k, bins, 3)
             bhi = bhi.reshape(3, k + 1, bins)[:, :k].transpose(1, 2, 0)
-            cj, j, nl = _sweep(nb, blo, bhi, cnt)
-            better = cj < best_cost
-            best_cost = np.where(better, cj, best_cost)
-            best_j = np.where(better, j, best_j)
-            best_nl = np.where(better, nl, best_nl)
-            if ci and better.any():
-                for lv in range(nlev):
-                    b_best[lv] = np.where(np.append(better, False)[g_loc[lv]], g_b[lv][ci], b_best[lv])
-        ok = np.isfinite(best_cost)
-        # Nodes whose centroids all coincide (no bin split) take the LBVH's split for equal codes:
-        # the middle of their Morton range, so their units are taken down to single triangles.
-        nl = np.where(ok, best_nl, cnt // 2)
+            cost, j, nl, boxes = _sweep(nb, blo, bhi, cnt)
+            ccb = _child_bounds(clo, chi, axis, scale, j, boxes)
+            if ci == 0:
+                best = [cost, j, nl, boxes, ccb, key]
+            else:
+                better = cost < best[0]
+                best = [np.where(better.reshape((-1,) + (1,) * (np.ndim(a) - 1)), a, o)
+                        for a, o in zip([cost, j, nl, boxes, ccb], best[:5])]
+                best.append(np.where(np.append(better, False)[loc], key, key_best))
+            key_best = best[5]
+        cost, j, nl, boxes, ccb, key = best
+        ok = np.isfinite(cost)
         lid = ntemp + 2 * np.arange(k)
+        # child of each (node, bin): left for bins 0..j; the last row for unbinned triangles
+        child = lid[:, None] + ((np.arange(bins) > j[:, None]) & ok[:, None])
+        new = np.concatenate([child.ravel(), np.zeros(bins, np.int64)])[key]
+        if not ok.all():
+            # No bin split separates the centroids: the LBVH's split of the node's Morton range
+            # (the first code with the highest differing bit set; the middle where all are equal).
+            sel = np.flatnonzero(~np.append(ok, True)[loc])  # in Morton order
+            g = loc[sel]
+            o = np.argsort(g, kind="stable")
+            sel, g = sel[o], g[o]
+            first = np.searchsorted(g, g)  # index of each node's first triangle
+            last = np.searchsorted(g, g, side="right") - 1
+            cs = codes_m[pos[sel]]
+            xb = cs[first] ^ cs[last]
+            same = xb == 0
+            bit = _highest_bit(np.where(same, np.uint64(1), xb))
+            target = (cs[last] >> bit) << bit
+            r = np.where(same, np.arange(len(sel)) - first >= cnt[g] // 2, cs >= target)
+            new[sel] += r
+            nl = np.where(ok, nl, np.bincount(g, ~r, minlength=k).astype(np.int64))
+            # exact boxes and centroid bounds of their children
+            side = 2 * g + r
+            bad = np.flatnonzero(~ok)
+            lo6 = _segment_reduce(np.minimum, np.concatenate([x[:3][:, sel], x[6:][:, sel]]), side, 2 * k)
+            hi6 = _segment_reduce(np.maximum, np.concatenate([x[3:6][:, sel], x[6:][:, sel]]), side, 2 * k)
+            boxes[bad] = np.concatenate([lo6[:3], hi6[:3]]).T.reshape(k, 2, 6)[bad]
+            ccb[bad] = np.concatenate([lo6[3:], hi6[3:]]).T.reshape(k, 2, 6)[bad]
+        lab = new if n == n_big else np.where(loc < k, new, lab)
         tleft[big] = lid
         tcount[lid], tcount[lid + 1] = nl, cnt - nl
         split_levels.append((big, lid))
         ntemp += 2 * k
-        ok_t = np.append(ok, True)
-        if not ok.all():
-            for lv in reversed(range(1, nlev)):
-                sel = np.flatnonzero(~ok_t[g_loc[lv]])
-                if len(sel):
-                    n0 = len(g_loc[lv - 1])
-                    push(lv - 1, g_idx[lv][sel], g_lab[lv][sel], g_loc[lv][sel])
-                    b_best[lv - 1] = np.concatenate([b_best[lv - 1], np.zeros(len(g_loc[lv - 1]) - n0, np.int64)])
-                    g_lab[lv][sel] = -1
-                    g_loc[lv][sel] = k
-        j_t = np.append(np.where(ok, best_j, bins), bins)
-        child_t = np.append(lid, 0)
-        for lv in range(nlev):
-            loc = g_loc[lv]
-            right = b_best[lv] > j_t[loc]
-            if lv == 0 and not ok.all():
-                sel = np.flatnonzero(~ok_t[loc])
-                o = np.lexsort((g_idx[0][sel], loc[sel]))  # by node, then Morton position
-                sel = sel[o]
-                g = loc[sel]
-                first = np.searchsorted(g, g)  # index of each node's first triangle
-                right[sel] = (np.arange(len(sel)) - first) >= nl[g]
-            g_lab[lv] = np.where(loc < k, child_t[loc] + right, g_lab[lv])
         nxt = np.concatenate([lid, lid + 1])
-        big = nxt[tcount[nxt] > big_min]
-    label = np.empty(nf, np.int64)  # final phase-1 node of each triangle (Morton position)
-    for lv in range(nlev):
-        live = g_lab[lv] >= 0
-        idx = np.concatenate([g_idx[lv][live]] + [d[0] for d in done[lv]])
-        lab = np.concatenate([g_lab[lv][live]] + [d[1] for d in done[lv]])
-        run = FAN ** lv
-        p = (idx[:, None] * run + np.arange(run)).ravel()
-        inside = p < nf
-        label[p[inside]] = np.repeat(lab, run)[inside]
+        keep_n = tcount[nxt] > big_min
+        big = nxt[keep_n]
+        cb = np.concatenate([ccb[:, 0], ccb[:, 1]])[keep_n]
+    label[pos] = lab
 
     # starts: a left child starts where its parent does, the right child after the left
     for par, lid in split_levels:

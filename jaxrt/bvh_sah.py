@@ -36,6 +36,8 @@ BINS = 16  # 32 measured no better
 SAH_MIN = 16  # nodes with more triangles are binned; a module setting so benchmarks can vary it
 ALL_AXES = False  # bin all three axes: lower SAH cost, but no fewer node visits (measured)
 EXACT_BOUNDS = False  # True: exact centroid bounds per node (6 more scatter passes a level)
+RUN = 8  # near the root, runs of RUN triangles (Morton order) are binned as one element ...
+RUN_NODES = 1024  # ... in nodes with more triangles than this
 _COMPACT = 0.2  # drop finished triangles from the working arrays once they are this fraction
 
 
@@ -84,6 +86,16 @@ def _sweep(nb: np.ndarray, blo: np.ndarray, bhi: np.ndarray, cnt: np.ndarray):
     return cost[j, r], j, nl[j, r], boxes
 
 
+def _reduce_runs(rows: np.ndarray, run: int, ufunc) -> np.ndarray:
+    """ufunc.reduce of rows (r, n) over runs of `run` consecutive columns (the last run may be
+    shorter): (r, ceil(n / run))."""
+    q = rows.shape[1] // run
+    out = ufunc.reduce(rows[:, :q * run].reshape(len(rows), q, run), axis=2)
+    if rows.shape[1] > q * run:
+        out = np.concatenate([out, ufunc.reduce(rows[:, q * run:], axis=1, keepdims=True)], axis=1)
+    return out
+
+
 def _stable_order(key: np.ndarray) -> np.ndarray:
     """Stable argsort of non-negative integer keys below 2**32 by two 16-bit radix passes (numpy's
     stable sort is a radix sort for 16-bit types; for wider ones it is a much slower timsort)."""
@@ -111,53 +123,52 @@ def _child_bounds(clo, chi, axis, scale, j, boxes):
     return cb
 
 
-def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None, sah_min: int | None = None):
-    """Node topology by binned SAH (nodes above sah_min triangles) and Morton splits (below).
+class _Nodes:
+    """Nodes in creation order ("temporary" ids; renumbered breadth-first at the end): first
+    child (children are left, left + 1; -1 for none), first leaf-order position, triangles."""
 
-    tmin/tmax (F,3) float32 triangle boxes, cent (F,3) float32 their centres as tmin + tmax,
-    codes (F,) uint64 Morton codes, order (F,) the Morton sort. Returns (order, left, start,
-    count, levels) in `bvh_build.finish`'s form; `order` is a new array (leaf order -> face index).
-    """
-    bins = BINS if bins is None else bins
-    sah_min = SAH_MIN if sah_min is None else sah_min
-    nf = len(order)
-    big_min = max(sah_min, leaf_size)  # nodes with more triangles are binned
-    cap = 2 * nf
-    # Nodes in creation order ("temporary" ids); renumbered breadth-first at the end.
-    tleft = np.full(cap, -1, np.int64)
-    tstart = np.zeros(cap, np.int64)
-    tcount = np.zeros(cap, np.int64)
-    tcount[0] = nf
-    ntemp = 1
-    split_levels = []  # (parents, their left children) per SAH level, for the starts
+    def __init__(self, nf: int):
+        cap = 2 * nf + 1
+        self.left = np.full(cap, -1, np.int64)
+        self.start = np.zeros(cap, np.int64)
+        self.count = np.zeros(cap, np.int64)
+        self.count[0] = nf
+        self.n = 1
+        self.splits = []  # (parents, their left children) of every binned level
 
-    # --- phase 1: SAH levels on triangles in Morton order, labelled with their node -------------
-    label = np.zeros(nf, np.int64)  # final phase-1 node of each triangle (Morton position)
-    pos = np.arange(nf)  # Morton positions of the working triangles
-    # rows: lo xyz, hi xyz, centroid xyz of the working triangles, in Morton order
-    x = np.empty((9, nf), np.float32)
-    for r, a in enumerate((tmin, tmax, cent)):
-        x[3 * r:3 * r + 3] = np.take(a, order, axis=0).T
-    lab = np.zeros(nf, np.int64)  # node of each working triangle
-    codes_m = codes[order]
-    big = np.array([0]) if nf > big_min else np.zeros(0, np.int64)
-    cb = np.concatenate([x[6:].min(1), x[6:].max(1)])[None]  # centroid bounds of the big nodes
-    ar = np.arange(nf)
+    def split(self, ids: np.ndarray, nl: np.ndarray) -> np.ndarray:
+        """Give nodes `ids` two children with nl and count - nl triangles; returns the left ids."""
+        lid = self.n + 2 * np.arange(len(ids))
+        self.left[ids] = lid
+        self.count[lid], self.count[lid + 1] = nl, self.count[ids] - nl
+        self.n += 2 * len(ids)
+        return lid
+
+
+def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos):
+    """Binned-SAH splits, level by level, of the nodes `big` and their descendants with more
+    than `stop` triangles. Elements (triangles, or runs of them) in Morton order: x (9, n)
+    float32 rows lo xyz, hi xyz, centroid xyz (as lo + hi); w (n,) triangles per element (None:
+    1); codes (n,) uint64 Morton codes (ascending); lab (n,) int64 node of each element; cb (k, 6)
+    centroid bounds (lo xyz, hi xyz) of the nodes `big`. Writes the final node of every element
+    into label[pos] (pos (n,): the elements' indices there)."""
+    ar = np.arange(len(lab))
     while len(big):
         k = len(big)
-        cnt = tcount[big]
+        cnt = nodes.count[big]
         n = len(lab)
-        loc_of = np.full(ntemp, k, np.int64)  # node id -> row of this level's tables (k: not binned)
+        loc_of = np.full(nodes.n, k, np.int64)  # node id -> row of this level's tables (k: none)
         loc_of[big] = np.arange(k)
         loc = loc_of[lab]
-        n_big = int(cnt.sum())
-        if n - n_big > _COMPACT * n:  # drop the triangles of finished nodes
-            gone = loc == k
+        gone = loc == k
+        n_gone = int(gone.sum())
+        if n_gone > _COMPACT * n:  # drop the elements of finished nodes
             label[pos[gone]] = lab[gone]
             keep = np.flatnonzero(~gone)
-            x, pos, lab, loc = np.take(x, keep, axis=1), pos[keep], lab[keep], loc[keep]
-            n = len(lab)
-        if EXACT_BOUNDS and split_levels:
+            x, pos, lab, loc, codes = np.take(x, keep, axis=1), pos[keep], lab[keep], loc[keep], codes[keep]
+            w = None if w is None else w[keep]
+            n, n_gone = len(lab), 0
+        if EXACT_BOUNDS:
             clo = _segment_reduce(np.minimum, x[6:], loc, k + 1)[:, :k]
             chi = _segment_reduce(np.maximum, x[6:], loc, k + 1)[:, :k]
         else:
@@ -169,7 +180,7 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
             axis = np.argmax(ext, axis=0) if cand is None else np.full(k, cand)
             ea = ext[axis, np.arange(k)]
             scale = np.where(ea > 0, bins * (1 - 1e-6) / np.where(ea > 0, ea, 1), 0.0).astype(np.float32)
-            # per-node tables with a last row for the triangles of nodes not binned at this level
+            # per-node tables with a last row for the elements of nodes not binned at this level
             ca = np.take(xc, np.append(axis * n, 0)[loc] + rows)
             ca -= np.append(clo[axis, np.arange(k)], np.float32(0))[loc]
             ca *= np.append(scale, np.float32(0))[loc]
@@ -177,7 +188,7 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
             np.clip(b, 0, bins - 1, out=b)
             key = b * (k + 1)  # bin-major: (bin, node)
             key += loc
-            nb = np.bincount(key, minlength=bins * (k + 1)).reshape(bins, k + 1)[:, :k]
+            nb = np.bincount(key, w, minlength=bins * (k + 1)).reshape(bins, k + 1)[:, :k].astype(np.int64)
             blo = _segment_reduce(np.minimum, x[:3], key, bins * (k + 1)).reshape(3, bins, k + 1)[:, :, :k]
             bhi = _segment_reduce(np.maximum, x[3:6], key, bins * (k + 1)).reshape(3, bins, k + 1)[:, :, :k]
             cost, j, nl, boxes = _sweep(nb, blo, bhi, cnt)
@@ -186,14 +197,13 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
                 best = [cost, j, nl, boxes, ccb, key]
             else:
                 better = cost < best[0]
+                key = np.where(np.append(better, False)[loc], key, best[5])
                 best = [np.where(better.reshape((-1,) + (1,) * (np.ndim(a) - 1)), a, o)
-                        for a, o in zip([cost, j, nl, boxes, ccb], best[:5])]
-                best.append(np.where(np.append(better, False)[loc], key, key_best))
-            key_best = best[5]
+                        for a, o in zip([cost, j, nl, boxes, ccb], best[:5])] + [key]
         cost, j, nl, boxes, ccb, key = best
         ok = np.isfinite(cost)
-        lid = ntemp + 2 * np.arange(k)
-        # child of each (bin, node): left for bins 0..j; a last column for unbinned triangles
+        lid = nodes.n + 2 * np.arange(k)
+        # child of each (bin, node): left for bins 0..j; a last column for unbinned elements
         child = np.zeros((bins, k + 1), np.int64)
         child[:, :k] = lid + ((np.arange(bins)[:, None] > j) & ok)
         new = child.reshape(-1)[key]
@@ -204,16 +214,19 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
             g = loc[sel]
             o = np.argsort(g, kind="stable")
             sel, g = sel[o], g[o]
-            first = np.searchsorted(g, g)  # index of each node's first triangle
+            first = np.searchsorted(g, g)  # index of each node's first element
             last = np.searchsorted(g, g, side="right") - 1
-            cs = codes_m[pos[sel]]
+            cs = codes[sel]
             xb = cs[first] ^ cs[last]
             same = xb == 0
             bit = _highest_bit(np.where(same, np.uint64(1), xb))
             target = (cs[last] >> bit) << bit
-            r = np.where(same, np.arange(len(sel)) - first >= cnt[g] // 2, cs >= target)
+            ws = np.ones(len(sel), np.int64) if w is None else w[sel]
+            before = np.cumsum(ws) - ws  # triangles before each element ...
+            before -= before[first]  # ... in its node
+            r = np.where(same, before >= cnt[g] // 2, cs >= target)
             new[sel] += r
-            nl = np.where(ok, nl, np.bincount(g, ~r, minlength=k).astype(np.int64))
+            nl = np.where(ok, nl, np.bincount(g, ws * ~r, minlength=k).astype(np.int64))
             # exact boxes and centroid bounds of their children
             side = 2 * g + r
             bad = np.flatnonzero(~ok)
@@ -221,16 +234,67 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
             hi6 = _segment_reduce(np.maximum, np.concatenate([x[3:6][:, sel], x[6:][:, sel]]), side, 2 * k)
             boxes[bad] = np.concatenate([lo6[:3], hi6[:3]]).T.reshape(k, 2, 6)[bad]
             ccb[bad] = np.concatenate([lo6[3:], hi6[3:]]).T.reshape(k, 2, 6)[bad]
-        lab = new if n == n_big else np.where(loc < k, new, lab)
-        tleft[big] = lid
-        tcount[lid], tcount[lid + 1] = nl, cnt - nl
-        split_levels.append((big, lid))
-        ntemp += 2 * k
+        lab = np.where(loc < k, new, lab) if n_gone else new
+        nodes.splits.append((big, nodes.split(big, nl)))
         nxt = np.concatenate([lid, lid + 1])
-        keep_n = tcount[nxt] > big_min
+        keep_n = nodes.count[nxt] > stop
         big = nxt[keep_n]
         cb = np.concatenate([ccb[:, 0], ccb[:, 1]])[keep_n]
     label[pos] = lab
+
+
+def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None, sah_min: int | None = None):
+    """Node topology by binned SAH (nodes above sah_min triangles) and Morton splits (below).
+
+    tmin/tmax (F,3) float32 triangle boxes, cent (F,3) float32 their centres as tmin + tmax,
+    codes (F,) uint64 Morton codes, order (F,) the Morton sort. Returns (order, left, start,
+    count, levels) in `bvh_build.finish`'s form; `order` is a new array (leaf order -> face index).
+    """
+    bins = BINS if bins is None else bins
+    sah_min = SAH_MIN if sah_min is None else sah_min
+    nf = len(order)
+    big_min = max(sah_min, leaf_size)  # nodes with more triangles are binned
+    nodes = _Nodes(nf)
+    # --- phase 1: SAH levels on triangles in Morton order, labelled with their node -------------
+    # rows: lo xyz, hi xyz, centroid xyz of the triangles in Morton order
+    x = np.empty((9, nf), np.float32)
+    for r, a in enumerate((tmin, tmax, cent)):
+        x[3 * r:3 * r + 3] = np.take(a, order, axis=0).T
+    codes_m = codes[order]
+    label = np.zeros(nf, np.int64)  # final phase-1 node of each triangle (Morton position)
+    if nf > big_min:
+        if nf > RUN_NODES:
+            # Near the root, bin clusters instead of triangles: the triangles of one cell of a
+            # coarser Morton grid (consecutive in Morton order; ~RUN per cluster) as one element
+            # with their box, mean centroid and count.
+            grid = codes_m.copy()
+            for _ in range(17):
+                if np.count_nonzero(grid[1:] != grid[:-1]) < nf / RUN:
+                    break
+                grid >>= np.uint64(3)
+            first = np.flatnonzero(np.concatenate([[True], grid[1:] != grid[:-1]]))
+            cl = np.repeat(np.arange(len(first)), np.diff(np.append(first, nf)))
+            nc = len(first)
+            wr = np.bincount(cl, minlength=nc)
+            xr = np.concatenate([_segment_reduce(np.minimum, x[:3], cl, nc), _segment_reduce(np.maximum, x[3:6], cl, nc),
+                                 np.stack([np.bincount(cl, x[6 + a], minlength=nc) for a in range(3)]) / wr])
+            xr = xr.astype(np.float32)
+            lab_r = np.zeros(nc, np.int64)
+            cb = np.concatenate([xr[6:].min(1), xr[6:].max(1)])[None]
+            _sah_levels(nodes, xr, wr, codes_m[first], lab_r.copy(), np.array([0]), cb, RUN_NODES, bins,
+                        lab_r, np.arange(nc))
+            label = lab_r[cl]
+        big = np.flatnonzero((nodes.left[:nodes.n] < 0) & (nodes.count[:nodes.n] > big_min))
+        if len(big):
+            # the centroid bounds of the nodes to bin, exact
+            loc_of = np.full(nodes.n, len(big), np.int64)
+            loc_of[big] = np.arange(len(big))
+            loc = loc_of[label]
+            cb = np.concatenate([_segment_reduce(np.minimum, x[6:], loc, len(big) + 1),
+                                 _segment_reduce(np.maximum, x[6:], loc, len(big) + 1)])[:, :-1].T
+            _sah_levels(nodes, x, None, codes_m, label.copy(), big, cb, big_min, bins, label, np.arange(nf))
+    tleft, tstart, tcount, ntemp = nodes.left, nodes.start, nodes.count, nodes.n
+    split_levels = nodes.splits
 
     # starts: a left child starts where its parent does, the right child after the left
     for par, lid in split_levels:

@@ -145,19 +145,25 @@ class _Nodes:
         return lid
 
 
-def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos):
+def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand=None):
     """Binned-SAH splits, level by level, of the nodes `big` and their descendants with more
     than `stop` triangles. Elements (triangles, or runs of them) in Morton order: x (9, n)
     float32 rows lo xyz, hi xyz, centroid xyz (as lo + hi); w (n,) triangles per element (None:
     1); codes (n,) uint64 Morton codes (ascending); lab (n,) int64 node of each element; cb (k, 6)
     centroid bounds (lo xyz, hi xyz) of the nodes `big`. Writes the final node of every element
-    into label[pos] (pos (n,): the elements' indices there)."""
+    into label[pos] (pos (n,): the elements' indices there).
+
+    expand: for clusters of triangles as elements (then x has 6 more rows: the lowest and highest
+    centroid of the cluster's triangles); a function from cluster positions (pos) to the
+    triangles' (x, codes, pos). A cluster whose centroids straddle its node's split plane is
+    replaced by its triangles, so that every split is the plane's exact partition; the bin
+    counts and boxes that chose the plane count each cluster at its mean centroid."""
     ar = np.arange(len(lab))
     while len(big):
         k = len(big)
         cnt = nodes.count[big]
         n = len(lab)
-        loc_of = np.full(nodes.n, k, np.int64)  # node id -> row of this level's tables (k: none)
+        loc_of = np.full(nodes.n + 1, k, np.int64)  # node id -> row of this level's tables (k: none; -1: none)
         loc_of[big] = np.arange(k)
         loc = loc_of[lab]
         gone = loc == k
@@ -195,6 +201,7 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos):
             ccb = _child_bounds(clo, chi, axis, scale, j, boxes)
             if ci == 0:
                 best = [cost, j, nl, boxes, ccb, key]
+                split_axis, split_scale = axis, scale
             else:
                 better = cost < best[0]
                 key = np.where(np.append(better, False)[loc], key, best[5])
@@ -210,10 +217,10 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos):
         if not ok.all():
             # No bin split separates the centroids: the LBVH's split of the node's Morton range
             # (the first code with the highest differing bit set; the middle where all are equal).
-            sel = np.flatnonzero(~np.append(ok, True)[loc])  # in Morton order
+            sel = np.flatnonzero(~np.append(ok, True)[loc])
+            o = np.lexsort((codes[sel], loc[sel]))  # by node, then Morton code (stable)
+            sel = sel[o]
             g = loc[sel]
-            o = np.argsort(g, kind="stable")
-            sel, g = sel[o], g[o]
             first = np.searchsorted(g, g)  # index of each node's first element
             last = np.searchsorted(g, g, side="right") - 1
             cs = codes[sel]
@@ -234,7 +241,43 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos):
             hi6 = _segment_reduce(np.maximum, np.concatenate([x[3:6][:, sel], x[6:][:, sel]]), side, 2 * k)
             boxes[bad] = np.concatenate([lo6[:3], hi6[:3]]).T.reshape(k, 2, 6)[bad]
             ccb[bad] = np.concatenate([lo6[3:], hi6[3:]]).T.reshape(k, 2, 6)[bad]
-        lab = np.where(loc < k, new, lab) if n_gone else new
+        if expand is not None:
+            # clusters on both sides of the plane: replaced by their triangles
+            ta = np.append(split_axis, 0)[loc]
+            c0 = np.append(clo[split_axis, np.arange(k)], np.float32(0))[loc]
+            sc = np.append(split_scale, np.float32(0))[loc]
+            xa = x[9:].reshape(-1)
+            bmin = ((np.take(xa, ta * n + rows) - c0) * sc).astype(np.int64)
+            bmax = ((np.take(xa, (ta + 3) * n + rows) - c0) * sc).astype(np.int64)
+            jj = np.append(np.where(ok, j, bins), bins)[loc]
+            cut = np.flatnonzero((bmin <= jj) & (bmax > jj))
+            if len(cut):
+                tx, tcodes, tpos = expand(pos[cut])
+                tn = np.repeat(np.arange(len(cut)), w[cut])  # cluster of each triangle
+                tloc = loc[cut][tn]
+                tb = ((np.take(tx[6:9].reshape(-1), split_axis[tloc] * tx.shape[1] + np.arange(tx.shape[1]))
+                       - clo[split_axis[tloc], tloc]) * split_scale[tloc]).astype(np.int64)
+                tnew = lid[tloc] + (tb > j[tloc])
+                new[cut] = -1
+                x = np.concatenate([x, tx], axis=1)
+                w = np.concatenate([w, np.ones(len(tn), w.dtype)])
+                codes, pos = np.concatenate([codes, tcodes]), np.concatenate([pos, tpos])
+                loc, new = np.concatenate([loc, tloc]), np.concatenate([new, tnew])
+                lab = np.concatenate([lab, np.full(len(tn), -1, np.int64)])
+                n = len(lab)
+                rows = ar[:n] if n <= len(ar) else np.arange(n)
+                ar = rows
+            # exact counts and boxes of the children (a cluster counts in the bin of its mean)
+            side = np.where((loc < k) & (new >= 0), new - nodes.n, 2 * k)
+            nl2 = np.bincount(side, w, minlength=2 * k + 1)[:2 * k].astype(np.int64).reshape(k, 2)
+            bl = _segment_reduce(np.minimum, x[:3], side, 2 * k + 1)[:, :2 * k]
+            bh = _segment_reduce(np.maximum, x[3:6], side, 2 * k + 1)[:, :2 * k]
+            bx = np.concatenate([bl, bh]).T.reshape(k, 2, 6)
+            boxes = np.where(ok[:, None, None], bx, boxes)
+            nl = np.where(ok, nl2[:, 0], nl)
+            ccb[..., :3] = np.maximum(ccb[..., :3], 2 * boxes[..., :3])
+            ccb[..., 3:] = np.minimum(ccb[..., 3:], 2 * boxes[..., 3:])
+        lab = np.where(loc < k, new, lab) if n_gone or expand is not None else new
         nodes.splits.append((big, nodes.split(big, nl)))
         nxt = np.concatenate([lid, lid + 1])
         keep_n = nodes.count[nxt] > stop
@@ -263,27 +306,36 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
     codes_m = codes[order]
     label = np.zeros(nf, np.int64)  # final phase-1 node of each triangle (Morton position)
     if nf > big_min:
-        if nf > RUN_NODES:
+        if nf > RUN_NODES and not (ALL_AXES or EXACT_BOUNDS):
             # Near the root, bin clusters instead of triangles: the triangles of one cell of a
             # coarser Morton grid (consecutive in Morton order; ~RUN per cluster) as one element
-            # with their box, mean centroid and count.
+            # with their box, mean centroid, centroid bounds and count.
             grid = codes_m.copy()
             for _ in range(17):
                 if np.count_nonzero(grid[1:] != grid[:-1]) < nf / RUN:
                     break
                 grid >>= np.uint64(3)
             first = np.flatnonzero(np.concatenate([[True], grid[1:] != grid[:-1]]))
-            cl = np.repeat(np.arange(len(first)), np.diff(np.append(first, nf)))
             nc = len(first)
+            cl = np.repeat(np.arange(nc), np.diff(np.append(first, nf)))
             wr = np.bincount(cl, minlength=nc)
             xr = np.concatenate([_segment_reduce(np.minimum, x[:3], cl, nc), _segment_reduce(np.maximum, x[3:6], cl, nc),
-                                 np.stack([np.bincount(cl, x[6 + a], minlength=nc) for a in range(3)]) / wr])
-            xr = xr.astype(np.float32)
-            lab_r = np.zeros(nc, np.int64)
-            cb = np.concatenate([xr[6:].min(1), xr[6:].max(1)])[None]
-            _sah_levels(nodes, xr, wr, codes_m[first], lab_r.copy(), np.array([0]), cb, RUN_NODES, bins,
-                        lab_r, np.arange(nc))
-            label = lab_r[cl]
+                                 (np.stack([np.bincount(cl, x[6 + a], minlength=nc) for a in range(3)]) / wr).astype(np.float32),
+                                 _segment_reduce(np.minimum, x[6:], cl, nc), _segment_reduce(np.maximum, x[6:], cl, nc)])
+
+            def expand(p):
+                """x rows (with centroid bounds), codes and positions (nc + Morton position) of
+                the triangles of clusters p."""
+                m = wr[p]
+                t = np.repeat(first[p] - (np.cumsum(m) - m), m) + np.arange(int(m.sum()))
+                tx = np.take(x, t, axis=1)
+                return np.concatenate([tx, tx[6:], tx[6:]]), codes_m[t], nc + t
+
+            lab_r = np.full(nc + nf, -1, np.int64)
+            cb = np.concatenate([xr[6:9].min(1), xr[6:9].max(1)])[None]
+            _sah_levels(nodes, xr, wr, codes_m[first], np.zeros(nc, np.int64), np.array([0]), cb, RUN_NODES,
+                        bins, lab_r, np.arange(nc), expand)
+            label = np.where(lab_r[nc:] >= 0, lab_r[nc:], lab_r[cl])
         big = np.flatnonzero((nodes.left[:nodes.n] < 0) & (nodes.count[:nodes.n] > big_min))
         if len(big):
             # the centroid bounds of the nodes to bin, exact

@@ -383,19 +383,20 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
 
     # --- breadth-first numbering: level by level, children of a level's nodes in its order ----
     left = np.full(ntemp, -1, np.int64)
-    start = np.zeros(ntemp, np.int64)
-    count = np.zeros(ntemp, np.int64)
+    start = np.empty(ntemp, np.int64)
+    count = np.empty(ntemp, np.int64)
     levels = []
     cur = np.array([0])  # temporary ids of this level, in breadth-first order
     nn = 0
     while len(cur):
-        new = nn + np.arange(len(cur))
-        nn += len(cur)
-        levels.append(new)
-        start[new], count[new] = tstart[cur], tcount[cur]
-        inner = tleft[cur] >= 0
-        left[new[inner]] = nn + 2 * np.arange(int(inner.sum()))
-        tl = tleft[cur[inner]]
+        m = len(cur)
+        levels.append(np.arange(nn, nn + m))
+        start[nn:nn + m], count[nn:nn + m] = tstart[cur], tcount[cur]
+        tl = tleft[cur]
+        inner = tl >= 0
+        tl = tl[inner]
+        left[nn:nn + m][inner] = nn + m + 2 * np.arange(len(tl))
+        nn += m
         cur = np.empty(2 * len(tl), np.int64)
         cur[0::2], cur[1::2] = tl, tl + 1
     return order, left, start, count, levels

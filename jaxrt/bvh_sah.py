@@ -3,27 +3,34 @@
 Top-down, one level at a time like the LBVH of `jaxrt.bvh_build`, but a node with more than
 `SAH_MIN` triangles is split by the surface area heuristic over `BINS` centroid bins along the
 axis of its widest centroid extent (Wald 2007). Nodes with at most `SAH_MIN` triangles (and nodes
-whose centroids all coincide) take the LBVH split: the highest differing Morton bit, or the middle.
+where no bin boundary separates the centroids) take the LBVH split: the highest differing Morton
+bit of their range, or its middle where all codes are equal.
 
-The build runs in two phases so that no level moves triangle data:
-1. SAH levels. The triangles stay in Morton order; each carries the (temporary) id of the node it
-   is in. Per level, every binned node's centroid bounds, bin counts and bin boxes are scatter
-   reductions keyed by node (and bin): `np.minimum.at` / `np.maximum.at` on 1-D float32 rows,
-   numpy's fast path (a 2-D `.at` or a `reduceat` along the triangle axis is ~10x slower), and
-   `np.bincount`. The sweep over the bins' prefix / suffix boxes is a cumulative min/max along
-   the bin axis; a split only relabels triangles (left or right child), so nothing is partitioned
-   per level. Triangles of nodes that stop being binned are dropped from the working arrays.
-2. One stable counting sort (two 16-bit radix passes) by the start of each triangle's final SAH
-   node puts every node's triangles in one contiguous range, still in Morton order inside; then
-   the Morton splits of the small nodes run on those ranges (a vectorised binary search per level,
+The build runs in phases so that no level moves triangle data (`_sah_levels`):
+1. SAH levels. The triangles stay in Morton order; each carries the (temporary) id of its node.
+   Per level, every binned node's bin counts and bin boxes are scatter reductions keyed by
+   (bin, node): `np.bincount` and `np.minimum.at` / `np.maximum.at` on 1-D float32 rows (numpy's
+   fast path; a 2-D `.at` or a `reduceat` is several times slower). A split only relabels
+   triangles (left or right child). Triangles of finished nodes are dropped from the working set.
+   Centroid bounds, which place the bins, are not recomputed per node: a child's are its
+   parent's cut at the split plane and clipped to twice the child's box (exact from the bins),
+   so they are conservative; `EXACT_BOUNDS` recomputes them (6 more scatter passes per level)
+   and then gives the tree of the first version of this module, node for node.
+   Near the root (nodes above `RUN_NODES` triangles) the elements are clusters: the triangles of
+   one cell of a Morton grid coarse enough for ~`RUN` triangles per cell, binned at their mean
+   centroid with their box and count. A cluster whose centroids straddle its node's chosen split
+   plane is replaced by its triangles, so every split is the plane's exact partition; only the
+   choice of the plane sees clusters.
+2. One stable counting sort (two 16-bit radix passes) by the start of each triangle's last SAH
+   node puts every node's triangles in one contiguous range, in Morton order inside; then the
+   Morton splits of the small nodes run on those ranges (a vectorised binary search per level,
    O(nodes)), and the nodes are renumbered breadth-first.
-The result is the same tree, node numbering and leaf order as splitting level by level with a
-stable partition of each node (the first version of this module; checked in tests/test_bvh_sah.py
-against a plain recursive build). The output goes through the same `bvh_build.finish` as the
-LBVH, so the layout, the six threaded link orders and both traversals are unchanged.
+The output goes through the same `bvh_build.finish` as the LBVH, so the layout, the six threaded
+link orders and both traversals are unchanged. Deterministic: no randomness, no threads.
 
 Measured (BENCHMARKS.md, "Tree quality"): SAH splits pay at every level, not only the top ones
-(full dragon SAH cost: LBVH 60.9, threshold 1024 → 60.0, 16 → 53.8, 0 → 52.3).
+(full dragon SAH cost: LBVH 60.9, threshold 1024 → 60.0, 16 → 53.8, 0 → 52.3); the conservative
+bounds and the clusters cost +0.1 % (53.79 → 53.82) and make the build ~4x faster.
 """
 
 from __future__ import annotations
@@ -35,10 +42,10 @@ from jaxrt.bvh_build import _highest_bit
 BINS = 16  # 32 measured no better
 SAH_MIN = 16  # nodes with more triangles are binned; a module setting so benchmarks can vary it
 ALL_AXES = False  # bin all three axes: lower SAH cost, but no fewer node visits (measured)
-EXACT_BOUNDS = False  # True: exact centroid bounds per node (6 more scatter passes a level)
-RUN = 8  # near the root, runs of RUN triangles (Morton order) are binned as one element ...
-RUN_NODES = 1024  # ... in nodes with more triangles than this
-_COMPACT = 0.2  # drop finished triangles from the working arrays once they are this fraction
+EXACT_BOUNDS = False  # exact centroid bounds per node (slower; no clusters): the first version's tree
+RUN = 8  # near the root, clusters of ~RUN triangles (one Morton grid cell) are binned as one ...
+RUN_NODES = 4096  # ... in nodes with more triangles than this (1024: SAH cost +0.1 %, no faster)
+_COMPACT = 0.2  # drop finished elements from the working arrays once they are this fraction
 
 
 def _segment_reduce(ufunc, rows: np.ndarray, key: np.ndarray, size: int) -> np.ndarray:
@@ -214,6 +221,33 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand
         child = np.zeros((bins, k + 1), np.int64)
         child[:, :k] = lid + ((np.arange(bins)[:, None] > j) & ok)
         new = child.reshape(-1)[key]
+        if expand is not None:
+            # clusters on both sides of the plane: replaced by their triangles (at the end)
+            ta = np.append(split_axis, 0)[loc]
+            c0 = np.append(clo[split_axis, np.arange(k)], np.float32(0))[loc]
+            sc = np.append(split_scale, np.float32(0))[loc]
+            xa = x[9:].reshape(-1)
+            bmin = ((np.take(xa, ta * n + rows) - c0) * sc).astype(np.int64)
+            bmax = ((np.take(xa, (ta + 3) * n + rows) - c0) * sc).astype(np.int64)
+            jj = np.append(np.where(ok, j, bins), bins)[loc]
+            # (and every cluster of a node without a bin split: it takes a Morton split below)
+            cut = np.flatnonzero(((bmin <= jj) & (bmax > jj)) | (~np.append(ok, True)[loc] & (w > 1)))
+            if len(cut):
+                tx, tcodes, tpos = expand(pos[cut])
+                tn = np.repeat(np.arange(len(cut)), w[cut])  # cluster of each triangle
+                tloc = loc[cut][tn]
+                tb = ((np.take(tx[6:9].reshape(-1), split_axis[tloc] * tx.shape[1] + np.arange(tx.shape[1]))
+                       - clo[split_axis[tloc], tloc]) * split_scale[tloc]).astype(np.int64)
+                tnew = lid[tloc] + ((tb > j[tloc]) & ok[tloc])
+                loc[cut], lab[cut] = k, -1  # the clusters themselves leave the working set
+                x = np.concatenate([x, tx], axis=1)
+                w = np.concatenate([w, np.ones(len(tn), w.dtype)])
+                codes, pos = np.concatenate([codes, tcodes]), np.concatenate([pos, tpos])
+                loc, new = np.concatenate([loc, tloc]), np.concatenate([new, tnew])
+                lab = np.concatenate([lab, np.full(len(tn), -1, np.int64)])
+                n = len(lab)
+                rows = ar[:n] if n <= len(ar) else np.arange(n)
+                ar = rows
         if not ok.all():
             # No bin split separates the centroids: the LBVH's split of the node's Morton range
             # (the first code with the highest differing bit set; the middle where all are equal).
@@ -237,36 +271,11 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand
             # exact boxes and centroid bounds of their children
             side = 2 * g + r
             bad = np.flatnonzero(~ok)
-            lo6 = _segment_reduce(np.minimum, np.concatenate([x[:3][:, sel], x[6:][:, sel]]), side, 2 * k)
-            hi6 = _segment_reduce(np.maximum, np.concatenate([x[3:6][:, sel], x[6:][:, sel]]), side, 2 * k)
+            lo6 = _segment_reduce(np.minimum, np.concatenate([x[:3][:, sel], x[6:9][:, sel]]), side, 2 * k)
+            hi6 = _segment_reduce(np.maximum, np.concatenate([x[3:6][:, sel], x[6:9][:, sel]]), side, 2 * k)
             boxes[bad] = np.concatenate([lo6[:3], hi6[:3]]).T.reshape(k, 2, 6)[bad]
             ccb[bad] = np.concatenate([lo6[3:], hi6[3:]]).T.reshape(k, 2, 6)[bad]
         if expand is not None:
-            # clusters on both sides of the plane: replaced by their triangles
-            ta = np.append(split_axis, 0)[loc]
-            c0 = np.append(clo[split_axis, np.arange(k)], np.float32(0))[loc]
-            sc = np.append(split_scale, np.float32(0))[loc]
-            xa = x[9:].reshape(-1)
-            bmin = ((np.take(xa, ta * n + rows) - c0) * sc).astype(np.int64)
-            bmax = ((np.take(xa, (ta + 3) * n + rows) - c0) * sc).astype(np.int64)
-            jj = np.append(np.where(ok, j, bins), bins)[loc]
-            cut = np.flatnonzero((bmin <= jj) & (bmax > jj))
-            if len(cut):
-                tx, tcodes, tpos = expand(pos[cut])
-                tn = np.repeat(np.arange(len(cut)), w[cut])  # cluster of each triangle
-                tloc = loc[cut][tn]
-                tb = ((np.take(tx[6:9].reshape(-1), split_axis[tloc] * tx.shape[1] + np.arange(tx.shape[1]))
-                       - clo[split_axis[tloc], tloc]) * split_scale[tloc]).astype(np.int64)
-                tnew = lid[tloc] + (tb > j[tloc])
-                new[cut] = -1
-                x = np.concatenate([x, tx], axis=1)
-                w = np.concatenate([w, np.ones(len(tn), w.dtype)])
-                codes, pos = np.concatenate([codes, tcodes]), np.concatenate([pos, tpos])
-                loc, new = np.concatenate([loc, tloc]), np.concatenate([new, tnew])
-                lab = np.concatenate([lab, np.full(len(tn), -1, np.int64)])
-                n = len(lab)
-                rows = ar[:n] if n <= len(ar) else np.arange(n)
-                ar = rows
             # exact counts and boxes of the children (a cluster counts in the bin of its mean)
             side = np.where((loc < k) & (new >= 0), new - nodes.n, 2 * k)
             nl2 = np.bincount(side, w, minlength=2 * k + 1)[:2 * k].astype(np.int64).reshape(k, 2)

@@ -162,8 +162,9 @@ def finish(tri, tmin, tmax, order, left, start, count, levels, layout: str = "bf
     size = np.ones(nn, np.int64)  # nodes in subtree
     for ids in reversed(levels):
         size[ids] = 1 + size[left[ids]] + size[left[ids] + 1]
-    ctr = lo.astype(np.float64) + hi  # twice the box centre
+    ctr = (lo.astype(np.float64) + hi).T.copy()  # (3, nn) twice the box centre
     ar = np.arange(nn)
+    near = []  # per level: is the first child's centre below the second's (class 2*axis)
     at = np.empty(nn + 1, np.int64)  # node at each pre-order index (nn: -1, the end)
     links = np.empty((NUM_RAY_CLASSES, nn, 2), np.int32)
     order0 = None
@@ -174,11 +175,13 @@ def finish(tri, tmin, tmax, order, left, start, count, levels, layout: str = "bf
         axis, negative = c // 2, bool(c % 2)
         pre = np.zeros(nn, np.int64)  # pre-order index
         first = np.full(nn, -1, np.int64)
-        for ids in levels:
+        if not negative:
+            near = [ctr[axis][left[ids]] <= ctr[axis][left[ids] + 1] for ids in levels]
+        for ids, below in zip(levels, near):
             if not len(ids):
                 continue
             a = left[ids]
-            a_first = (ctr[a, axis] <= ctr[a + 1, axis]) ^ negative
+            a_first = below ^ negative  # the negative class visits the children the other way
             n1 = np.where(a_first, a, a + 1)
             n2 = (2 * a + 1) - n1
             first[ids] = n1

@@ -11,8 +11,10 @@ Prints, for one model (default the full dragon):
   of the group's maximum (a GPU warp's cost).
 Trees: "lbvh", "sah" (this builder's defaults) and "sah-exact" (`bvh_sah.EXACT_BOUNDS`, which
 also turns the clusters off: the tree of the first, slower SAH builder).
+--baseline DIR also times the builders of another checkout (DIR/jaxrt/bvh_build.py and bvh_sah.py,
+e.g. an older main) in the same rounds, as "base lbvh" / "base sah".
 
-    python benchmarks/sah_build.py [--model dragon] [--rounds 5] [--res 128] [--no-visits]
+    python benchmarks/sah_build.py [--model dragon] [--rounds 5] [--res 128] [--no-visits] [--baseline DIR]
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import argparse
 import os
 import sys
 import time
+import types
 
 import numpy as np
 
@@ -33,23 +36,46 @@ from rays import camera_rays  # noqa: E402
 from jaxrt import bvh, bvh_build, bvh_sah, data, mesh  # noqa: E402
 
 
-def build_times(v, f, rounds):
-    names = ["lbvh", "sah", "sah/dfs"]
+def baseline_build(root):
+    """build_arrays of the checkout at `root`, with its own bvh_sah (a package 'baseline_jaxrt')."""
+    pkg = types.ModuleType("baseline_jaxrt")
+    pkg.__path__ = []
+    sys.modules["baseline_jaxrt"] = pkg
+    mods = {}
+    for name in ("bvh_build", "bvh_sah"):
+        src = open(os.path.join(root, "jaxrt", f"{name}.py")).read()
+        src = src.replace("from jaxrt.bvh_build import", "from baseline_jaxrt.bvh_build import")
+        src = src.replace("from jaxrt import bvh_sah", "from baseline_jaxrt import bvh_sah")
+        m = types.ModuleType(f"baseline_jaxrt.{name}")
+        sys.modules[m.__name__] = m
+        setattr(pkg, name, m)
+        mods[name] = m
+        exec(compile(src, f"{root}/jaxrt/{name}.py", "exec"), m.__dict__)
+    return mods["bvh_build"].build_arrays
+
+
+def build_times(v, f, rounds, baseline=None):
+    builds = {b: bvh_build.build_arrays for b in ["lbvh", "sah", "sah/dfs"]}
+    if baseline:
+        base = baseline_build(baseline)
+        builds = {"base lbvh": base, **builds, "base sah": base}
+    names = list(builds)
     wall = {b: [] for b in names}
     cpu = {b: [] for b in names}
     load0 = os.getloadavg()
     for _ in range(rounds):
         for b in names:
-            builder, _, layout = b.partition("/")
+            builder, _, layout = b.removeprefix("base ").partition("/")
             t, c = time.perf_counter(), time.process_time()
-            bvh_build.build_arrays(v, f, leaf_size=1, builder=builder, layout=layout or "bfs")
+            builds[b](v, f, leaf_size=1, builder=builder, layout=layout or "bfs")
             wall[b].append(time.perf_counter() - t)
             cpu[b].append(time.process_time() - c)
     print(f"# load average before {load0[0]:.2f} / {load0[1]:.2f}, after {os.getloadavg()[0]:.2f} / {os.getloadavg()[1]:.2f}")
-    print("| build | wall s per round | median | min | CPU s median | median of per-round ratio to lbvh |")
+    ref = names[0]
+    print(f"| build | wall s per round | median | min | CPU s median | median of per-round ratio to {ref} |")
     print("|---|---|---|---|---|---|")
     for b in names:
-        r = np.median(np.array(wall[b]) / np.array(wall["lbvh"]))
+        r = np.median(np.array(wall[b]) / np.array(wall[ref]))
         print(f"| {b} | {' '.join(f'{t:.2f}' for t in wall[b])} | {np.median(wall[b]):.2f} | {min(wall[b]):.2f} "
               f"| {np.median(cpu[b]):.2f} | {r:.2f} |")
 
@@ -83,11 +109,12 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--res", type=int, default=128)
     ap.add_argument("--no-visits", action="store_true")
+    ap.add_argument("--baseline", default=None, help="another checkout whose builders to time alongside")
     args = ap.parse_args(argv)
     m = mesh.load(data.find(args.model))
     v, f = np.asarray(m.vertices), np.asarray(m.faces)
     print(f"# {args.model}: {len(f)} triangles, cpus {os.cpu_count()}")
-    build_times(v, f, args.rounds)
+    build_times(v, f, args.rounds, args.baseline)
     f_vis = jax.jit(lambda tr, o, d, tmin, tmax, a: bvh.node_visits(tr, o, d, tmin, tmax, any_hit=a), static_argnums=5)
     o, d, light = camera_rays(v, args.res)
     print(f"\n| tree | SAH cost | depth | build s (this call) | primary visits | shadow | shadow from light |")

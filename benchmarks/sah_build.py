@@ -29,11 +29,11 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-from rays import camera_rays  # noqa: E402
+import jax
+import jax.numpy as jnp
+from rays import camera_rays
 
-from jaxrt import bvh, bvh_build, bvh_sah, data, mesh  # noqa: E402
+from jaxrt import bvh, bvh_build, bvh_sah, data, mesh
 
 
 def baseline_build(root):
@@ -43,14 +43,16 @@ def baseline_build(root):
     sys.modules["baseline_jaxrt"] = pkg
     mods = {}
     for name in ("bvh_build", "bvh_sah"):
-        src = open(os.path.join(root, "jaxrt", f"{name}.py")).read()
+        with open(os.path.join(root, "jaxrt", f"{name}.py")) as fh:
+            src = fh.read()
         src = src.replace("from jaxrt.bvh_build import", "from baseline_jaxrt.bvh_build import")
         src = src.replace("from jaxrt import bvh_sah", "from baseline_jaxrt import bvh_sah")
         m = types.ModuleType(f"baseline_jaxrt.{name}")
         sys.modules[m.__name__] = m
         setattr(pkg, name, m)
         mods[name] = m
-        exec(compile(src, f"{root}/jaxrt/{name}.py", "exec"), m.__dict__)
+        # its imports of jaxrt.bvh_build / bvh_sah rewritten to the baseline's own
+        exec(compile(src, f"{root}/jaxrt/{name}.py", "exec"), m.__dict__)  # noqa: S102
     return mods["bvh_build"].build_arrays
 
 
@@ -70,7 +72,8 @@ def build_times(v, f, rounds, baseline=None):
             builds[b](v, f, leaf_size=1, builder=builder, layout=layout or "bfs")
             wall[b].append(time.perf_counter() - t)
             cpu[b].append(time.process_time() - c)
-    print(f"# load average before {load0[0]:.2f} / {load0[1]:.2f}, after {os.getloadavg()[0]:.2f} / {os.getloadavg()[1]:.2f}")
+    load1 = os.getloadavg()
+    print(f"# load average before {load0[0]:.2f} / {load0[1]:.2f}, after {load1[0]:.2f} / {load1[1]:.2f}")
     ref = names[0]
     print(f"| build | wall s per round | median | min | CPU s median | median of per-round ratio to {ref} |")
     print("|---|---|---|---|---|---|")
@@ -117,7 +120,7 @@ def main(argv=None):
     build_times(v, f, args.rounds, args.baseline)
     f_vis = jax.jit(lambda tr, o, d, tmin, tmax, a: bvh.node_visits(tr, o, d, tmin, tmax, any_hit=a), static_argnums=5)
     o, d, light = camera_rays(v, args.res)
-    print(f"\n| tree | SAH cost | depth | build s (this call) | primary visits | shadow | shadow from light |")
+    print("\n| tree | SAH cost | depth | build s (this call) | primary visits | shadow | shadow from light |")
     print("|---|---|---|---|---|---|---|")
     for name in ["lbvh", "sah", "sah-exact"]:
         bvh_sah.EXACT_BOUNDS = name == "sah-exact"

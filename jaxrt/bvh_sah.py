@@ -97,16 +97,6 @@ def _sweep(nb: np.ndarray, blo: np.ndarray, bhi: np.ndarray, cnt: np.ndarray):
     return cost[j, r], j, nl[j, r], boxes
 
 
-def _reduce_runs(rows: np.ndarray, run: int, ufunc) -> np.ndarray:
-    """ufunc.reduce of rows (r, n) over runs of `run` consecutive columns (the last run may be
-    shorter): (r, ceil(n / run))."""
-    q = rows.shape[1] // run
-    out = ufunc.reduce(rows[:, :q * run].reshape(len(rows), q, run), axis=2)
-    if rows.shape[1] > q * run:
-        out = np.concatenate([out, ufunc.reduce(rows[:, q * run:], axis=1, keepdims=True)], axis=1)
-    return out
-
-
 def _stable_order(key: np.ndarray) -> np.ndarray:
     """Stable argsort of non-negative integer keys below 2**32 by two 16-bit radix passes (numpy's
     stable sort is a radix sort for 16-bit types; for wider ones it is a much slower timsort)."""
@@ -158,11 +148,11 @@ class _Nodes:
 
 def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand=None):
     """Binned-SAH splits, level by level, of the nodes `big` and their descendants with more
-    than `stop` triangles. Elements (triangles, or runs of them) in Morton order: x (9, n)
+    than `stop` triangles. Elements are triangles (or clusters of them, see `expand`): x (9, n)
     float32 rows lo xyz, hi xyz, centroid xyz (as lo + hi); w (n,) triangles per element (None:
-    1); codes (n,) uint64 Morton codes (ascending); lab (n,) int64 node of each element; cb (k, 6)
-    centroid bounds (lo xyz, hi xyz) of the nodes `big`. Writes the final node of every element
-    into label[pos] (pos (n,): the elements' indices there).
+    1); codes (n,) uint64 Morton codes (a cluster's: its first triangle's); lab (n,) int64 node
+    of each element; cb (k, 6) centroid bounds (lo xyz, hi xyz) of the nodes `big`. Writes the
+    last node of every element into label[pos] (pos (n,): the elements' indices there).
 
     expand: for clusters of triangles as elements (then x has 6 more rows: the lowest and highest
     centroid of the cluster's triangles); a function from cluster positions (pos) to the
@@ -174,7 +164,8 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand
         k = len(big)
         cnt = nodes.count[big]
         n = len(lab)
-        loc_of = np.full(nodes.n + 1, k, np.int64)  # node id -> row of this level's tables (k: none; -1: none)
+        # node id -> row of this level's tables; k: not binned now (also for id -1, the last entry)
+        loc_of = np.full(nodes.n + 1, k, np.int64)
         loc_of[big] = np.arange(k)
         loc = loc_of[lab]
         gone = loc == k
@@ -332,9 +323,11 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
             nc = len(first)
             cl = np.repeat(np.arange(nc), np.diff(np.append(first, nf)))
             wr = np.bincount(cl, minlength=nc)
-            xr = np.concatenate([_segment_reduce(np.minimum, x[:3], cl, nc), _segment_reduce(np.maximum, x[3:6], cl, nc),
-                                 (np.stack([np.bincount(cl, x[6 + a], minlength=nc) for a in range(3)]) / wr).astype(np.float32),
-                                 _segment_reduce(np.minimum, x[6:], cl, nc), _segment_reduce(np.maximum, x[6:], cl, nc)])
+            mean = np.stack([np.bincount(cl, x[6 + a], minlength=nc) for a in range(3)]) / wr
+            xr = np.concatenate([_segment_reduce(np.minimum, x[:3], cl, nc),
+                                 _segment_reduce(np.maximum, x[3:6], cl, nc), mean.astype(np.float32),
+                                 _segment_reduce(np.minimum, x[6:], cl, nc),
+                                 _segment_reduce(np.maximum, x[6:], cl, nc)])
 
             def expand(p):
                 """x rows (with centroid bounds), codes and positions (nc + Morton position) of

@@ -146,8 +146,8 @@ def finish(tri, tmin, tmax, order, left, start, count, levels, layout: str = "bf
     hi = np.empty((nn, 3), np.float32)
     leaves = np.flatnonzero(is_leaf)
     leaves = leaves[np.argsort(start[leaves])]
-    lo[leaves] = np.minimum.reduceat(tmin[order], start[leaves], axis=0)
-    hi[leaves] = np.maximum.reduceat(tmax[order], start[leaves], axis=0)
+    lo[leaves] = np.minimum.reduceat(np.take(tmin, order, axis=0), start[leaves], axis=0)
+    hi[leaves] = np.maximum.reduceat(np.take(tmax, order, axis=0), start[leaves], axis=0)
     levels = [ids[~is_leaf[ids]] for ids in levels]  # interior nodes per level
     for ids in reversed(levels):
         if len(ids):
@@ -162,32 +162,39 @@ def finish(tri, tmin, tmax, order, left, start, count, levels, layout: str = "bf
     size = np.ones(nn, np.int64)  # nodes in subtree
     for ids in reversed(levels):
         size[ids] = 1 + size[left[ids]] + size[left[ids] + 1]
-    # All six classes at once: row c of pre/first is class c (axis c // 2, negative if c odd).
-    ctr = lo.astype(np.float64) + hi  # twice the box centre
-    cls = np.arange(NUM_RAY_CLASSES)[:, None]
-    axis, negative = cls // 2, (cls % 2).astype(bool)
-    pre = np.zeros(NUM_RAY_CLASSES * nn, np.int64)  # flat (6, nn): pre-order index per class
-    first = np.full(NUM_RAY_CLASSES * nn, -1, np.int64)
-    off = (np.arange(NUM_RAY_CLASSES) * nn)[:, None]
-    for ids in levels:
-        if not len(ids):
-            continue
-        a = left[ids]
-        ca, cb = ctr[a].T, ctr[a + 1].T  # (3, k)
-        a_first = (ca[axis[:, 0]] <= cb[axis[:, 0]]) ^ negative  # (6, k)
-        n1 = np.where(a_first, a, a + 1)
-        n2 = (2 * a + 1) - n1
-        first[off + ids] = n1
-        p_par = pre[off + ids] + 1
-        pre[off + n1] = p_par
-        pre[off + n2] = p_par + size[n1]
-    pre = pre.reshape(NUM_RAY_CLASSES, nn)
-    at = np.full(NUM_RAY_CLASSES * (nn + 1), -1, np.int64)
-    off1 = (np.arange(NUM_RAY_CLASSES) * (nn + 1))[:, None]
-    at[off1 + pre] = np.arange(nn)[None]
-    miss = at[off1 + pre + size[None]]
-    first = first.reshape(NUM_RAY_CLASSES, nn)
-    links = np.stack([np.where(is_leaf[None], miss, first), miss], axis=-1)
+    ctr = (lo.astype(np.float64) + hi).T.copy()  # (3, nn) twice the box centre
+    ar = np.arange(nn)
+    near = []  # per level: is the first child's centre below the second's (class 2*axis)
+    at = np.empty(nn + 1, np.int64)  # node at each pre-order index (nn: -1, the end)
+    links = np.empty((NUM_RAY_CLASSES, nn, 2), np.int32)
+    order0 = None
+    # One class at a time (class c: axis c // 2, negative if c odd): the per-node arrays stay a
+    # few MB each, so they are reused instead of freshly mapped (page faults cost as much as the
+    # work here).
+    for c in range(NUM_RAY_CLASSES):
+        axis, negative = c // 2, bool(c % 2)
+        pre = np.zeros(nn, np.int64)  # pre-order index
+        first = np.full(nn, -1, np.int64)
+        if not negative:
+            near = [ctr[axis][left[ids]] <= ctr[axis][left[ids] + 1] for ids in levels]
+        for ids, below in zip(levels, near):
+            if not len(ids):
+                continue
+            a = left[ids]
+            a_first = below ^ negative  # the negative class visits the children the other way
+            n1 = np.where(a_first, a, a + 1)
+            n2 = (2 * a + 1) - n1
+            first[ids] = n1
+            p_par = pre[ids] + 1
+            pre[n1] = p_par
+            pre[n2] = p_par + size[n1]
+        at[pre] = ar
+        at[nn] = -1
+        miss = at[pre + size]
+        links[c, :, 1] = miss
+        links[c, :, 0] = np.where(is_leaf, miss, first)
+        if c == 0:
+            pre0, order0 = pre, at[:nn].copy()
     box = np.concatenate([lo_pad, hi_pad], axis=1).astype(np.float32)
     unpadded = np.concatenate([lo, hi], axis=1)
     node_leaf = np.stack([start, count], axis=1)
@@ -195,17 +202,18 @@ def finish(tri, tmin, tmax, order, left, start, count, levels, layout: str = "bf
         # Renumber nodes in class 0's pre-order: every subtree is one contiguous run of rows, so
         # a ray's nodes share cache lines (the breadth-first numbering spreads a subtree over
         # every level). The root stays 0; links are node ids, so they are mapped too.
-        new = pre[0]
-        old = at[:nn]  # old id of each new id
-        links = np.where(links >= 0, new[np.maximum(links, 0)], -1)[:, old]
+        new = np.append(pre0, -1).astype(np.int32)  # new id of each old id; -1 stays -1
+        old = order0  # old id of each new id
+        for c in range(NUM_RAY_CLASSES):
+            links[c] = np.take(new, np.take(links[c], old, axis=0))
         box, unpadded, node_leaf = box[old], unpadded[old], node_leaf[old]
 
-    tri_sorted = tri[order]
+    tri_sorted = np.take(tri, order, axis=0)
     return dict(
         node_box=box,  # (nn, 6)
         node_leaf=node_leaf.astype(np.int32),  # (nn, 2)
-        links=links.astype(np.int32).reshape(NUM_RAY_CLASSES * nn, 2),
-        triangles=tri_sorted.reshape(nf, 9).astype(np.float32),
+        links=links.reshape(NUM_RAY_CLASSES * nn, 2),
+        triangles=tri_sorted.reshape(nf, 9).astype(np.float32, copy=False),
         prim_ids=order.astype(np.int32),
         unpadded_box=unpadded,
     )

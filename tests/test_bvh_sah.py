@@ -10,7 +10,7 @@ import pytest
 import trimesh
 from test_bvh import check_against_reference, ray_mix
 
-from jaxrt import bvh, bvh_sah, data, mesh
+from jaxrt import bvh, bvh_build, bvh_sah, data, mesh
 
 
 def soup(n=600, seed=3):
@@ -50,6 +50,10 @@ def subtree_tris(tree, first, second, is_leaf, node):
                                                        (3, "lbvh", "dfs")])
 def test_sah_build_invariants(leaf_size, builder, layout):
     v, f = soup()
+    check_invariants(v, f, leaf_size, builder, layout)
+
+
+def check_invariants(v, f, leaf_size, builder, layout):
     tree = bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout=layout)
     box = np.asarray(tree.node_box)
     leaf = np.asarray(tree.node_leaf)
@@ -134,6 +138,103 @@ def test_sah_root_split_is_the_best_binned_split():
     got = half_area(left) * left.sum() + half_area(~left) * (~left).sum()
     assert got == pytest.approx(best[0], rel=1e-6)
     assert np.array_equal(left, b <= best[1]) or np.array_equal(~left, b <= best[1])
+
+
+def reference_topology(v, f, leaf_size, exact):
+    """The SAH tree by plain recursion over Morton-ordered triangle lists, written from the rules
+    in bvh_sah's docstring (same float32 binning arithmetic, so the trees must be equal): a node
+    above SAH_MIN triangles takes the cheapest of the BINS - 1 bin splits along its widest
+    centroid extent; smaller nodes, and nodes with no bin split, take the Morton split. exact:
+    centroid bounds recomputed per node; else the parent's cut at the split plane and clipped to
+    twice the child's box. Returns nested (left, right) tuples with leaves as tuples of face ids."""
+    bins, big_min = bvh_sah.BINS, max(bvh_sah.SAH_MIN, leaf_size)
+    tri = v.astype(np.float32)[f]
+    tmin, tmax = tri.min(1), tri.max(1)
+    cent = tmin + tmax
+    codes = bvh_build.morton_codes(cent)
+    morder = np.argsort(codes, kind="stable")
+    lo, hi, c, cs = tmin[morder], tmax[morder], cent[morder], codes[morder]
+    dt = np.float64 if exact else np.float32
+
+    def area(p):
+        e = np.maximum(hi[p].max(0).astype(dt) - lo[p].min(0).astype(dt), 0)
+        return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+
+    def bounds(p):
+        return np.concatenate([c[p].min(0), c[p].max(0)])
+
+    def node(p, cb):
+        n = len(p)
+        if n <= leaf_size:
+            return tuple(morder[p])
+        if n > big_min:
+            cb = bounds(p) if exact else cb
+            ext = cb[3:] - cb[:3]
+            a = int(np.argmax(ext))
+            scale = np.float32(np.float32(bins * (1 - 1e-6)) / ext[a]) if ext[a] > 0 else np.float32(0)
+            b = np.clip(((c[p, a] - cb[a]) * scale).astype(np.int64), 0, bins - 1)
+            best = None
+            for j in range(bins - 1):
+                left = b <= j
+                nl = int(left.sum())
+                if 0 < nl < n:
+                    cost = area(p[left]) * dt(nl) + area(p[~left]) * dt(n - nl)
+                    if best is None or cost < best[0]:
+                        best = (cost, j)
+            if best is not None:
+                left = b <= best[1]
+                kids = p[left], p[~left]
+                cut = np.float32(np.float64(cb[a]) + (best[1] + 1) / np.float64(scale))
+                cbs = [cb.copy(), cb.copy()]
+                cbs[0][3 + a] = min(cbs[0][3 + a], cut)
+                cbs[1][a] = max(cbs[1][a], cut)
+                for q, k in zip(cbs, kids):
+                    q[:3] = np.maximum(q[:3], 2 * lo[k].min(0))
+                    q[3:] = np.minimum(q[3:], 2 * hi[k].max(0))
+                return node(kids[0], cbs[0]), node(kids[1], cbs[1])
+        x = int(cs[p[0]] ^ cs[p[-1]])
+        if x == 0:
+            m = n // 2
+        else:
+            bit = np.uint64(x.bit_length() - 1)
+            m = int(np.searchsorted(cs[p], (cs[p[-1]] >> bit) << bit))
+        return node(p[:m], bounds(p[:m])), node(p[m:], bounds(p[m:]))
+
+    p = np.arange(len(f))
+    return node(p, bounds(p))
+
+
+@pytest.mark.parametrize("exact", [False, True])
+@pytest.mark.parametrize("leaf_size", [1, 3])
+def test_sah_topology_matches_recursive_reference(exact, leaf_size, monkeypatch):
+    monkeypatch.setattr(bvh_sah, "EXACT_BOUNDS", exact)
+    v, f = soup()
+    f = np.concatenate([f, np.repeat(f[:1], 40, axis=0)])  # 41 equal centroids: no bin split
+    tri = v.astype(np.float32)[f]
+    tmin, tmax = tri.min(1), tri.max(1)
+    codes = bvh_build.morton_codes(tmin + tmax)
+    order, left, start, count, _ = bvh_sah.topology(tmin, tmax, tmin + tmax, codes,
+                                                    np.argsort(codes, kind="stable"), leaf_size)
+
+    def nest(i):
+        return tuple(order[start[i]:start[i] + count[i]]) if left[i] < 0 else (nest(left[i]), nest(left[i] + 1))
+
+    assert nest(0) == reference_topology(v, f, leaf_size, exact)
+
+
+def test_sah_clusters(monkeypatch):
+    """Clusters near the root (forced on small meshes): a valid tree, as good as without them."""
+    v, f = soup()
+    f = np.concatenate([f, np.repeat(f[:1], 40, axis=0)])
+    monkeypatch.setattr(bvh_sah, "RUN_NODES", 48)
+    for leaf_size in (1, 3):
+        check_invariants(v, f, leaf_size, "sah", "bfs")
+    s = trimesh.creation.icosphere(subdivisions=4)  # 5120 triangles, a surface like the models
+    monkeypatch.setattr(bvh_sah, "RUN_NODES", 512)  # clusters binned in nodes of >= 64 of them
+    with_clusters = bvh.build(s.vertices, s.faces, builder="sah").stats.sah_cost
+    monkeypatch.setattr(bvh_sah, "RUN_NODES", 10**9)
+    without = bvh.build(s.vertices, s.faces, builder="sah").stats.sah_cost
+    assert with_clusters == pytest.approx(without, rel=0.01)
 
 
 @pytest.mark.data

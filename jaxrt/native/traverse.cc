@@ -147,8 +147,9 @@ inline bool Step(const Job& J, Ray& r) {
     __builtin_prefetch(J.leaf + 2 * nxt);
   }
   bool any_h = false;
-  if (box_hit) {
-    const int32_t first = J.leaf[2 * node], count = J.leaf[2 * node + 1];
+  const int32_t count = J.leaf[2 * node + 1];
+  if (box_hit && count > 0) {
+    const int32_t first = J.leaf[2 * node];
     const int kx = r.kx, ky = r.ky, kz = r.kz;
     for (int32_t j = 0; j < count; ++j) {
       const int64_t idx = static_cast<int64_t>(first) + j;

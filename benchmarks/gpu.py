@@ -115,7 +115,9 @@ def bench_frame(name, res, impl, repeats, dev):
     scn = S.load(name, overrides={"camera.width": res, "camera.height": res})
     jax.block_until_ready(scn)
     t_build = time.perf_counter() - t
-    frame = jax.jit(integrators.whitted, static_argnames=("aovs",))  # a fresh cache per implementation
+    # A new function object per implementation: jax.jit(integrators.whitted) would share jax's trace
+    # cache with the previous implementation's and not re-read JAXRT_TRAVERSAL.
+    frame = jax.jit(lambda s: integrators.whitted(s))
     t = time.perf_counter()
     img = jax.block_until_ready(frame(scn))
     t_compile = time.perf_counter() - t

@@ -117,17 +117,19 @@ def _reset_for_tests() -> None:
 
 
 def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"], tmin: Float[Array, " N"],
-             tmax: Float[Array, " N"], *, any_hit: bool, threads: int = 0,
-             lanes: int = LANES):
+             tmax: Float[Array, " N"], *, any_hit: bool, threads: int = 0, lanes: int = LANES):
     """Trace N rays on the CPU; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `bvh_traverse.traverse` (without the step counts).
 
     arrays: node_box (nn,6) float32, node_leaf (nn,2) int32, links (6nn,2) int32, triangles (F,9)
     float32 (see bvh.BVH; leaves of any size); origins, directions (N,3) float32; tmin, tmax (N,)
-    float32; t is in units of |direction|. threads: worker threads (0: XLA's intra-op thread pool).
-    Lowers for the CPU only. Under vmap the kernel runs once per batch element. Raises
-    RuntimeError where the kernel is not `available()` (`bvh` checks first and uses the XLA loop).
+    float32; t is in units of |direction|. threads: worker threads (0: XLA's intra-op thread pool);
+    lanes: rays in flight per thread, 1..32 (both only affect speed). Lowers for the CPU only.
+    Under vmap the kernel runs once per batch element. Raises RuntimeError where the kernel is not
+    `available()` (`bvh` checks first and uses the XLA loop).
     """
+    if not 1 <= lanes <= 32 or threads < 0:
+        raise ValueError(f"bvh_cpu.traverse: lanes must be in 1..32 and threads >= 0; got {lanes}, {threads}")
     if not available():
         raise RuntimeError("jaxrt.bvh_cpu: the native kernel could not be built (see the warning)")
     n = origins.shape[0]

@@ -61,12 +61,15 @@ struct Job {
 };
 
 // Sign of ax*by - ay*bx given the rounded products p1 = fl(ax*by), p2 = fl(ay*bx).
+// Without branches on the common path (p1 > p2 is a coin flip for the branch predictor); NaN
+// products give 0, as in the XLA path.
 inline float EdgeSign(float ax, float by, float ay, float bx, float p1, float p2) {
-  if (p1 > p2) return 1.0f;
-  if (p1 < p2) return -1.0f;
-  if (!(p1 == p2)) return 0.0f;  // NaN, as the XLA path
-  const double e = static_cast<double>(ax) * by - static_cast<double>(ay) * bx;
-  return e > 0 ? 1.0f : (e < 0 ? -1.0f : 0.0f);
+  float s = static_cast<float>(static_cast<int>(p1 > p2) - static_cast<int>(p1 < p2));
+  if (__builtin_expect(p1 == p2, 0)) {
+    const double e = static_cast<double>(ax) * by - static_cast<double>(ay) * bx;
+    s = static_cast<float>(static_cast<int>(e > 0) - static_cast<int>(e < 0));
+  }
+  return s;
 }
 
 // One ray's traversal state (the XLA path's per-lane state plus its constants).
@@ -171,7 +174,7 @@ inline bool Step(const Job& J, Ray& r) {
       const float su = EdgeSign(cx, by, cy, bx, pu1, pu2);
       const float sv = EdgeSign(ax, cy, ay, cx, pv1, pv2);
       const float sw = EdgeSign(bx, ay, by, ax, pw1, pw2);
-      const bool inside = (su >= 0 && sv >= 0 && sw >= 0) || (su <= 0 && sv <= 0 && sw <= 0);
+      const bool inside = ((su >= 0) & (sv >= 0) & (sw >= 0)) | ((su <= 0) & (sv <= 0) & (sw <= 0));
       if (!inside) continue;
       const float U = std::fabs(pu1 - pu2) * su;
       const float V = std::fabs(pv1 - pv2) * sv;

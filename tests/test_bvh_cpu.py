@@ -75,6 +75,13 @@ def test_kernel_matches_xla_loop(bunny):
     np.testing.assert_array_equal(un[same], ux[same])
     np.testing.assert_array_equal(vn[same], vx[same])
     assert np.all(un[~fn] == 0) and np.all(vn[~fn] == 0)
+    # Threads (own std::threads instead of XLA's pool) and lanes only change the speed.
+    for kw in ({"threads": 3, "lanes": 1}, {"threads": 1, "lanes": 32}):
+        other = jax.jit(lambda a, *r, kw=kw: bvh_cpu.traverse(a, *r, any_hit=False, **kw))(arrays, o, d, tmin, tmax)
+        for x, y in zip(other, (fn, tn, bn, un, vn)):
+            np.testing.assert_array_equal(np.asarray(x), y, err_msg=str(kw))
+    with pytest.raises(ValueError, match="lanes"):
+        bvh_cpu.traverse(arrays, o, d, tmin, tmax, any_hit=False, lanes=33)
 
 
 def test_exact_ties_keep_the_earlier_triangle_and_t_limits_are_inclusive():

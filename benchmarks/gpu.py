@@ -7,7 +7,8 @@
 Rays (bunny, full dragon; camera framing the model, rays in 16x16 tile order): BVH build s, compile s
 (lower + compile of the jitted intersect), primary (closest hit) and shadow (any hit from the primary
 hits to a point light) Mrays/s for each traversal implementation (`bvh.intersect(..., impl=...)`:
-"xla" = the pure-JAX loop, "pallas" = the Triton kernel of jaxrt.bvh_pallas), the fraction of rays on
+"xla" = the pure-JAX loop, "pallas" = the Triton kernel of jaxrt.bvh_pallas, "cpu" = the C++ kernel of
+jaxrt.bvh_cpu; default xla pallas on GPU, cpu xla on CPU), the fraction of rays on
 which the implementations agree, and on CPU Embree's Mrays/s on the same rays in the same run; the
 shadow rays are timed twice, from the surface and from the light end (`bvh.occluded(from_end=True)`).
 --builders times the rays on several trees (`bvh.build(builder=, layout=)`, e.g. `lbvh sah/dfs`).
@@ -114,7 +115,9 @@ def bench_frame(name, res, impl, repeats, dev):
     scn = S.load(name, overrides={"camera.width": res, "camera.height": res})
     jax.block_until_ready(scn)
     t_build = time.perf_counter() - t
-    frame = jax.jit(integrators.whitted, static_argnames=("aovs",))  # a fresh cache per implementation
+    # A new function object per implementation: jax.jit(integrators.whitted) would share jax's trace
+    # cache with the previous implementation's and not re-read JAXRT_TRAVERSAL.
+    frame = jax.jit(lambda s: integrators.whitted(s))
     t = time.perf_counter()
     img = jax.block_until_ready(frame(scn))
     t_compile = time.perf_counter() - t
@@ -160,7 +163,7 @@ def main(argv=None) -> int:
     ap.add_argument("--models", nargs="+", default=["bunny", "dragon"])
     ap.add_argument("--scenes", nargs="+", default=["bunny", "dragon", "showcase"])
     ap.add_argument("--res", type=int, default=None, help="default 1024 on GPU, 256 on CPU")
-    ap.add_argument("--impls", nargs="+", default=None, help="default: xla pallas on GPU, xla on CPU")
+    ap.add_argument("--impls", nargs="+", default=None, help="default: xla pallas on GPU, cpu xla on CPU")
     ap.add_argument("--frame-impls", nargs="+", default=None, help="default: auto")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--check-size", type=int, default=64)
@@ -174,7 +177,7 @@ def main(argv=None) -> int:
     gpu = jax.default_backend() == "gpu"
     dev = jax.devices()[0]
     res = args.res or (1024 if gpu else 256)
-    impls = args.impls or (["xla", "pallas"] if gpu else ["xla"])
+    impls = args.impls or (["xla", "pallas"] if gpu else ["cpu", "xla"])
     print(f"# device {dev.device_kind} ({jax.default_backend()}), jax {jax.__version__}, cpus {os.cpu_count()}, "
           f"res {res}², repeats {args.repeats}")
     out = dict(device=dev.device_kind, jax=jax.__version__, res=res, rays=[], frames=[], check=[])

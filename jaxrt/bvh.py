@@ -17,8 +17,10 @@ traced argument, and are not differentiable: their inputs pass through `lax.stop
 renderer recomputes the differentiable hit point from `prim` (DESIGN.md: trace once, shade many).
 Triangle tests are watertight (see `jaxrt.bvh_traverse`): a ray aimed at an edge or vertex shared
 by two triangles of a closed mesh always hits one of them. Build and traversal details are in
-`jaxrt.bvh_build` and `jaxrt.bvh_traverse` (pure JAX, the default) and `jaxrt.bvh_pallas` (one Pallas
-kernel, the default where the computation is lowered for an NVIDIA GPU; `impl=` / JAXRT_TRAVERSAL).
+`jaxrt.bvh_build` and `jaxrt.bvh_traverse` (pure JAX, portable), `jaxrt.bvh_pallas` (one Pallas
+kernel, the default where the computation is lowered for an NVIDIA GPU) and `jaxrt.bvh_cpu` (a C++
+XLA FFI kernel compiled on first use, the default where the computation is lowered for the CPU);
+`impl=` / JAXRT_TRAVERSAL choose one.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrt import bvh_build, bvh_pallas, bvh_traverse
+from jaxrt import bvh_build, bvh_cpu, bvh_pallas, bvh_traverse
 from jaxrt.errors import InputError
 
 
@@ -151,7 +153,7 @@ def _default_steps() -> int:
     return 2 if jax.default_backend() == "cpu" else 16
 
 
-IMPLS = ("auto", "xla", "pallas", "pallas-interpret")
+IMPLS = ("auto", "xla", "cpu", "pallas", "pallas-interpret")
 
 
 def _impl(impl: str | None) -> str:
@@ -188,6 +190,10 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
                                   interpret=interpret, **kw)
         return (*out, jnp.zeros(n, jnp.int32))
 
+    def native(o, d, lo, hi):
+        out = bvh_cpu.traverse(arrays, o, d, lo, hi, any_hit=any_hit)
+        return (*out, jnp.zeros(n, jnp.int32))
+
     impl = _impl(impl)
     args = (origins, directions, tmin, tmax)
     if impl == "xla" or count_steps:
@@ -196,9 +202,16 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         return pallas(*args)
     if impl == "pallas-interpret":
         return pallas(*args, interpret=True)
+    # available() compiles the C++ kernel on first use; where it cannot, it warns once and "cpu"
+    # and "auto" use the XLA loop. A GPU process does not build it for "auto" (its functions are
+    # lowered for the GPU).
+    has_native = (impl == "cpu" or (impl == "auto" and jax.default_backend() == "cpu")) and bvh_cpu.available()
+    if impl == "cpu":
+        return native(*args) if has_native else xla(*args)
     # auto: the Pallas (Triton) kernel where the computation is lowered for an NVIDIA GPU, the
-    # portable XLA loop everywhere else (decided at lowering, so one jitted function serves both).
-    return lax.platform_dependent(*args, cuda=pallas, default=xla)
+    # native kernel for the CPU, the portable XLA loop elsewhere (decided at lowering, so one
+    # jitted function serves all).
+    return lax.platform_dependent(*args, cuda=pallas, cpu=native if has_native else xla, default=xla)
 
 
 def intersect(
@@ -217,9 +230,12 @@ def intersect(
     lanes: rays in flight at once (default 1024 on CPU, 2**17 on GPU; finished lanes refill from
     the queue); steps_per_iter: traversal steps per loop iteration (default 2 on CPU, 16 on GPU).
     Both only affect speed, never results, and apply to the XLA loop only. impl: "auto" (default;
-    the Pallas kernel of `jaxrt.bvh_pallas` when lowered for an NVIDIA GPU, else the XLA loop),
-    "xla", "pallas" (GPU only) or "pallas-interpret" (the kernel in the Pallas interpreter, any
-    backend, slow: for tests); the env var JAXRT_TRAVERSAL sets it when the argument is None.
+    the Pallas kernel of `jaxrt.bvh_pallas` when lowered for an NVIDIA GPU, the C++ kernel of
+    `jaxrt.bvh_cpu` when lowered for the CPU, else the XLA loop), "xla" (the pure-JAX loop of
+    `jaxrt.bvh_traverse`), "cpu" (the C++ kernel; CPU only), "pallas" (GPU only) or
+    "pallas-interpret" (the kernel in the Pallas interpreter, any backend, slow: for tests); the
+    env var JAXRT_TRAVERSAL sets it when the argument is None. Where the C++ kernel cannot be
+    compiled, "auto" and "cpu" warn once and use the XLA loop.
     All give the same hits up to ties between triangles at the same distance to within an ulp.
     """
     found, t, best, u, v, _ = _run(tree, origins, directions, tmin, tmax, any_hit=False, lanes=lanes,

@@ -84,8 +84,10 @@ def classify(tri, o, d, tmin, tmax, delta):
     return t, strict & in_range, near & in_range
 
 
-def check_against_reference(tri, o, d, tmin, tmax, hit):
-    ref_t, ref_p = brute_force(tri, o, d, tmin, tmax)
+def check_against_reference(tri, o, d, tmin, tmax, hit, ref=None):
+    """Assert `hit` agrees with brute force (see the module docstring); ref: brute_force's result
+    for these rays if already computed. Returns (ref_t, ref_p)."""
+    ref_t, ref_p = ref if ref is not None else brute_force(tri, o, d, tmin, tmax)
     prim = np.asarray(hit.prim)
     t = np.asarray(hit.t, np.float64)
     same = prim == ref_p
@@ -180,23 +182,34 @@ def ray_mix(m: mesh.Mesh, n: int, seed: int):
     return o, d, tmin.astype(np.float32), tmax.astype(np.float32)
 
 
+# Both CPU traversals: "cpu" (the native kernel, what "auto" picks on CPU) and the XLA loop.
+IMPLS = ("cpu", "xla")
+
+
 @pytest.fixture(scope="module")
 def intersect_fns():
-    return jax.jit(bvh.intersect), jax.jit(bvh.occluded)
+    return {impl: (jax.jit(lambda *a, impl=impl: bvh.intersect(*a, impl=impl)),
+                   jax.jit(lambda *a, impl=impl: bvh.occluded(*a, impl=impl))) for impl in IMPLS}
+
+
+_REFERENCE = {}  # (model, rays) -> brute-force result, shared by the impl parametrisations
 
 
 @pytest.mark.data
+@pytest.mark.parametrize("impl", IMPLS)
 @pytest.mark.parametrize("name,n_rays", [("dragon_res4", 3000), ("bunny", 800)])
-def test_traversal_matches_brute_force(data_dir, intersect_fns, monkeypatch, name, n_rays):
+def test_traversal_matches_brute_force(data_dir, intersect_fns, monkeypatch, name, n_rays, impl):
     monkeypatch.setenv("JAXRT_DATA", str(data_dir))
     m = mesh.load(data.find(name))
     tree = bvh.build(m.vertices, m.faces)
     o, d, tmin, tmax = ray_mix(m, n_rays, seed=1)
-    f_hit, f_occ = intersect_fns
+    f_hit, f_occ = intersect_fns[impl]
     hit = f_hit(tree, o, d, tmin, tmax)
     tri = m.vertices.astype(np.float64)[m.faces]
-    ref_t, ref_p = check_against_reference(tri, o.astype(np.float64), d.astype(np.float64),
-                                           tmin.astype(np.float64), tmax.astype(np.float64), hit)
+    args = (tri, o.astype(np.float64), d.astype(np.float64), tmin.astype(np.float64), tmax.astype(np.float64))
+    if (name, n_rays) not in _REFERENCE:
+        _REFERENCE[name, n_rays] = brute_force(*args)
+    ref_t, ref_p = check_against_reference(*args, hit, ref=_REFERENCE[name, n_rays])
     assert 0.3 < np.mean(ref_p >= 0) < 0.95  # the mix really has hits and misses
     blocked = np.asarray(f_occ(tree, o, d, tmax, tmin))
     assert np.array_equal(blocked, np.asarray(hit.prim) >= 0)
@@ -207,7 +220,8 @@ def icosphere_mesh(subdivisions=3):
     return mesh.Mesh.from_arrays(s.vertices, s.faces, name="icosphere")
 
 
-def test_watertight_edges_and_vertices():
+@pytest.mark.parametrize("impl", IMPLS)
+def test_watertight_edges_and_vertices(impl):
     m = icosphere_mesh(3)
     tree = bvh.build(m.vertices, m.faces)
     v = m.vertices.astype(np.float64)
@@ -229,7 +243,7 @@ def test_watertight_edges_and_vertices():
     out = tgt / np.linalg.norm(tgt, axis=1, keepdims=True) + 0.7 * rnd
     o = np.where((kind == 3)[:, None], rnd * 0.1, tgt + 3.0 * out).astype(np.float32)
     d = (tgt - o).astype(np.float32)
-    hit = jax.jit(bvh.intersect)(tree, o, d)
+    hit = jax.jit(lambda *a: bvh.intersect(*a, impl=impl))(tree, o, d)
     prim = np.asarray(hit.prim)
     assert np.all(prim >= 0), f"{int(np.sum(prim < 0))} of {n} rays slipped through edges/vertices"
     t = np.asarray(hit.t)
@@ -237,7 +251,8 @@ def test_watertight_edges_and_vertices():
     assert np.all(np.abs(t - 1.0) < 1e-4)
 
 
-def test_axis_aligned_faces_and_box_padding():
+@pytest.mark.parametrize("impl", IMPLS)
+def test_axis_aligned_faces_and_box_padding(impl):
     """Rays hitting axis-aligned (flat-box) triangles exactly at their edges and corners."""
     box = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
     m = mesh.Mesh.from_arrays(box.vertices, box.faces)
@@ -248,7 +263,7 @@ def test_axis_aligned_faces_and_box_padding():
     tgt = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 0.25, np.float32)], 1)
     o = tgt + np.array([0, 0, 5], np.float32)
     d = np.tile(np.array([0, 0, -1], np.float32), (len(o), 1))  # exact zero x, y components
-    hit = bvh.intersect(tree, o, d)
+    hit = bvh.intersect(tree, o, d, impl=impl)
     assert np.all(np.asarray(hit.prim) >= 0)
     np.testing.assert_array_equal(np.asarray(hit.t), 5.0)  # box top at z = 0.25
 
@@ -296,7 +311,8 @@ def test_build_invariants_and_threading():
         assert st.sah_cost > 0
 
 
-def test_inside_jit_with_traced_tree_and_no_gradient():
+@pytest.mark.parametrize("impl", IMPLS)
+def test_inside_jit_with_traced_tree_and_no_gradient(impl):
     m = icosphere_mesh(1)
     tree = bvh.build(m.vertices, m.faces)
     o = jnp.array([[0.0, 0.0, 5.0], [0.0, 0.0, 0.0], [5.0, 5.0, 5.0]])
@@ -304,8 +320,8 @@ def test_inside_jit_with_traced_tree_and_no_gradient():
 
     @jax.jit
     def render(tree, o, d):
-        hit = bvh.intersect(tree, o, d, tmin=0.0, tmax=jnp.full(3, 100.0))
-        return hit, bvh.occluded(tree, o, d, 100.0)
+        hit = bvh.intersect(tree, o, d, tmin=0.0, tmax=jnp.full(3, 100.0), impl=impl)
+        return hit, bvh.occluded(tree, o, d, 100.0, impl=impl)
 
     hit, occ = render(tree, o, d)
     assert np.asarray(hit.prim)[2] == -1 and np.isinf(np.asarray(hit.t)[2])
@@ -313,7 +329,7 @@ def test_inside_jit_with_traced_tree_and_no_gradient():
     np.testing.assert_array_equal(np.asarray(occ), [True, True, False])
     # the icosphere's vertices are on the unit sphere; its faces are within cos(36deg/2^1)... of it
     assert 0.9 < float(hit.t[1]) <= 1.0
-    g = jax.grad(lambda o: jnp.sum(bvh.intersect(tree, o, d).t[:2]))(o)
+    g = jax.grad(lambda o: jnp.sum(bvh.intersect(tree, o, d, impl=impl).t[:2]))(o)
     assert np.all(np.asarray(g) == 0)
 
 

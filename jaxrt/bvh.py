@@ -163,7 +163,8 @@ def _impl(impl: str | None) -> str:
     return impl
 
 
-def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_iter, count_steps=False, impl=None):
+def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_iter, count_steps=False, impl=None,
+         refine=False):
     origins = lax.stop_gradient(jnp.asarray(origins, jnp.float32))
     directions = lax.stop_gradient(jnp.asarray(directions, jnp.float32))
     if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
@@ -178,20 +179,29 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
     if tree.rows is not None:
         arrays["rows"] = tree.rows
 
+    def refined(out, o, d):
+        # Once per ray: t of the chosen triangle in double-float, so grazing hits keep ~1e-7
+        # relative accuracy (the float32 test's t degrades as eps / cos(angle)).
+        found, t, best, u, v, steps = out
+        if refine:
+            t = bvh_traverse.refine_t(tree.triangles[jnp.maximum(best, 0)], o, d, t)
+        return found, t, best, u, v, steps
+
     def xla(o, d, lo, hi):
-        return bvh_traverse.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
-                                     steps_per_iter=steps_per_iter or _default_steps(), lanes=lanes or _default_lanes(),
-                                     count_steps=count_steps)
+        return refined(bvh_traverse.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
+                                             steps_per_iter=steps_per_iter or _default_steps(),
+                                             lanes=lanes or _default_lanes(), count_steps=count_steps), o, d)
 
     def pallas(o, d, lo, hi, interpret=False):
         # The interpreter runs program instances one after another: few, wide blocks are fastest.
         kw = dict(block=1024) if interpret else {}
         out = bvh_pallas.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
                                   interpret=interpret, **kw)
-        return (*out, jnp.zeros(n, jnp.int32))
+        return refined((*out, jnp.zeros(n, jnp.int32)), o, d)
 
     def native(o, d, lo, hi):
-        out = bvh_cpu.traverse(arrays, o, d, lo, hi, any_hit=any_hit)
+        # the kernel refines t itself, in double, for hits only
+        out = bvh_cpu.traverse(arrays, o, d, lo, hi, any_hit=any_hit, refine=refine)
         return (*out, jnp.zeros(n, jnp.int32))
 
     impl = _impl(impl)
@@ -238,15 +248,11 @@ def intersect(
     compiled, "auto" and "cpu" warn once and use the XLA loop.
     All give the same hits up to ties between triangles at the same distance to within an ulp.
     """
+    # t comes refined (each traversal's t of the chosen triangle in double(-float) precision) and is
+    # clamped to the valid interval.
     found, t, best, u, v, _ = _run(tree, origins, directions, tmin, tmax, any_hit=False, lanes=lanes,
-                                   steps_per_iter=steps_per_iter, impl=impl)
-    best = jnp.maximum(best, 0)
-    prim = jnp.where(found, tree.prim_ids[best], -1)
-    # Once per ray: t of the chosen triangle in double-float, so grazing hits keep ~1e-7 relative
-    # accuracy (the float32 test's t degrades as eps / cos(angle)); clamped to the valid interval.
-    o32 = jnp.asarray(origins, jnp.float32)
-    d32 = jnp.asarray(directions, jnp.float32)
-    t = bvh_traverse.refine_t(tree.triangles[best], lax.stop_gradient(o32), lax.stop_gradient(d32), t)
+                                   steps_per_iter=steps_per_iter, impl=impl, refine=True)
+    prim = jnp.where(found, tree.prim_ids[jnp.maximum(best, 0)], -1)
     t = jnp.clip(t, jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32))
     return Hit(t=jnp.where(found, t, jnp.inf), prim=prim, u=jnp.where(found, u, 0.0), v=jnp.where(found, v, 0.0))
 

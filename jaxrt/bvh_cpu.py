@@ -117,13 +117,16 @@ def _reset_for_tests() -> None:
 
 
 def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"], tmin: Float[Array, " N"],
-             tmax: Float[Array, " N"], *, any_hit: bool, threads: int = 0, lanes: int = LANES):
+             tmax: Float[Array, " N"], *, any_hit: bool, refine: bool = False, threads: int = 0,
+             lanes: int = LANES):
     """Trace N rays on the CPU; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `bvh_traverse.traverse` (without the step counts).
 
     arrays: node_box (nn,6) float32, node_leaf (nn,2) int32, links (6nn,2) int32, triangles (F,9)
     float32 (see bvh.BVH; leaves of any size); origins, directions (N,3) float32; tmin, tmax (N,)
-    float32; t is in units of |direction|. threads: worker threads (0: XLA's intra-op thread pool);
+    float32; t is in units of |direction|. refine: t of each hit recomputed in double from its
+    triangle's plane (what `bvh_traverse.refine_t` does in double-float; `bvh.intersect` asks for
+    it). threads: worker threads (0: XLA's intra-op thread pool);
     lanes: rays in flight per thread, 1..32 (both only affect speed). Lowers for the CPU only.
     Under vmap the kernel runs once per batch element. Raises RuntimeError where the kernel is not
     `available()` (`bvh` checks first and uses the XLA loop).
@@ -139,6 +142,6 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     t, best, u, v = call(jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32),
                          jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32),
                          arrays["node_box"], arrays["node_leaf"], arrays["links"], arrays["triangles"],
-                         any_hit=bool(any_hit), far_scale=np.float32(bvh_traverse._FAR_SCALE),
+                         any_hit=bool(any_hit), refine=bool(refine), far_scale=np.float32(bvh_traverse._FAR_SCALE),
                          chunk=np.int64(CHUNK), threads=np.int64(threads), lanes=np.int64(lanes))
     return best >= 0, t, best, u, v

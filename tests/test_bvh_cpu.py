@@ -53,6 +53,12 @@ def test_leaf_sizes_match_brute_force(bunny, leaf_size):
     np.testing.assert_array_equal(np.asarray(occ), np.asarray(hit.prim) >= 0)
 
 
+def _plane_t(tri9, o, d):
+    v0, v1, v2 = tri9[:, 0:3], tri9[:, 3:6], tri9[:, 6:9]
+    nrm = np.cross(v1 - v0, v2 - v0)
+    return np.sum(nrm * (v0 - o), 1) / np.sum(nrm * d.astype(np.float64), 1)
+
+
 @pytest.mark.data
 def test_kernel_matches_xla_loop(bunny):
     """Raw traversal outputs of both paths on one tree with 4-triangle leaves (ties inside leaves)."""
@@ -82,6 +88,17 @@ def test_kernel_matches_xla_loop(bunny):
             np.testing.assert_array_equal(np.asarray(x), y, err_msg=str(kw))
     with pytest.raises(ValueError, match="lanes"):
         bvh_cpu.traverse(arrays, o, d, tmin, tmax, any_hit=False, lanes=33)
+    # refine: the kernel's double-precision t of each hit = the XLA path's double-float refine_t of the
+    # same triangle (both the float32 nearest the plane distance, to an ulp), also on grazing rays
+    _, tr, br, ur, vr = map(np.asarray, jax.jit(lambda a, *r: bvh_cpu.traverse(a, *r, any_hit=False, refine=True))(
+        arrays, o, d, tmin, tmax))
+    np.testing.assert_array_equal(br, bn)
+    np.testing.assert_array_equal(ur, un)
+    np.testing.assert_array_equal(tr[~fn], tn[~fn])
+    ref = np.asarray(bvh_traverse.refine_t(np.asarray(tree.triangles)[bn[fn]], o[fn], d[fn], tn[fn]))
+    np.testing.assert_allclose(tr[fn], ref, rtol=2.5e-7)
+    t64 = _plane_t(np.asarray(tree.triangles, np.float64)[bn[fn]], o[fn], d[fn])
+    assert np.mean(np.abs(tr[fn] - t64) <= 1e-7 * np.abs(t64)) > 0.99
 
 
 def test_exact_ties_keep_the_earlier_triangle_and_t_limits_are_inclusive():

@@ -45,7 +45,7 @@ struct Job {
   const int32_t* links;
   const float* tri;
   int64_t n, nn, nf;
-  bool any_hit;
+  bool any_hit, refine;
   float far_scale;
   // outputs
   float* t;
@@ -118,8 +118,31 @@ inline void Start(const Job& J, int64_t i, Ray& r) {
   r.i = i;
 }
 
+// t of the ray's plane intersection with its hit triangle in double (bvh_traverse.refine_t's
+// double-float evaluation, done natively): differences of floats and products of those are exact
+// in double, so the float32 test's eps / cos(angle) error on grazing hits goes. Kept as the float32
+// t where the double result is not finite or strays by more than 1 %, as there.
+inline float RefineT(const Job& J, const Ray& r) {
+  const float* T = J.tri + 9 * static_cast<int64_t>(r.best);
+  const float* o = J.o + 3 * r.i;
+  const float* d = J.d + 3 * r.i;
+  double e1[3], e2[3], a[3];
+  for (int k = 0; k < 3; ++k) {
+    e1[k] = static_cast<double>(T[3 + k]) - T[k];
+    e2[k] = static_cast<double>(T[6 + k]) - T[k];
+    a[k] = static_cast<double>(T[k]) - o[k];
+  }
+  const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]};
+  const double num = n[0] * a[0] + n[1] * a[1] + n[2] * a[2];
+  const double den = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
+  const float t32 = r.t_best;
+  const float t = static_cast<float>(num / den);
+  const bool good = den != 0 && std::isfinite(t) && std::fabs(t - t32) <= 1e-2f * std::fabs(t32) + 1e-30f;
+  return good ? t : t32;
+}
+
 inline void Finish(const Job& J, const Ray& r) {
-  J.t[r.i] = r.t_best;
+  J.t[r.i] = (J.refine && r.best >= 0) ? RefineT(J, r) : r.t_best;
   J.best[r.i] = r.best;
   J.u[r.i] = r.bu;
   J.v[r.i] = r.bv;
@@ -250,7 +273,7 @@ ffi::Error Traverse(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<f
                     ffi::Buffer<ffi::F32> tmin, ffi::Buffer<ffi::F32> tmax, ffi::Buffer<ffi::F32> box,
                     ffi::Buffer<ffi::S32> leaf, ffi::Buffer<ffi::S32> links, ffi::Buffer<ffi::F32> tri,
                     ffi::ResultBuffer<ffi::F32> t, ffi::ResultBuffer<ffi::S32> best, ffi::ResultBuffer<ffi::F32> u,
-                    ffi::ResultBuffer<ffi::F32> v, bool any_hit, float far_scale, int64_t chunk, int64_t threads,
+                    ffi::ResultBuffer<ffi::F32> v, bool any_hit, bool refine, float far_scale, int64_t chunk, int64_t threads,
                     int64_t lanes) {
   const int64_t n = Count(tmin.dimensions());
   const int64_t nn = Count(box.dimensions()) / 6;
@@ -276,6 +299,7 @@ ffi::Error Traverse(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<f
   J.nn = nn;
   J.nf = nf;
   J.any_hit = any_hit;
+  J.refine = refine;
   J.far_scale = far_scale;
   J.t = t->typed_data();
   J.best = best->typed_data();
@@ -325,6 +349,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtBvhTraverse, Traverse,
                                   .Ret<ffi::Buffer<ffi::F32>>()  // u
                                   .Ret<ffi::Buffer<ffi::F32>>()  // v
                                   .Attr<bool>("any_hit")
+                                  .Attr<bool>("refine")
                                   .Attr<float>("far_scale")
                                   .Attr<int64_t>("chunk")
                                   .Attr<int64_t>("threads")

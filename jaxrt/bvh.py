@@ -93,16 +93,23 @@ class BVHStats:
     triangles: int
 
 
+# Scenes are built once and traced for every frame (and fit iteration), so they take the tree that
+# traces fastest: the SAH tree in depth-first order gave the GPU's best shadow rays traced from the
+# light (BENCHMARKS.md), at ~1.2-1.4x the LBVH's build time.
+RENDER_TREE = {"builder": "sah", "layout": "dfs"}
+
+
 def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, leaf_size: int = 1,
-          builder: str = "sah", layout: str = "bfs") -> BVH:
+          builder: str = "lbvh", layout: str = "bfs") -> BVH:
     """Build a BVH over triangles `vertices[faces]` (host numpy, vectorised; see bvh_build).
 
-    builder: "sah" (default: binned SAH splits down to 16 triangles, Morton splits below,
-    `jaxrt.bvh_sah`: ~10 % fewer node visits per ray than the LBVH) or "lbvh" (Morton-code
-    splits, `jaxrt.bvh_build`: about 2/3 of the SAH build time). layout: node numbering, "bfs"
-    (default: breadth-first) or "dfs" (depth-first: every subtree contiguous in memory). All give
-    the same array layout, so every traversal takes any of them; BENCHMARKS.md ("Tree quality")
-    has the measurements.
+    builder: "lbvh" (default: Morton-code splits, `jaxrt.bvh_build`; the full dragon in ~1–1.9 s
+    on a 2-core CPU) or "sah" (binned SAH splits down to 16 triangles, Morton splits below,
+    `jaxrt.bvh_sah`: ~10 % fewer node visits per ray, ~1.2–1.4x the LBVH's build time). layout:
+    node numbering, "bfs" (default: breadth-first) or "dfs" (depth-first: every subtree contiguous
+    in memory). All give the same array layout, so every traversal takes any of them.
+    `RENDER_TREE` is what scenes use: built once, traced every frame. BENCHMARKS.md ("Tree
+    quality") has the measurements.
 
     vertices (V,3) float, faces (F,3) int in [0, V). Raises InputError on NaN/Inf vertices,
     out-of-range indices or no faces. Zero-area faces are kept (they are never hit).

@@ -148,6 +148,9 @@ def finish(tri, tmin, tmax, order, left, start, count, levels, layout: str = "bf
     leaves = leaves[np.argsort(start[leaves])]
     lo[leaves] = np.minimum.reduceat(np.take(tmin, order, axis=0), start[leaves], axis=0)
     hi[leaves] = np.maximum.reduceat(np.take(tmax, order, axis=0), start[leaves], axis=0)
+    depth = np.empty(nn, np.int64)
+    for k, ids in enumerate(levels):
+        depth[ids] = k
     levels = [ids[~is_leaf[ids]] for ids in levels]  # interior nodes per level
     for ids in reversed(levels):
         if len(ids):
@@ -164,37 +167,37 @@ def finish(tri, tmin, tmax, order, left, start, count, levels, layout: str = "bf
         size[ids] = 1 + size[left[ids]] + size[left[ids] + 1]
     ctr = (lo.astype(np.float64) + hi).T.copy()  # (3, nn) twice the box centre
     ar = np.arange(nn)
-    near = []  # per level: is the first child's centre below the second's (class 2*axis)
     at = np.empty(nn + 1, np.int64)  # node at each pre-order index (nn: -1, the end)
+    at[nn] = -1
     links = np.empty((NUM_RAY_CLASSES, nn, 2), np.int32)
-    order0 = None
-    # One class at a time (class c: axis c // 2, negative if c odd): the per-node arrays stay a
-    # few MB each, so they are reused instead of freshly mapped (page faults cost as much as the
-    # work here).
-    for c in range(NUM_RAY_CLASSES):
-        axis, negative = c // 2, bool(c % 2)
-        pre = np.zeros(nn, np.int64)  # pre-order index
-        first = np.full(nn, -1, np.int64)
-        if not negative:
-            near = [ctr[axis][left[ids]] <= ctr[axis][left[ids] + 1] for ids in levels]
-        for ids, below in zip(levels, near):
-            if not len(ids):
-                continue
-            a = left[ids]
-            a_first = below ^ negative  # the negative class visits the children the other way
-            n1 = np.where(a_first, a, a + 1)
-            n2 = (2 * a + 1) - n1
-            first[ids] = n1
-            p_par = pre[ids] + 1
-            pre[n1] = p_par
-            pre[n2] = p_par + size[n1]
+    sibling_sum = np.where(is_leaf, 0, 2 * left + 1)  # first + second child of an interior node
+
+    def thread(c, pre, first):
         at[pre] = ar
-        at[nn] = -1
         miss = at[pre + size]
         links[c, :, 1] = miss
         links[c, :, 0] = np.where(is_leaf, miss, first)
-        if c == 0:
+
+    # Class 2*axis orders each node's children by their centres along the axis, level by level;
+    # class 2*axis + 1 (negative direction) visits every node's children the other way round, i.e.
+    # the mirrored pre-order, in which the nodes before X are X's ancestors and the nodes that the
+    # positive order visits after X's subtree: pre' = depth + nn - pre - size.
+    for axis in range(3):
+        pre = np.zeros(nn, np.int64)  # pre-order index
+        first = np.full(nn, -1, np.int64)
+        for ids in levels:
+            if not len(ids):
+                continue
+            a = left[ids]
+            n1 = np.where(ctr[axis][a] <= ctr[axis][a + 1], a, a + 1)
+            first[ids] = n1
+            p_par = pre[ids] + 1
+            pre[n1] = p_par
+            pre[(2 * a + 1) - n1] = p_par + size[n1]
+        thread(2 * axis, pre, first)
+        if axis == 0:
             pre0, order0 = pre, at[:nn].copy()
+        thread(2 * axis + 1, depth + nn - pre - size, np.where(is_leaf, -1, sibling_sum - first))
     box = np.concatenate([lo_pad, hi_pad], axis=1).astype(np.float32)
     unpadded = np.concatenate([lo, hi], axis=1)
     node_leaf = np.stack([start, count], axis=1)

@@ -800,7 +800,7 @@ def build(spec: SceneSpec) -> Scene:
         faces = np.asarray(whole.faces, np.int32)
         if not np.all(np.isfinite(verts)):
             raise InputError(f"{spec.source}: scene geometry contains non-finite vertices")
-        tree = bvh.build(verts, faces)
+        tree = bvh.build(verts, faces, **bvh.RENDER_TREE)
         geometry = Geometry(
             vertices=jnp.asarray(verts),
             normals=jnp.asarray(np.asarray(whole.normals, np.float32)),

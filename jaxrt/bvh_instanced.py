@@ -45,7 +45,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from jaxrt import bvh_build
 from jaxrt.bvh import Hit, _default_lanes, _default_steps
-from jaxrt.bvh_traverse import _df_add, _df_mul, _df_neg, _FAR_SCALE, precompute, intersect_triangles
+from jaxrt.bvh_traverse import _df_add, _df_mul, _df_neg, node_step, precompute
 from jaxrt.errors import InputError
 
 # Outward padding of instance world boxes, relative to the box's magnitude: the TLAS test uses the
@@ -184,7 +184,6 @@ def _traverse(tree: InstancedBVH, origins, directions, tmin, tmax, *, any_hit, l
     Returns (found, t, triangle (leaf order, global), instance, u, v), each (N,)."""
     node_box, node_leaf, links, tris = tree.node_box, tree.node_leaf, tree.links, tree.triangles
     nn = node_box.shape[0]
-    nf = tris.shape[0]
     nt = tree.num_tlas_nodes
     n_rays = origins.shape[0]
     w = min(lanes, n_rays)
@@ -203,37 +202,17 @@ def _traverse(tree: InstancedBVH, origins, directions, tmin, tmax, *, any_hit, l
         node, t_best, best, best_inst, bu, bv, inst, resume, cur = st
         active = node >= 0
         n = jnp.maximum(node, 0)
-        box = node_box[n]
-        t0 = (box[:, :3] - cur["o"]) * cur["inv"]
-        t1 = (box[:, 3:] - cur["o"]) * cur["inv"]
-        t_lo = ray["tmin"]
-        t_near = jnp.maximum(jnp.max(jnp.minimum(t0, t1), axis=-1), t_lo)
-        t_far = jnp.minimum(jnp.min(jnp.maximum(t0, t1), axis=-1) * _FAR_SCALE, t_best)
-        box_hit = active & (t_near <= t_far)
-        leaf = node_leaf[n]
         in_top = n < nt
-        leaf_hit = box_hit & (leaf[:, 1] > 0)
-        tri_leaf = leaf_hit & ~in_top
+        cur_t = dict(cur, tmin=ray["tmin"])
+        box_hit, leaf_hit, any_h, better, (t_best, best, bu, bv) = node_step(
+            cur_t, node_box, node_leaf, tris, n, active, (t_best, best, bu, bv), ar, leaf_ok=~in_top)
         enter = leaf_hit & in_top
-        first = jnp.where(tri_leaf, leaf[:, 0], 0)
-        idx = jnp.minimum(first[:, None] + ar, nf - 1)
-        valid = tri_leaf[:, None] & (ar < leaf[:, 1:2])
-        h, t, u, v = intersect_triangles(cur, tris[idx], t_lo, t_best, valid)
-        t_m = jnp.where(h, t, jnp.inf)
-        j = jnp.argmin(t_m, axis=-1)[:, None]
-        any_h = jnp.any(h, axis=-1)
-        t_j = jnp.take_along_axis(t_m, j, axis=-1)[:, 0]
-        better = any_h & ((t_j < t_best) | (best < 0))
-        t_best = jnp.where(better, t_j, t_best)
-        best = jnp.where(better, jnp.take_along_axis(idx, j, axis=-1)[:, 0], best)
         best_inst = jnp.where(better, inst, best_inst)
-        bu = jnp.where(better, jnp.take_along_axis(u, j, axis=-1)[:, 0], bu)
-        bv = jnp.where(better, jnp.take_along_axis(v, j, axis=-1)[:, 0], bv)
         nxt = links[cur["base"] + n]
         nxt = jnp.where(box_hit, nxt[:, 0], nxt[:, 1])
         # the BLAS threading ended: back to the world ray and the TLAS node after the instance's leaf
         leave = active & ~in_top & (nxt < 0)
-        new_inst = jnp.where(enter, leaf[:, 0], 0)
+        new_inst = jnp.where(enter, node_leaf[n, 0], 0)
         node_new = jnp.where(enter, tree.proto_root[tree.inst_proto[new_inst]], jnp.where(leave, resume, nxt))
         if any_hit:
             node_new = jnp.where(any_h, -1, node_new)

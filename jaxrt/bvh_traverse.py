@@ -195,6 +195,45 @@ def intersect_triangles(ray, tri, tmin, tmax, valid):
     return hit, t, V / det_safe, W / det_safe
 
 
+def node_step(ray, node_box, node_leaf, tris, n, active, hit, ar, leaf_ok=True):
+    """One traversal step's tests for lanes at nodes n (B,): the box (slab test, far distance
+    widened by _FAR_SCALE, clipped to the best t) and, where it is hit and is a leaf (and leaf_ok),
+    the leaf's triangles, keeping the closest hit.
+
+    ray: precompute() dict plus "tmin" (B,); hit: (t_best, best, bu, bv) (B,) each; ar: arange of
+    the leaf size. Returns box_hit (B,), leaf_hit (B,) (before leaf_ok), any_h (B,), better (B,)
+    (the best hit changed) and the updated hit.
+    """
+    t_best, best, bu, bv = hit
+    t_lo = ray["tmin"]
+    nf = tris.shape[0]
+    box = node_box[n]
+    t0 = (box[:, :3] - ray["o"]) * ray["inv"]
+    t1 = (box[:, 3:] - ray["o"]) * ray["inv"]
+    t_near = jnp.maximum(jnp.max(jnp.minimum(t0, t1), axis=-1), t_lo)
+    t_far = jnp.minimum(jnp.min(jnp.maximum(t0, t1), axis=-1) * _FAR_SCALE, t_best)
+    box_hit = active & (t_near <= t_far)
+    leaf = node_leaf[n]
+    leaf_hit = box_hit & (leaf[:, 1] > 0)
+    test = leaf_hit & leaf_ok
+    # Lanes not testing a leaf all read triangle 0, which stays in cache.
+    first = jnp.where(test, leaf[:, 0], 0)
+    idx = jnp.minimum(first[:, None] + ar, nf - 1)
+    valid = test[:, None] & (ar < leaf[:, 1:2])
+    h, t, u, v = intersect_triangles(ray, tris[idx], t_lo, t_best, valid)
+    t_m = jnp.where(h, t, jnp.inf)
+    j = jnp.argmin(t_m, axis=-1)[:, None]
+    any_h = jnp.any(h, axis=-1)
+    t_j = jnp.take_along_axis(t_m, j, axis=-1)[:, 0]
+    # Strict < keeps the earlier triangle on exact ties; a first hit at t == tmax still counts.
+    better = any_h & ((t_j < t_best) | (best < 0))
+    t_best = jnp.where(better, t_j, t_best)
+    best = jnp.where(better, jnp.take_along_axis(idx, j, axis=-1)[:, 0], best)
+    bu = jnp.where(better, jnp.take_along_axis(u, j, axis=-1)[:, 0], bu)
+    bv = jnp.where(better, jnp.take_along_axis(v, j, axis=-1)[:, 0], bv)
+    return box_hit, leaf_hit, any_h, better, (t_best, best, bu, bv)
+
+
 def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_size: int, steps_per_iter: int,
              lanes: int, count_steps: bool = False):
     """Trace N rays with a pool of `lanes` lanes that refill from the ray queue.
@@ -209,7 +248,6 @@ def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_siz
     """
     node_box, node_leaf, links, tris = (arrays[k] for k in ("node_box", "node_leaf", "links", "triangles"))
     nn = node_box.shape[0]
-    nf = tris.shape[0]
     n_rays = origins.shape[0]
     w = min(lanes, n_rays)
     ar = jnp.arange(leaf_size, dtype=jnp.int32)
@@ -223,32 +261,10 @@ def traverse(arrays, origins, directions, tmin, tmax, *, any_hit: bool, leaf_siz
 
     def step(ray, st):
         node, t_best, best, bu, bv, steps = st
-        o, inv, t_lo = ray["o"], ray["inv"], ray["tmin"]
         active = node >= 0
         n = jnp.maximum(node, 0)
-        box = node_box[n]
-        t0 = (box[:, :3] - o) * inv
-        t1 = (box[:, 3:] - o) * inv
-        t_near = jnp.maximum(jnp.max(jnp.minimum(t0, t1), axis=-1), t_lo)
-        t_far = jnp.minimum(jnp.min(jnp.maximum(t0, t1), axis=-1) * _FAR_SCALE, t_best)
-        box_hit = active & (t_near <= t_far)
-        leaf = node_leaf[n]
-        leaf_hit = box_hit & (leaf[:, 1] > 0)
-        # Lanes not testing a leaf all read triangle 0, which stays in cache.
-        first = jnp.where(leaf_hit, leaf[:, 0], 0)
-        idx = jnp.minimum(first[:, None] + ar, nf - 1)
-        valid = leaf_hit[:, None] & (ar < leaf[:, 1:2])
-        h, t, u, v = intersect_triangles(ray, tris[idx], t_lo, t_best, valid)
-        t_m = jnp.where(h, t, jnp.inf)
-        j = jnp.argmin(t_m, axis=-1)[:, None]
-        any_h = jnp.any(h, axis=-1)
-        t_j = jnp.take_along_axis(t_m, j, axis=-1)[:, 0]
-        # Strict < keeps the earlier triangle on exact ties; a first hit at t == tmax still counts.
-        better = any_h & ((t_j < t_best) | (best < 0))
-        t_best = jnp.where(better, t_j, t_best)
-        best = jnp.where(better, jnp.take_along_axis(idx, j, axis=-1)[:, 0], best)
-        bu = jnp.where(better, jnp.take_along_axis(u, j, axis=-1)[:, 0], bu)
-        bv = jnp.where(better, jnp.take_along_axis(v, j, axis=-1)[:, 0], bv)
+        box_hit, _, any_h, _, (t_best, best, bu, bv) = node_step(ray, node_box, node_leaf, tris, n, active,
+                                                                 (t_best, best, bu, bv), ar)
         nxt = links[ray["base"] + n]
         nxt = jnp.where(box_hit, nxt[:, 0], nxt[:, 1])
         if any_hit:

@@ -33,17 +33,29 @@ def main(argv=None):
     ap.add_argument("--res", type=int, default=1024)
     ap.add_argument("--frames", type=int, default=5)
     ap.add_argument("--top", type=int, default=25)
+    ap.add_argument("--part", choices=("frame", "trace", "shade"), default="frame",
+                    help="profile the whole frame, or only its trace or its shade half")
+    ap.add_argument("--hlo", help="also write the frame's optimized HLO text here (maps kernel names to ops)")
     args = ap.parse_args(argv)
     scn = S.load(args.scene, overrides={"camera.width": args.res, "camera.height": args.res})
-    jax.block_until_ready(render.frame(scn))
+    if args.part == "frame":
+        fn, arg = render.frame, scn
+    elif args.part == "trace":
+        fn, arg = render.trace, scn
+    else:
+        gb = jax.block_until_ready(render.trace(scn))
+        fn, arg = (lambda s: render.shade(gb, s)), scn
+    jax.block_until_ready(fn(arg))
+    if args.hlo:
+        Path(args.hlo).write_text((render.shade.lower(gb, scn) if args.part == 'shade' else fn.lower(scn)).compile().as_text())
     t = time.perf_counter()
     for _ in range(args.frames):
-        jax.block_until_ready(render.frame(scn))
+        jax.block_until_ready(fn(arg))
     wall = (time.perf_counter() - t) / args.frames
     with tempfile.TemporaryDirectory() as tmp:
         with jax.profiler.trace(tmp, create_perfetto_trace=True):
             for _ in range(args.frames):
-                jax.block_until_ready(render.frame(scn))
+                jax.block_until_ready(fn(arg))
         path = next(Path(tmp).rglob("*.trace.json.gz"))
         events = json.load(gzip.open(path))
     events = events["traceEvents"] if isinstance(events, dict) else events
@@ -57,7 +69,7 @@ def main(argv=None):
             per[e["name"]] += e.get("dur", 0.0)
             count[e["name"]] += 1
     total = sum(per.values()) / args.frames
-    print(f"# {jax.devices()[0].device_kind}, scene {args.scene} {args.res}²: frame wall {wall * 1e3:.2f} ms, "
+    print(f"# {jax.devices()[0].device_kind}, scene {args.scene} {args.res}², {args.part}: wall {wall * 1e3:.2f} ms, "
           f"device kernels {total / 1e3:.2f} ms per frame ({sum(count.values()) // args.frames} launches)")
     print(f"# processes: {sorted(set(pids.values()))}")
     for name, us in sorted(per.items(), key=lambda kv: -kv[1])[: args.top]:

@@ -10,7 +10,9 @@ hits to a point light) Mrays/s for each traversal implementation (`bvh.intersect
 "xla" = the pure-JAX loop, "pallas" = the Triton kernel of jaxrt.bvh_pallas, "cpu" = the C++ kernel of
 jaxrt.bvh_cpu; default xla pallas on GPU, cpu xla on CPU), the fraction of rays on
 which the implementations agree, and on CPU Embree's Mrays/s on the same rays in the same run; the
-shadow rays are timed twice, from the surface and from the light end (`bvh.occluded(from_end=True)`).
+shadow rays are timed twice, from the surface and from the light end (`bvh.occluded(from_end=True)`),
+and again from the hits of a --shadow-res² camera (default 2x res on GPU: ~1M shadow rays for the
+dragon, the launch size of OptiX's quoted figures).
 --builders times the rays on several trees (`bvh.build(builder=, layout=)`, e.g. `lbvh sah/dfs`).
 Frames (bunny, dragon, showcase scenes, `render.frame` = Whitted: point lights, shadows, mirror/glass
 bounces): compile s, frame ms, fps, GPU peak memory, and that changing the light and the camera position
@@ -48,7 +50,19 @@ def peak_gb(dev):
     return (st or {}).get("peak_bytes_in_use", float("nan")) / 2**30
 
 
-def bench_rays(name, res, impls, repeats, embree, builder=None):
+def shadow_segments(tree, o, d, light):
+    """Shadow segments from the closest hits of rays (o, d) to the light: origins, directions (to the
+    light, unnormalised), tmin, tmax (in units of the segment, 1e-4 off each end)."""
+    hit = bvh.intersect(tree, jnp.asarray(o), jnp.asarray(d), 0.0, jnp.inf)
+    prim, t = np.asarray(hit.prim), np.asarray(hit.t)
+    ok = prim >= 0
+    p = o[ok] + t[ok, None] * d[ok]
+    so, sd = p.astype(np.float32), (light[None] - p).astype(np.float32)
+    eps = np.float32(1e-4)
+    return jnp.asarray(so), jnp.asarray(sd), jnp.full(len(so), eps), jnp.full(len(so), 1 - eps)
+
+
+def bench_rays(name, res, impls, repeats, embree, builder=None, shadow_res=None):
     m = mesh.load(data.find(name))
     kw = {} if builder is None else dict(zip(("builder", "layout"), builder.split("/")))  # "sah/dfs"
     t = time.perf_counter()
@@ -59,7 +73,10 @@ def bench_rays(name, res, impls, repeats, embree, builder=None):
     o, d, light = camera_rays(m.vertices, res)
     od, dd = jnp.asarray(o), jnp.asarray(d)
     z = jnp.zeros(len(o), jnp.float32)
-    rows, ref = [], None
+    rows, ref, ref_big = [], None, None
+    # Shadow rays from the hits of a shadow_res² camera: ~4x as many at 2x the resolution, a launch the
+    # size of the 1M-ray launches OptiX's figures are quoted for (a 231k-ray launch is partly latency).
+    big = shadow_segments(tree, *camera_rays(m.vertices, shadow_res)) if shadow_res else None
     for impl in impls:
         f_hit = jax.jit(lambda tr, o_, d_, lo, impl=impl: bvh.intersect(tr, o_, d_, lo, jnp.inf, impl=impl))
         f_occ = jax.jit(lambda tr, o_, d_, lo, hi, impl=impl: bvh.occluded(tr, o_, d_, hi, lo, impl=impl))
@@ -87,10 +104,19 @@ def bench_rays(name, res, impls, repeats, embree, builder=None):
         t_rev = median_time(lambda: jax.block_until_ready(f_rev(tree, sod, sdd, smin, smax)), repeats)
         if ref is None:
             ref = (hit, occ)
+        n_big = t_big = t_big_rev = agree_big = float("nan")
+        if big is not None:
+            n_big = int(big[0].shape[0])
+            occ_big = np.asarray(f_rev(tree, *big))
+            ref_big = occ_big if ref_big is None else ref_big
+            agree_big = float(np.mean(occ_big == ref_big))
+            t_big = median_time(lambda: jax.block_until_ready(f_occ(tree, *big)), repeats)
+            t_big_rev = median_time(lambda: jax.block_until_ready(f_rev(tree, *big)), repeats)
         row = dict(model=name, res=res, tris=int(m.num_faces), impl=impl, builder=builder or "default",
                    sah_cost=st.sah_cost, build_s=t_build, compile_s=t_compile,
                    compile_occ_s=t_compile_occ, primary=len(o) / t_prim / 1e6, shadow=len(so) / t_shadow / 1e6,
-                   shadow_rev=len(so) / t_rev / 1e6,
+                   shadow_rev=len(so) / t_rev / 1e6, shadow_res=shadow_res or 0, shadow_big_n=n_big,
+                   shadow_big=n_big / t_big / 1e6, shadow_big_rev=n_big / t_big_rev / 1e6, agree_big=agree_big,
                    agree_prim=float(np.mean(hit.prim == ref[0].prim)), agree_occ=float(np.mean(occ == ref[1])),
                    agree_rev=float(np.mean(occ_rev == ref[1])))
         rows.append(row)
@@ -101,6 +127,8 @@ def bench_rays(name, res, impls, repeats, embree, builder=None):
         e_occ = median_time(lambda: esc.run(so + sd * eps, sd * (1 - 2 * eps), query="OCCLUDED"), repeats)
         row = dict(model=name, res=res, tris=int(m.num_faces), impl="embree", builder="embree", sah_cost=float("nan"),
                    build_s=t_ebuild, compile_s=0.0, shadow_rev=float("nan"), agree_rev=float("nan"),
+                   shadow_res=0, shadow_big_n=float("nan"), shadow_big=float("nan"), shadow_big_rev=float("nan"),
+                   agree_big=float("nan"),
                    compile_occ_s=0.0, primary=len(o) / e_prim / 1e6, shadow=len(so) / e_occ / 1e6,
                    agree_prim=float(np.mean(esc.run(o, d, output=1)["primID"].astype(np.int64) == ref[0].prim)),
                    agree_occ=float("nan"))
@@ -166,6 +194,8 @@ def main(argv=None) -> int:
     ap.add_argument("--impls", nargs="+", default=None, help="default: xla pallas on GPU, cpu xla on CPU")
     ap.add_argument("--frame-impls", nargs="+", default=None, help="default: auto")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--shadow-res", type=int, default=None,
+                    help="also time shadow rays from the hits at this resolution (default 2x res on GPU, none on CPU)")
     ap.add_argument("--check-size", type=int, default=64)
     ap.add_argument("--skip", nargs="*", default=[], choices=["rays", "frames", "check"])
     ap.add_argument("--builders", nargs="+", default=[None], help="bvh.build builders for the ray rows, "
@@ -184,7 +214,8 @@ def main(argv=None) -> int:
     if "rays" not in args.skip:
         for name in args.models:
             for b in args.builders:
-                out["rays"] += bench_rays(name, res, impls, args.repeats, embree=not gpu, builder=b)
+                out["rays"] += bench_rays(name, res, impls, args.repeats, embree=not gpu, builder=b,
+                                          shadow_res=args.shadow_res or (2 * res if gpu else None))
     if "frames" not in args.skip:
         for name in args.scenes:
             for impl in args.frame_impls or ["auto"]:
@@ -199,12 +230,14 @@ def main(argv=None) -> int:
 
     print(f"\n{dev.device_kind}, {res}²")
     print("| model | tris | builder (SAH cost) | traversal | build s | compile s (hit / occ) | primary Mrays/s "
-          "| shadow Mrays/s | shadow from light Mrays/s | agree prim / occ / from light |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| shadow Mrays/s | shadow from light Mrays/s | shadow / from light, hits at 2x res (rays) "
+          "| agree prim / occ / from light / 2x |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in out["rays"]:
         print(f"| {r['model']} | {r['tris']} | {r['builder']} ({r['sah_cost']:.1f}) | {r['impl']} | {r['build_s']:.2f} "
               f"| {r['compile_s']:.1f} / {r['compile_occ_s']:.1f} | {r['primary']:.4g} | {r['shadow']:.4g} "
-              f"| {r['shadow_rev']:.4g} | {r['agree_prim']:.4f} / {r['agree_occ']:.4f} / {r['agree_rev']:.4f} |")
+              f"| {r['shadow_rev']:.4g} | {r['shadow_big']:.4g} / {r['shadow_big_rev']:.4g} ({r['shadow_big_n']}) "
+              f"| {r['agree_prim']:.4f} / {r['agree_occ']:.4f} / {r['agree_rev']:.4f} / {r['agree_big']:.4f} |")
     for r in out["rays"]:
         e = next((x for x in out["rays"] if x["model"] == r["model"] and x["impl"] == "embree"), None)
         if e is not None and r["impl"] != "embree":

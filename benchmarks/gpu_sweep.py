@@ -66,6 +66,7 @@ def main():
 
 PALLAS_VARIANTS = [  # bvh_pallas.traverse keyword arguments; BENCHMARKS.md has the earlier variants' numbers
     dict(steps_per_iter=2, layout="inline", skip_tri=False),  # the kernel before child-box rows
+    dict(layout="childbox", trail=0),  # child-box rows without the bit trail (third session's default)
     dict(layout="childbox"),
     dict(layout="childbox", steps_per_iter=2),
 ]
@@ -77,6 +78,7 @@ def sweep_pallas(args):
     tree = bvh.build(m.vertices, m.faces, **kw)
     arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
     arrays["rows"] = jax.jit(bvh_pallas.pack_rows)(**arrays)
+    arrays["skips"] = jax.jit(bvh_pallas.pack_skips)(tree.node_leaf, tree.links)
     o, d, light = camera_rays(m.vertices, args.res)
     n = len(o)
     od, dd = jnp.asarray(o), jnp.asarray(d)
@@ -100,9 +102,8 @@ def sweep_pallas(args):
              ("from-light", True, light_rays),
              *((f"from-light x{k}", True, tuple(rep(x, k) for x in light_rays)) for k in (0.25, 2, 4)),
              ("primary any-hit", True, (od, dd, lo, hi)))
-    for k, var in enumerate(PALLAS_VARIANTS):
-        if args.variants and k not in args.variants:
-            continue
+    for k in args.variants if args.variants else range(len(PALLAS_VARIANTS)):
+        var = PALLAS_VARIANTS[k]
         line = " ".join(f"{a}={b}" for a, b in var.items()) + ":"
         try:
             for kind, any_hit, args_ in kinds:

@@ -53,6 +53,8 @@ class BVH(eqx.Module):
                                 in each interior row, the triangle in each leaf row), or None: packed
                                 once by `build` when the default backend is a GPU and leaf_size is 1
                                 (111 MB for the full dragon), else per call by the kernel.
+    skips     (6*nn,) int32     the same kernel's links: per class and node, miss link << 5 | depth of
+                                its node (`bvh_pallas.pack_skips`); None when rows is None
     leaf_size: static, the largest leaf
     """
 
@@ -62,6 +64,7 @@ class BVH(eqx.Module):
     triangles: Float[Array, "F 9"]
     prim_ids: Int[Array, " F"]
     rows: Float[Array, "nn 16"] | None
+    skips: Int[Array, " nn6"] | None
     leaf_size: int = eqx.field(static=True)
 
     @property
@@ -117,11 +120,15 @@ def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, 
     a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder, layout=layout)
     put = jax.device_put
     arrays = {k: put(a[k]) for k in ("node_box", "node_leaf", "links", "triangles")}
-    rows = _pack_rows(**arrays) if leaf_size == 1 and jax.default_backend() == "gpu" else None
-    return BVH(**arrays, prim_ids=put(a["prim_ids"]), rows=rows, leaf_size=leaf_size)
+    rows = skips = None
+    if leaf_size == 1 and jax.default_backend() == "gpu":
+        rows = _pack_rows(**arrays)
+        skips = _pack_skips(arrays["node_leaf"], arrays["links"])
+    return BVH(**arrays, prim_ids=put(a["prim_ids"]), rows=rows, skips=skips, leaf_size=leaf_size)
 
 
 _pack_rows = jax.jit(bvh_pallas.pack_rows)
+_pack_skips = jax.jit(bvh_pallas.pack_skips)
 
 
 def stats(tree: BVH) -> BVHStats:
@@ -184,7 +191,7 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         return jnp.zeros(0, bool), z, jnp.zeros(0, jnp.int32), z, z, jnp.zeros(0, jnp.int32)
     arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
     if tree.rows is not None:
-        arrays["rows"] = tree.rows
+        arrays["rows"], arrays["skips"] = tree.rows, tree.skips
 
     def refined(out, o, d):
         # Once per ray: t of the chosen triangle in double-float, so grazing hits keep ~1e-7

@@ -14,7 +14,11 @@ rays). The default node table (`pack_rows`, stored once per tree as `BVH.rows`) 
 node's two children's boxes in its row and each leaf's triangle in the leaf's row: a step loads one
 row, tests both children and moves straight to the nearer child that is hit, so children whose
 boxes miss are never loaded (27 % fewer steps than one box per row, measured with the dragon's camera
-and shadow rays); the miss links of the threaded tree still order the traversal. The kernel is
+and shadow rays); the miss links of the threaded tree still order the traversal. A miss link always
+leads to a node's farther child, whose box the ray tested when it visited the parent: a per-ray bit
+trail (one bit per depth, set when both children were hit) says whether it was hit, and where not the
+ray takes that node's miss link at once instead of stepping into it (`pack_skips`: a quarter of the
+dragon's steps, simulated). The kernel is
 bound by instruction issue more than by memory (BENCHMARKS.md): the triangle test runs only in
 warps where some ray is at a leaf, and u, v are divided once per ray at the end. The hit distance
 is float32 and may differ from the XLA path's in the last ulp where the compiler contracts a
@@ -43,6 +47,8 @@ _FAR_SCALE = bvh_traverse._FAR_SCALE
 _ROW = 12  # words per node row with inline leaves: 9 (box or triangle), first, count, pad
 _CB_ROW = 16  # words per node row with child boxes (see pack_rows)
 _HI_MASK = -4096  # 0xFFFFF000 as int32: keeps sign, exponent and the top 11 mantissa bits
+_SKIP_SHIFT = 5  # skip-table entries (`pack_skips`): miss link << 5 | depth of its node (31: deeper)
+_SKIP_DEPTH = 31
 
 
 def _opaque(x, zero):
@@ -86,7 +92,7 @@ _RAY_FIELDS = 14  # o (3), inv (3), shear (3), kx, ky, kz, class, tmin; then tma
 
 
 def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str,
-            gate_exact: bool, skip_tri: bool):
+            gate_exact: bool, skip_tri: bool, trail: int):
     ray_refs = refs[:_RAY_FIELDS + 1]
     box_r, leaf_r, links_r, tri_r = refs[_RAY_FIELDS + 1:_RAY_FIELDS + 5]
     t_o, best_o, u_o, v_o = refs[_RAY_FIELDS + 5:]
@@ -158,17 +164,20 @@ def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, 
         return lax.cond(jnp.max(valid.astype(jnp.int32)) > 0, test,
                         lambda: (jnp.zeros_like(valid), z, (z, z, z + 1.0)))
 
-    def step_childbox(ray, node, hit):
+    def step_childbox(ray, node, hit, bits):
         # A node's row holds its children's boxes: one load tests both, and the ray moves straight to
         # the nearer child that is hit (or the farther, or the miss link), so children whose boxes
         # miss are never loaded. The farther child, when the nearer was hit, is reached later by the
         # nearer's miss link without its own box test: its row then tests its children instead.
+        # links_r here is the skip table (`pack_skips`): per class and node, the miss link and the
+        # depth of the node it leads to.
         cls = ray[12]
         active = node >= 0
         n = jnp.maximum(node, 0)
         r16 = n * _CB_ROW
         w = [box_r[r16 + k] for k in range(_CB_ROW)]
-        is_leaf = lax.bitcast_convert_type(w[15], jnp.int32) > 0
+        code = lax.bitcast_convert_type(w[15], jnp.int32)  # 1: leaf; -(depth + 1): interior
+        is_leaf = code > 0
         h_a = slab(ray, w[0:6], hit[0])
         h_b = slab(ray, w[6:12], hit[0])
         child_a = lax.bitcast_convert_type(w[12], jnp.int32)
@@ -178,12 +187,41 @@ def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, 
         h_near, h_far = jnp.where(swap, h_b, h_a), jnp.where(swap, h_a, h_b)
         h, t, bary = test_leaf(ray, w[:9], active & is_leaf, hit)
         hit = keep(h, t, bary, lax.bitcast_convert_type(w[9], jnp.int32), hit)
-        miss = links_r[(cls * nn + n) * 2 + 1]
+        sk = links_r[cls * nn + n]
+        miss = lax.shift_right_arithmetic(sk, jnp.int32(_SKIP_SHIFT))
         nxt_leaf = jnp.where(h, -1, miss) if any_hit else miss
         nxt = jnp.where(is_leaf, nxt_leaf, jnp.where(h_near, near, jnp.where(h_far, far, miss)))
-        return jnp.where(active, nxt, -1), hit
+        nxt = jnp.where(active, nxt, -1)
+        if trail:
+            # Bit trail: bit k set = the ray hit the box of the farther child at depth k that it has
+            # not entered yet. The miss link always leads to such a farther (second-visited) child; if
+            # its bit is clear its box was tested and missed, so the ray takes that node's miss link in
+            # turn (one 4-byte load) instead of a step that would load its row and test its children's
+            # boxes for nothing (a quarter of all steps on the dragon, simulated). Deeper subtrees than
+            # `trail` levels keep no bits and are always entered (correct, as without the trail).
+            child_depth = -code  # depth of an interior node's children
+            both = active & ~is_leaf & h_near & h_far & (child_depth < trail)
+            bits = bits | jnp.where(both, lax.shift_left(jnp.int32(1), jnp.clip(child_depth, 0, 31)), 0)
+            via = (nxt >= 0) & (nxt == miss)
 
-    def step_nodes(ray, node, hit):
+            def hop(s):
+                m, md, via, bits = s
+                tracked = md < trail
+                bit = lax.shift_left(jnp.int32(1), md)
+                enter = ~tracked | ((bits & bit) != 0)
+                bits = jnp.where(via & tracked, bits & ~bit, bits)
+                skip = via & ~enter
+                sk = links_r[cls * nn + jnp.maximum(m, 0)]
+                m = jnp.where(skip, lax.shift_right_arithmetic(sk, jnp.int32(_SKIP_SHIFT)), m)
+                md = jnp.where(skip, sk & _SKIP_DEPTH, md)
+                return m, md, skip & (m >= 0), bits
+
+            # As many hops as the warp needs (one or two fixed hops without the vote measured no faster).
+            nxt, _, _, bits = lax.while_loop(lambda s: jnp.max(s[2].astype(jnp.int32)) > 0, hop,
+                                             (nxt, sk & _SKIP_DEPTH, via, bits))
+        return nxt, hit, bits
+
+    def step_nodes(ray, node, hit, bits):
         # layout "inline": one 12-word row per node, an interior node's box or a leaf's triangle;
         # "tables": separate box, leaf-range and triangle tables (any leaf size).
         cls = ray[12]
@@ -225,7 +263,7 @@ def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, 
         nxt = jnp.where(box_hit, links_r[row], links_r[row + 1])
         if any_hit:
             nxt = jnp.where(any_h, -1, nxt)
-        return jnp.where(active, nxt, -1), hit
+        return jnp.where(active, nxt, -1), hit, bits
 
     step = step_childbox if layout == "childbox" else step_nodes
 
@@ -233,62 +271,96 @@ def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, 
         t, best, bv, bw, det = hit
         return t, best, bv / det, bw / det
 
-    def steps(ray, node, hit):
+    def steps(ray, node, hit, bits):
         for _ in range(steps_per_iter):
-            node, hit = step(ray, node, hit)
-        return node, hit
+            node, hit, bits = step(ray, node, hit, bits)
+        return node, hit, bits
 
     # One block of consecutive rays per program, traced until the slowest of them ends.
     ray = tuple(r[...] for r in ray_refs[:_RAY_FIELDS])
     shape = ray[0].shape
     z = jnp.zeros(shape, jnp.float32)
     hit = (ray_refs[_RAY_FIELDS][...], jnp.full(shape, -1, jnp.int32), z, z, z + 1.0)
-    _, hit = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s),
-                               (jnp.zeros(shape, jnp.int32), hit))
+    _, hit, _ = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s),
+                               (jnp.zeros(shape, jnp.int32), hit, jnp.zeros(shape, jnp.int32)))
     t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
+
+
+def _children(node_leaf, links):
+    """(is_leaf, a, b, links (classes, nn, 2)): a is class 0's first child of an interior node, b its sibling."""
+    nn = node_leaf.shape[0]
+    lk = links.reshape(NUM_CLASSES, nn, 2)
+    is_leaf = node_leaf[:, 1] > 0
+    a = jnp.where(is_leaf, 0, lk[0, :, 0])  # class 0's hit link of an interior node: its first child
+    b = jnp.where(is_leaf, 0, lk[0, a, 1])  # whose miss link is the sibling
+    return is_leaf, a, b, lk
+
+
+def node_depth(node_leaf, links) -> Array:
+    """(nn,) int32 depth of every node (root 0), by pointer jumping over parent links (log2(nn) rounds)."""
+    nn = node_leaf.shape[0]
+    is_leaf, a, b, _ = _children(node_leaf, links)
+    idx = jnp.arange(nn, dtype=jnp.int32)
+    inner = jnp.where(is_leaf, nn, idx)  # leaves' (meaningless) children are written out of range
+    parent = jnp.zeros(nn, jnp.int32).at[jnp.where(is_leaf, nn, a)].set(inner, mode="drop")
+    parent = parent.at[jnp.where(is_leaf, nn, b)].set(inner, mode="drop")
+    depth = (idx != 0).astype(jnp.int32)
+    for _ in range(max(1, (nn - 1).bit_length())):
+        depth, parent = depth + depth[parent], parent[parent]
+    return depth
 
 
 def pack_rows(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"]) -> Float[Array, "nn 16"]:
     """The kernel's node table (nn, 16) float32 (int fields stored bit-cast), one row per node:
 
-    interior: box of child a (6), box of child b (6), a, b, order bits, 0 — child a is the first child
-              of ray class 0; bit c of `order` set where class c visits b first
+    interior: box of child a (6), box of child b (6), a, b, order bits, -(depth + 1) — child a is the
+              first child of ray class 0; bit c of `order` set where class c visits b first
     leaf:     its triangle v0 v1 v2 (9), its leaf-order triangle index, 0 ... 0, 1
 
     From a BVH's arrays (see bvh.BVH; leaf_size 1). Built once per tree (`bvh.build` stores it as
     `BVH.rows`), not per traversal call: for the full dragon it is 111 MB.
     """
     nn = node_box.shape[0]
-    lk = links.reshape(NUM_CLASSES, nn, 2)
-    is_leaf = node_leaf[:, 1] > 0
-    a = jnp.where(is_leaf, 0, lk[0, :, 0])  # class 0's hit link of an interior node: its first child
-    b = jnp.where(is_leaf, 0, lk[0, a, 1])  # whose miss link is the sibling
+    is_leaf, a, b, lk = _children(node_leaf, links)
     order = jnp.zeros(nn, jnp.int32)
     for c in range(NUM_CLASSES):
         order = order | ((lk[c, :, 0] != a) & ~is_leaf).astype(jnp.int32) << c
     f32 = lambda x: lax.bitcast_convert_type(x.astype(jnp.int32), jnp.float32)  # noqa: E731
     inner = jnp.concatenate([node_box[a], node_box[b], f32(a)[:, None], f32(b)[:, None], f32(order)[:, None],
-                             jnp.zeros((nn, 1), jnp.float32)], axis=1)
+                             f32(-1 - node_depth(node_leaf, links))[:, None]], axis=1)
     first = jnp.where(is_leaf, node_leaf[:, 0], 0)
     leaf = jnp.concatenate([triangles[first], f32(first)[:, None], jnp.zeros((nn, 5), jnp.float32),
                             f32(jnp.ones(nn))[:, None]], axis=1)
     return jnp.where(is_leaf[:, None], leaf, inner)
 
 
+def pack_skips(node_leaf, links) -> Array:
+    """The child-box kernel's link table (classes * nn,) int32: per ray class c and node n (entry c*nn + n),
+    miss link << 5 | depth of the node it leads to (31 for depth 31 and deeper; -1 << 5 | 0 where it
+    ends). Built once per tree with `pack_rows` (`BVH.skips`)."""
+    nn = node_leaf.shape[0]
+    if nn >= 1 << (31 - _SKIP_SHIFT):
+        raise ValueError(f"bvh_pallas: {nn} nodes do not fit the skip table's {31 - _SKIP_SHIFT}-bit links")
+    miss = links.reshape(-1, 2)[:, 1]
+    depth = jnp.minimum(node_depth(node_leaf, links), _SKIP_DEPTH)[jnp.maximum(miss, 0)]
+    return lax.shift_left(miss, jnp.int32(_SKIP_SHIFT)) | jnp.where(miss >= 0, depth, 0)
+
+
 LAYOUTS = ("childbox", "inline", "tables")
+TRAIL_DEPTH = 31  # the bit trail covers depths 0-30 (one int32 per ray)
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
-                                             "interpret", "layout", "gate_exact", "skip_tri"))
+                                             "interpret", "layout", "gate_exact", "skip_tri", "trail"))
 def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"], tmin: Float[Array, " N"],
              tmax: Float[Array, " N"], *, any_hit: bool, leaf_size: int, block: int = 32,
              steps_per_iter: int = 1, num_warps: int = 1, interpret: bool = False, layout: str | None = None,
-             gate_exact: bool = True, skip_tri: bool = True):
+             gate_exact: bool = True, skip_tri: bool = True, trail: int = TRAIL_DEPTH):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `bvh_traverse.traverse` (without the step counts).
 
     arrays: node_box (nn,6), node_leaf (nn,2), links (6nn,2), triangles (F,9), optionally rows
-    (nn,16) (see bvh.BVH); origins, directions (N,3) float32; tmin, tmax (N,) float32.
+    (nn,16) and skips (6nn,) (see bvh.BVH); origins, directions (N,3) float32; tmin, tmax (N,) float32.
     block: rays per program instance (a power of 2); steps_per_iter: traversal steps between two
     checks of the loop predicate; num_warps: Triton warps per program; interpret: run the kernel
     with the Pallas interpreter (any backend; slow, for tests). gate_exact: evaluate the exact
@@ -301,11 +373,14 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
                   per call);
       "tables":   separate box / leaf-range / triangle tables, any leaf size.
     skip_tri: a warp none of whose rays is at a leaf skips the triangle test's arithmetic (a
-    warp-uniform branch). All options give the same results; BENCHMARKS.md has their speeds.
+    warp-uniform branch). trail (child-box layout): levels of the tree covered by the bit trail that
+    skips farther children known to be missed (0 to 31; 0 = no trail). All options give the same results; BENCHMARKS.md has their speeds.
     """
     layout = layout or ("childbox" if leaf_size == 1 else "tables")
     if layout not in LAYOUTS:
         raise ValueError(f"bvh_pallas: layout must be one of {LAYOUTS}, got {layout!r}")
+    if not 0 <= trail <= TRAIL_DEPTH:
+        raise ValueError(f"bvh_pallas: trail must be in [0, {TRAIL_DEPTH}], got {trail}")
     if layout != "tables" and leaf_size != 1:
         raise ValueError(f"bvh_pallas: layout {layout!r} needs leaf_size 1")
     nn = arrays["node_box"].shape[0]
@@ -324,8 +399,10 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     per_ray += [col(ray[k], 0) for k in ("kx", "ky", "kz")] + [col(ray["ray_class"], 0)]
     per_ray += [col(tmin.astype(jnp.float32), 1.0), col(tmax.astype(jnp.float32), 0.0)]
     box, leaf, tri = arrays["node_box"], arrays["node_leaf"], arrays["triangles"]
+    links = arrays["links"]
     if layout == "childbox":
-        box = arrays["rows"] if "rows" in arrays else pack_rows(box, leaf, arrays["links"], tri)
+        box = arrays["rows"] if "rows" in arrays else pack_rows(box, leaf, links, tri)
+        links = arrays["skips"] if "skips" in arrays else pack_skips(leaf, links)
         leaf, tri = leaf[:1], tri[:1]  # unused by this layout
     elif layout == "inline":
         is_leaf = (leaf[:, 1] > 0)[:, None]
@@ -334,7 +411,7 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
         box = jnp.concatenate([body, lax.bitcast_convert_type(leaf, jnp.float32), jnp.zeros((nn, 1), jnp.float32)],
                               axis=1)
         leaf, tri = leaf[:1], tri[:1]
-    tables = [box.reshape(-1), leaf.reshape(-1), arrays["links"].reshape(-1), tri.reshape(-1)]
+    tables = [box.reshape(-1), leaf.reshape(-1), links.reshape(-1), tri.reshape(-1)]
     whole = lambda x: pl.BlockSpec(x.shape, lambda i: (0,))  # noqa: E731
     f32 = jax.ShapeDtypeStruct((n_pad,), jnp.float32)
     i32 = jax.ShapeDtypeStruct((n_pad,), jnp.int32)
@@ -342,7 +419,7 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     if not interpret:
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
     static = dict(any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf, nn=nn, layout=layout,
-                  gate_exact=gate_exact, skip_tri=skip_tri)
+                  gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout == "childbox" else 0)
     name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
     ray_spec = pl.BlockSpec((block,), lambda i: (i,))
     t, best, u, v = pl.pallas_call(

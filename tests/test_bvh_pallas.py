@@ -133,7 +133,8 @@ def test_pallas_layout_variants_agree():
         arr, o, d, lo, hi, any_hit=any_hit, leaf_size=1, block=block, interpret=True, **kw)]
     found, t, tri, u, v_ = run()
     assert 0.5 < found.mean() < 1
-    variants = (dict(arr=dict(arrays, rows=bvh_pallas.pack_rows(**arrays))), dict(gate_exact=False), dict(layout="inline"),
+    packed = dict(arrays, rows=bvh_pallas.pack_rows(**arrays), skips=bvh_pallas.pack_skips(tree.node_leaf, tree.links))
+    variants = (dict(arr=packed), dict(trail=0), dict(trail=2), dict(gate_exact=False), dict(layout="inline"),
                 dict(layout="tables"), dict(skip_tri=False), dict(layout="tables", block=32),
                 dict(layout="inline", steps_per_iter=3))
     for kw in variants:
@@ -151,3 +152,34 @@ def test_pallas_layout_variants_agree():
         for a, b in zip(r[3:], (u, v_)):
             np.testing.assert_allclose(a[same], b[same], atol=1e-6, err_msg=str(kw))
         assert np.array_equal(run(any_hit=True, **kw)[0], found), kw
+
+
+def test_node_depth_and_skip_table():
+    """The kernel's node depths (pointer jumping) against a breadth-first walk in numpy, and its skip
+    table decodes to the tree's miss links and their targets' depths."""
+    from jaxrt import bvh_build, bvh_pallas
+
+    m = icosphere_mesh(2)
+    rng = np.random.default_rng(2)
+    v = np.concatenate([m.vertices, rng.normal(size=(60, 3)) * 0.01 + 2.0]).astype(np.float32)  # a dense clump: deep
+    f = np.concatenate([m.faces, len(m.vertices) + rng.integers(0, 60, size=(200, 3))])
+    tree = bvh.build(v, f)
+    leaf = np.asarray(tree.node_leaf)
+    links = np.asarray(tree.links)
+    nn = len(leaf)
+    is_leaf = leaf[:, 1] > 0
+    want = np.full(nn, -1)
+    frontier, d = np.array([0]), 0
+    while len(frontier):
+        want[frontier] = d
+        inner = frontier[~is_leaf[frontier]]
+        first = links[inner, 0]
+        frontier = np.concatenate([first, links[first, 1]])
+        d += 1
+    got = np.asarray(bvh_pallas.node_depth(tree.node_leaf, tree.links))
+    assert np.array_equal(got, want) and want.max() > 8
+    sk = np.asarray(bvh_pallas.pack_skips(tree.node_leaf, tree.links))
+    miss = links[:, 1]
+    assert len(sk) == bvh_build.NUM_RAY_CLASSES * nn
+    assert np.array_equal(sk >> 5, miss)
+    assert np.array_equal(sk & 31, np.where(miss >= 0, np.minimum(want[np.maximum(miss, 0)], 31), 0))

@@ -20,6 +20,15 @@ image. Gradients flow to material parameters, δ, glass n_t (through R only: the
 fixed) and light positions/intensities (visibility stays fixed). Fitting caches the GBuffer and
 calls `shade` only.
 
+`whitted(scene)` (what `render.frame` runs) is `shade(trace(scene), scene)` in one pass: the trace
+loop (`_trace_loop`, shared with `trace`) also adds each level's contribution, the carried path
+throughput times the local radiance of the same hit surface and shadow rays, into the image as it
+goes, so surfaces are evaluated once, no GBuffer is written and there is no per-level host
+round trip. The carried throughput is the product of δ, R and 1 − R that `shade` rebuilds from the
+parents, so the image is the same up to float summation order. Gradients (a custom VJP) are
+`shade`'s on the GBuffer the forward pass records when differentiated: the same as the two-pass
+composition's. Forward-mode autodiff is not defined through `whitted`.
+
 The ray tree in static shapes
 -----------------------------
 Each level of the tree is a fixed-width array of B = ray_budget · H·W·spp ray slots. A ray spawns
@@ -400,12 +409,16 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
         def keep_best(ca):
             # rank alive candidates by weight; keep the B heaviest
             order = jnp.argsort(jnp.where(ca, -cw, jnp.inf))
-            rank = jnp.zeros(2 * B, jnp.int32).at[order].set(jnp.arange(2 * B, dtype=jnp.int32))
+            rank = jnp.zeros(2 * B, jnp.int32).at[order].set(jnp.arange(2 * B, dtype=jnp.int32),
+                                                             unique_indices=True)  # a permutation
             return ca & (rank < B)
 
         keep = jax.lax.cond(total > B, keep_best, lambda ca: ca, ca)
-        slot = jnp.where(keep, jnp.cumsum(keep) - 1, B)  # B = dumped out of range
-        new = lambda x, fill: jnp.full((B,) + x.shape[1:], fill, x.dtype).at[slot].set(x, mode="drop")
+        # dropped candidates go to distinct slots past the end, so every index is unique and the
+        # compaction may be plain stores rather than a serialised scatter
+        slot = jnp.where(keep, jnp.cumsum(keep) - 1, B + jnp.arange(2 * B))
+        new = lambda x, fill: jnp.full((B,) + x.shape[1:], fill, x.dtype).at[slot].set(
+            x, mode="drop", unique_indices=True)
         ray = (
             new(co, 0.0), _normalize(new(cd, 1.0)), new(keep, False), new(cpix, 0), new(cparent, -1),
             new(cb, 0), new(cw, 0.0),

@@ -23,8 +23,9 @@ calls `shade` only.
 `whitted(scene)` (what `render.frame` runs) is `shade(trace(scene), scene)` in one pass: the trace
 loop (`_trace_loop`, shared with `trace`) also adds each level's contribution, the carried path
 throughput times the local radiance of the same hit surface and shadow rays, into the image as it
-goes, so surfaces are evaluated once, no GBuffer is written and there is no per-level host
-round trip. The carried throughput is the product of δ, R and 1 − R that `shade` rebuilds from the
+goes, so surfaces are evaluated once and no GBuffer is written; the loop's only per-level device
+predicates are its own condition and, in scenes with glass, the overflow test before dropping
+branches. The carried throughput is the product of δ, R and 1 − R that `shade` rebuilds from the
 parents, so the image is the same up to float summation order. Gradients (a custom VJP) are
 `shade`'s on the GBuffer the forward pass records when differentiated: the same as the two-pass
 composition's. Forward-mode autodiff is not defined through `whitted`.
@@ -413,7 +414,12 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
                                                              unique_indices=True)  # a permutation
             return ca & (rank < B)
 
-        keep = jax.lax.cond(total > B, keep_best, lambda ca: ca, ca)
+        if any(brdfs.get(m).delta for m in mats.models):
+            keep = jax.lax.cond(total > B, keep_best, lambda ca: ca, ca)
+        else:
+            # without glass a ray has at most one child, so a level never overflows; skipping the
+            # cond saves a device-to-host read of its predicate per level on GPUs
+            keep = ca
         # dropped candidates go to distinct slots past the end, so every index is unique and the
         # compaction may be plain stores rather than a serialised scatter
         slot = jnp.where(keep, jnp.cumsum(keep) - 1, B + jnp.arange(2 * B))

@@ -27,8 +27,8 @@ goes, so surfaces are evaluated once and no GBuffer is written; the loop's only 
 predicates are its own condition and, in scenes with glass, the overflow test before dropping
 branches. The carried throughput is the product of δ, R and 1 − R that `shade` rebuilds from the
 parents, so the image is the same up to float summation order. Gradients (a custom VJP) are
-`shade`'s on the GBuffer the forward pass records when differentiated: the same as the two-pass
-composition's. Forward-mode autodiff is not defined through `whitted`.
+the two-pass composition's: differentiated, `whitted` runs `trace` and `shade` and pulls back
+through `shade`. Forward-mode autodiff is not defined through `whitted`.
 
 The ray tree in static shapes
 -----------------------------
@@ -569,13 +569,13 @@ def _whitted(scene, aovs):
 
 
 def _whitted_fwd(scene, aovs):
-    gb, img, aov = _trace_loop(scene, record=True, image=True, aovs=aovs)
-    return ((img, aov) if aovs else img), (gb, scene)
+    # differentiated: exactly the two-pass composition (trace, then shade with its VJP), so a
+    # gradient costs what it did before the fusion; the pullback (a pytree of residuals) is the residual
+    gb = _trace_loop(scene, record=True, image=False)[0]
+    return jax.vjp(lambda sc: shade(gb, sc, aovs=aovs), scene)
 
 
-def _whitted_bwd(aovs, res, cotangent):
-    gb, scene = res
-    _, pullback = jax.vjp(lambda sc: shade(gb, sc, aovs=aovs), scene)
+def _whitted_bwd(aovs, pullback, cotangent):
     return pullback(cotangent)
 
 
@@ -587,10 +587,9 @@ def whitted(scene, aovs: bool = False):
     `shade(trace(scene), scene, aovs)`, computed in one pass.
 
     The forward pass shades each level of the ray tree as it is traced (`_trace_loop`), so hit
-    surfaces are evaluated once and no GBuffer is written. Reverse-mode gradients are those of
-    `shade` on the traced GBuffer (a custom VJP: the forward pass under differentiation also
-    records the GBuffer, the backward pass is `shade`'s pullback), i.e. the same gradients as the
-    two-pass composition. Forward-mode (jax.jvp) is not defined through it; use
-    `shade(trace(scene), scene)` for that.
+    surfaces are evaluated once and no GBuffer is written. Under reverse-mode differentiation (a
+    custom VJP) the forward pass is the two-pass `shade(trace(scene), scene)` and the backward pass
+    `shade`'s pullback: the same gradients, at the same cost, as before the fusion. Forward-mode
+    (jax.jvp) is not defined through it; use `shade(trace(scene), scene)` for that.
     """
     return _whitted(scene, aovs)

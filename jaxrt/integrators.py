@@ -20,6 +20,16 @@ image. Gradients flow to material parameters, δ, glass n_t (through R only: the
 fixed) and light positions/intensities (visibility stays fixed). Fitting caches the GBuffer and
 calls `shade` only.
 
+`whitted(scene)` (what `render.frame` runs) is `shade(trace(scene), scene)` in one pass: the trace
+loop (`_trace_loop`, shared with `trace`) also adds each level's contribution, the carried path
+throughput times the local radiance of the same hit surface and shadow rays, into the image as it
+goes, so surfaces are evaluated once and no GBuffer is written; the loop's only per-level device
+predicates are its own condition and, in scenes with glass, the overflow test before dropping
+branches. The carried throughput is the product of δ, R and 1 − R that `shade` rebuilds from the
+parents, so the image is the same up to float summation order. Gradients (a custom VJP) are
+the two-pass composition's: differentiated, `whitted` runs `trace` and `shade` and pulls back
+through `shade`. Forward-mode autodiff is not defined through `whitted`.
+
 The ray tree in static shapes
 -----------------------------
 Each level of the tree is a fixed-width array of B = ray_budget · H·W·spp ray slots. A ray spawns
@@ -44,6 +54,8 @@ media: glass inside glass is treated as glass in air). Glass casts opaque shadow
 """
 
 from __future__ import annotations
+
+import functools
 
 import equinox as eqx
 import jax
@@ -246,14 +258,57 @@ def _occluded(tree, o, d, tmax, from_end: bool = False):
     return bvh.occluded(tree, o, d, tmax, from_end=from_end)
 
 
-def trace(scene) -> GBuffer:
-    """Trace the Whitted ray tree of `scene` (non-differentiable; see module docstring)."""
+def _delta_and_glass(mats, s: Surface, found: Bool[Array, "B"]):
+    """(δ of opaque hits, 0 elsewhere; glass hit mask), each (B,): the branch coefficients trace and
+    shade both derive the ray tree's throughput from."""
+    glass = found & _is_glass(mats, s.material)
+    return jnp.where(found & ~glass, mats.delta[s.material], 0.0), glass
+
+
+def _local_radiance(scene, s: Surface, d, visible, found, delta, glass) -> Float[Array, "B 3"]:
+    """Radiance a ray (B,) collects at its own hit, before its path throughput: (1 − δ)·direct on
+    opaque hits, 0 on glass (all of it is carried by the children), the escaped radiance on misses."""
+    direct, _, _ = _direct(scene, s, d, visible)
+    local = jnp.where(found[:, None], (1.0 - delta)[:, None] * direct, escaped_radiance(scene, d))
+    return jnp.where(glass[:, None], 0.0, local)
+
+
+def _aov_dict(scene, prim, u, v, t, d, visible) -> dict:
+    """The AOVs (see `shade`) from the level-0 hit of each pixel's first sample, each (npix, ...)."""
+    cam = scene.camera
+    found = prim >= 0
+    s = surface(scene.geometry, prim, u, v)
+    _, albedo, ns = _direct(scene, s, d, visible)
+    hw = (cam.height, cam.width)
+    return {
+        "depth": jnp.where(found, t, 0.0).reshape(hw),
+        "normal": jnp.where(found[:, None], ns, 0.0).reshape(hw + (3,)),
+        "albedo": jnp.where(found[:, None], albedo, 0.0).reshape(hw + (3,)),
+        "object_id": jnp.where(found, instancing.face_object(scene.geometry, prim), -1).reshape(hw),
+    }
+
+
+def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
+    """The ray-tree loop shared by `trace` and the fused `whitted` forward pass.
+
+    record: fill a GBuffer; image: accumulate each level's contribution (path throughput ·
+    `_local_radiance`) into the image as the level is traced; aovs: keep the level-0 hit of each
+    pixel's first sample for `_aov_dict`. The flags are static: a pass that does not record carries
+    no GBuffer at all (not relying on XLA to drop dead loop state).
+
+    Returns:
+        (GBuffer or None, image (H, W, 3) or None, AOV dict or None). Not differentiable (the
+        whole scene is under stop_gradient); `whitted` supplies the gradients.
+    """
     scene = jax.lax.stop_gradient(scene)
     geo, mats, cam, st = scene.geometry, scene.materials, scene.camera, scene.settings
     D = st.max_depth
-    n = cam.num_pixels * st.spp
+    npix = cam.num_pixels
+    n = npix * st.spp
     B = st.ray_budget * n
     L = scene.lights.count
+    # the throughput's dtype follows the scene's values (float64 when a test asks for it)
+    wdtype = jnp.result_type(mats.delta.dtype, jnp.float32)
 
     o0, d0 = camera.generate_rays(cam, st.spp, st.seed)
     pad = B - n
@@ -262,26 +317,35 @@ def trace(scene) -> GBuffer:
     d0 = _normalize(d0)
     act0 = jnp.arange(B) < n
     pix0 = jnp.where(act0, jnp.arange(B) // st.spp, 0)
+    first = jnp.arange(npix) * st.spp  # level-0 slot of each pixel's first sample
 
-    buf = GBuffer(
-        active=jnp.zeros((D, B), bool), prim=jnp.full((D, B), -1, jnp.int32),
-        u=jnp.zeros((D, B)), v=jnp.zeros((D, B)), t=jnp.zeros((D, B)),
-        direction=jnp.zeros((D, B, 3)), parent=jnp.full((D, B), -1, jnp.int32),
-        branch=jnp.zeros((D, B), jnp.int32), pixel=jnp.zeros((D, B), jnp.int32),
-        visible=jnp.zeros((D, B, L), bool), weight=jnp.zeros((D, B)), dropped=jnp.zeros((), jnp.int32),
-    )
-    ray0 = (o0, d0, act0, pix0, jnp.full((B,), -1, jnp.int32), jnp.zeros((B,), jnp.int32), act0.astype(jnp.float32))
+    buf = None
+    if record:
+        buf = GBuffer(
+            active=jnp.zeros((D, B), bool), prim=jnp.full((D, B), -1, jnp.int32),
+            u=jnp.zeros((D, B)), v=jnp.zeros((D, B)), t=jnp.zeros((D, B)),
+            direction=jnp.zeros((D, B, 3)), parent=jnp.full((D, B), -1, jnp.int32),
+            branch=jnp.zeros((D, B), jnp.int32), pixel=jnp.zeros((D, B), jnp.int32),
+            visible=jnp.zeros((D, B, L), bool), weight=jnp.zeros((D, B)), dropped=jnp.zeros((), jnp.int32),
+        )
+    img = jnp.zeros((npix, 3), wdtype) if image else None
+    rec = None
+    if aovs:
+        rec = dict(prim=jnp.full((npix,), -1, jnp.int32), u=jnp.zeros(npix), v=jnp.zeros(npix), t=jnp.zeros(npix),
+                   d=jnp.zeros((npix, 3)), visible=jnp.zeros((npix, L), bool))
+    ray0 = (o0, d0, act0, pix0, jnp.full((B,), -1, jnp.int32), jnp.zeros((B,), jnp.int32), act0.astype(wdtype))
 
     def cond(carry):
-        k, ray, _ = carry
+        k, ray = carry[:2]
         return (k < D) & jnp.any(ray[2])
 
     def body(carry):
-        k, (o, d, act, pix, parent, branch, weight), buf = carry
+        k, (o, d, act, pix, parent, branch, weight), buf, img, rec = carry
         hit = _intersect(geo.tree, o, d, act)
         prim = jnp.where(act, hit.prim, -1)
         found = prim >= 0
-        s = surface(geo, prim, hit.u, hit.v)
+        u, v, t = (jnp.where(found, x, 0.0) for x in (hit.u, hit.v, hit.t))
+        s = surface(geo, prim, u, v)
         ng, ns, _ = _oriented(s, d)
         eps = _offset_scale(s.p)
         # shadow rays, one per (slot, light)
@@ -293,19 +357,28 @@ def trace(scene) -> GBuffer:
         occ = _occluded(geo.tree, so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1),
                         from_end=True).reshape(B, L)
         visible = lit & ~occ
-        buf = GBuffer(
-            active=buf.active.at[k].set(act), prim=buf.prim.at[k].set(prim),
-            u=buf.u.at[k].set(jnp.where(found, hit.u, 0.0)), v=buf.v.at[k].set(jnp.where(found, hit.v, 0.0)),
-            t=buf.t.at[k].set(jnp.where(found, hit.t, 0.0)), direction=buf.direction.at[k].set(d),
-            parent=buf.parent.at[k].set(parent), branch=buf.branch.at[k].set(branch),
-            pixel=buf.pixel.at[k].set(pix), visible=buf.visible.at[k].set(visible),
-            weight=buf.weight.at[k].set(jnp.where(act, weight, 0.0)), dropped=buf.dropped,
-        )
+        if record:
+            buf = GBuffer(
+                active=buf.active.at[k].set(act), prim=buf.prim.at[k].set(prim),
+                u=buf.u.at[k].set(u), v=buf.v.at[k].set(v), t=buf.t.at[k].set(t), direction=buf.direction.at[k].set(d),
+                parent=buf.parent.at[k].set(parent), branch=buf.branch.at[k].set(branch),
+                pixel=buf.pixel.at[k].set(pix), visible=buf.visible.at[k].set(visible),
+                weight=buf.weight.at[k].set(jnp.where(act, weight, 0.0)), dropped=buf.dropped,
+            )
+        delta, glass = _delta_and_glass(mats, s, found)
+        if image:
+            # `weight` is the product of δ, R, 1 − R along the path for the current values: the
+            # throughput `shade` rebuilds from the parents, so the sum is the same image
+            local = _local_radiance(scene, s, d, visible, found, delta, glass)
+            contrib = jnp.where(act[:, None], weight[:, None] * local, 0.0)
+            # active slots are a prefix in parent (hence pixel) order at every level
+            img = img.at[jnp.where(act, pix, npix)].add(contrib, mode="drop", indices_are_sorted=True)
+        if aovs:
+            new = dict(prim=prim[first], u=u[first], v=v[first], t=t[first], d=d[first], visible=visible[first])
+            rec = jax.tree_util.tree_map(lambda a, b: jnp.where(k == 0, b, a), rec, new)
         # children: (primary, secondary) per parent
-        glass = found & _is_glass(mats, s.material)
-        delta = mats.delta[s.material]
-        w_mirror = weight * jnp.where(found & ~glass, delta, 0.0)
-        r = jnp.zeros(B)
+        w_mirror = weight * delta
+        r = jnp.zeros(B, wdtype)
         dr = _mirror_dir(d, ng, ns)
         dt = d
         t_ok = jnp.zeros(B, bool)
@@ -337,21 +410,40 @@ def trace(scene) -> GBuffer:
         def keep_best(ca):
             # rank alive candidates by weight; keep the B heaviest
             order = jnp.argsort(jnp.where(ca, -cw, jnp.inf))
-            rank = jnp.zeros(2 * B, jnp.int32).at[order].set(jnp.arange(2 * B, dtype=jnp.int32))
+            rank = jnp.zeros(2 * B, jnp.int32).at[order].set(jnp.arange(2 * B, dtype=jnp.int32),
+                                                             unique_indices=True)  # a permutation
             return ca & (rank < B)
 
-        keep = jax.lax.cond(total > B, keep_best, lambda ca: ca, ca)
-        slot = jnp.where(keep, jnp.cumsum(keep) - 1, B)  # B = dumped out of range
-        new = lambda x, fill: jnp.full((B,) + x.shape[1:], fill, x.dtype).at[slot].set(x, mode="drop")
+        if any(brdfs.get(m).delta for m in mats.models):
+            keep = jax.lax.cond(total > B, keep_best, lambda ca: ca, ca)
+        else:
+            # without glass a ray has at most one child, so a level never overflows; skipping the
+            # cond saves a device-to-host read of its predicate per level on GPUs
+            keep = ca
+        # dropped candidates go to distinct slots past the end, so every index is unique and the
+        # compaction may be plain stores rather than a serialised scatter
+        slot = jnp.where(keep, jnp.cumsum(keep) - 1, B + jnp.arange(2 * B))
+        new = lambda x, fill: jnp.full((B,) + x.shape[1:], fill, x.dtype).at[slot].set(
+            x, mode="drop", unique_indices=True)
         ray = (
             new(co, 0.0), _normalize(new(cd, 1.0)), new(keep, False), new(cpix, 0), new(cparent, -1),
             new(cb, 0), new(cw, 0.0),
         )
-        buf = eqx.tree_at(lambda g: g.dropped, buf, buf.dropped + total - jnp.sum(keep))
-        return k + 1, ray, buf
+        if record:
+            buf = eqx.tree_at(lambda g: g.dropped, buf, buf.dropped + total - jnp.sum(keep))
+        return k + 1, ray, buf, img, rec
 
-    _, _, buf = jax.lax.while_loop(cond, body, (jnp.asarray(0), ray0, buf))
-    return buf
+    _, _, buf, img, rec = jax.lax.while_loop(cond, body, (jnp.asarray(0), ray0, buf, img, rec))
+    if image:
+        img = (img / st.spp).reshape(cam.height, cam.width, 3)
+    if aovs:
+        rec = _aov_dict(scene, **rec)
+    return buf, img, rec
+
+
+def trace(scene) -> GBuffer:
+    """Trace the Whitted ray tree of `scene` (non-differentiable; see module docstring)."""
+    return _trace_loop(scene, record=True, image=False)[0]
 
 
 def direct_terms(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Array, "B L"]):
@@ -444,14 +536,10 @@ def shade(gbuffer: GBuffer, scene, aovs: bool = False):
 
         def hit_terms(_):
             s = surface(scene.geometry, prim, g["u"], g["v"])
-            direct, _, _ = _direct(scene, s, g["direction"], g["visible"])
             found = prim >= 0
-            glass = _is_glass(mats, s.material)
-            delta = jnp.where(found & ~glass, mats.delta[s.material], 0.0)
-            r = jnp.where(found & glass, _glass_r(scene, s, g["direction"]), 0.0)
-            local = jnp.where(found[:, None], (1.0 - delta)[:, None] * direct, escaped_radiance(scene, g["direction"]))
-            local = jnp.where(glass[:, None], 0.0, local)
-            return local, delta, r
+            delta, glass = _delta_and_glass(mats, s, found)
+            r = jnp.where(glass, _glass_r(scene, s, g["direction"]), 0.0)
+            return _local_radiance(scene, s, g["direction"], g["visible"], found, delta, glass), delta, r
 
         def empty(_):
             return jnp.zeros((B, 3)), jnp.zeros(B), jnp.zeros(B)
@@ -470,21 +558,38 @@ def shade(gbuffer: GBuffer, scene, aovs: bool = False):
     if not aovs:
         return image
     first = jnp.arange(npix) * st.spp  # level-0 slot of each pixel's first sample
-    prim = gbuffer.prim[0, first]
-    found = prim >= 0
-    s = surface(scene.geometry, prim, gbuffer.u[0, first], gbuffer.v[0, first])
-    d = gbuffer.direction[0, first]
-    _, albedo, ns = _direct(scene, s, d, gbuffer.visible[0, first])
-    hw = (cam.height, cam.width)
-    out = {
-        "depth": jnp.where(found, gbuffer.t[0, first], 0.0).reshape(hw),
-        "normal": jnp.where(found[:, None], ns, 0.0).reshape(hw + (3,)),
-        "albedo": jnp.where(found[:, None], albedo, 0.0).reshape(hw + (3,)),
-        "object_id": jnp.where(found, instancing.face_object(scene.geometry, prim), -1).reshape(hw),
-    }
-    return image, out
+    return image, _aov_dict(scene, *(x[0, first] for x in (gbuffer.prim, gbuffer.u, gbuffer.v, gbuffer.t,
+                                                           gbuffer.direction, gbuffer.visible)))
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
+def _whitted(scene, aovs):
+    _, img, aov = _trace_loop(scene, record=False, image=True, aovs=aovs)
+    return (img, aov) if aovs else img
+
+
+def _whitted_fwd(scene, aovs):
+    # differentiated: exactly the two-pass composition (trace, then shade with its VJP), so a
+    # gradient costs what it did before the fusion; the pullback (a pytree of residuals) is the residual
+    gb = _trace_loop(scene, record=True, image=False)[0]
+    return jax.vjp(lambda sc: shade(gb, sc, aovs=aovs), scene)
+
+
+def _whitted_bwd(aovs, pullback, cotangent):
+    return pullback(cotangent)
+
+
+_whitted.defvjp(_whitted_fwd, _whitted_bwd)
 
 
 def whitted(scene, aovs: bool = False):
-    """trace + shade in one call: the image (H, W, 3), or (image, aovs) with `aovs=True`."""
-    return shade(trace(scene), scene, aovs=aovs)
+    """The Whitted image (H, W, 3), or (image, aovs) with `aovs=True`; equal to
+    `shade(trace(scene), scene, aovs)`, computed in one pass.
+
+    The forward pass shades each level of the ray tree as it is traced (`_trace_loop`), so hit
+    surfaces are evaluated once and no GBuffer is written. Under reverse-mode differentiation (a
+    custom VJP) the forward pass is the two-pass `shade(trace(scene), scene)` and the backward pass
+    `shade`'s pullback: the same gradients, at the same cost, as before the fusion. Forward-mode
+    (jax.jvp) is not defined through it; use `shade(trace(scene), scene)` for that.
+    """
+    return _whitted(scene, aovs)

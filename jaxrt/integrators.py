@@ -371,8 +371,8 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
             # throughput `shade` rebuilds from the parents, so the sum is the same image
             local = _local_radiance(scene, s, d, visible, found, delta, glass)
             contrib = jnp.where(act[:, None], weight[:, None] * local, 0.0)
-            # active slots are a prefix in parent (hence pixel) order at every level
-            img = img.at[jnp.where(act, pix, npix)].add(contrib, mode="drop", indices_are_sorted=True)
+            # (indices_are_sorted, though true, made this scatter-add 2.4x slower on an H200)
+            img = img.at[jnp.where(act, pix, npix)].add(contrib, mode="drop")
         if aovs:
             new = dict(prim=prim[first], u=u[first], v=v[first], t=t[first], d=d[first], visible=visible[first])
             rec = jax.tree_util.tree_map(lambda a, b: jnp.where(k == 0, b, a), rec, new)
@@ -420,11 +420,15 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
             # without glass a ray has at most one child, so a level never overflows; skipping the
             # cond saves a device-to-host read of its predicate per level on GPUs
             keep = ca
-        # dropped candidates go to distinct slots past the end, so every index is unique and the
-        # compaction may be plain stores rather than a serialised scatter
+        # Compaction: one scatter of candidate indices (dropped candidates go to distinct slots past
+        # the end, so every index is unique: plain stores, not a serialised scatter), then gathers,
+        # which XLA fuses into one kernel for all seven arrays (seven scatters cost ~4x as much).
         slot = jnp.where(keep, jnp.cumsum(keep) - 1, B + jnp.arange(2 * B))
-        new = lambda x, fill: jnp.full((B,) + x.shape[1:], fill, x.dtype).at[slot].set(
-            x, mode="drop", unique_indices=True)
+        src = jnp.full(B, 2 * B, jnp.int32).at[slot].set(jnp.arange(2 * B, dtype=jnp.int32), mode="drop",
+                                                         unique_indices=True)
+        filled = src < 2 * B
+        src = jnp.minimum(src, 2 * B - 1)
+        new = lambda x, fill: jnp.where(filled.reshape((B,) + (1,) * (x.ndim - 1)), x[src], fill)  # noqa: E731
         ray = (
             new(co, 0.0), _normalize(new(cd, 1.0)), new(keep, False), new(cpix, 0), new(cparent, -1),
             new(cb, 0), new(cw, 0.0),

@@ -156,7 +156,7 @@ def prepare(
     mi = sc.materials.index(mat_name)
     for s, gb in zip(built, gbs):
         npix = s.camera.num_pixels
-        first = jnp.arange(npix) * s.settings.spp
+        first = integrators.sample_order(s.camera.height, s.camera.width, s.settings.spp)[1]
         prim = gb.prim[0, first]
         hit_mat = jnp.where(prim >= 0, instancing.face_material(s.geometry, prim), -1)
         masks.append(np.asarray(hit_mat == mi, np.float32).reshape(s.camera.height, s.camera.width))

@@ -55,7 +55,8 @@ def render(scene: Any, *, aovs: bool = False, overrides: dict | None = None):
 
     Returns:
         (H, W, 3) float32 linear RGB radiance, or (image, aovs dict) with `aovs=True`.
-        Differentiable with respect to material parameters and light positions/intensities.
+        Differentiable (reverse mode: jax.grad, jax.vjp) with respect to material parameters and light
+        positions/intensities.
     """
     scene = _as_scene(scene, overrides)
     return frame(scene, aovs=aovs)

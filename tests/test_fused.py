@@ -250,3 +250,20 @@ def test_fused_gradients_match_finite_differences(built_grads):
         assert abs(fd) > 1e-3, (name, fd)
         # measured: 3e-8, 1e-7 and 6e-5 (the exponent's O(h^2) truncation) relative
         np.testing.assert_allclose(g, fd, rtol=2e-4, err_msg=name)
+
+
+def test_sample_order_blocks_and_inverse():
+    """Level-0 order: a permutation of the samples, each pixel's samples together, 32 consecutive slots
+    an 8x4 pixel block where the image divides into blocks, and `first` the slot of each pixel's first
+    sample (odd sizes and spp > 1 too)."""
+    from jaxrt.integrators import sample_order
+
+    for h, w, spp in ((8, 16, 1), (12, 40, 1), (7, 13, 3), (1, 5, 2)):
+        order, first = sample_order(h, w, spp)
+        assert sorted(order.tolist()) == list(range(h * w * spp))
+        pix = order // spp
+        assert np.array_equal(order % spp, np.tile(np.arange(spp), h * w))
+        assert np.array_equal(pix[first], np.arange(h * w)) and np.array_equal(order[first] % spp, np.zeros(h * w))
+        if h % 4 == 0 and w % 8 == 0 and spp == 1:
+            y, x = np.divmod(pix.reshape(-1, 32), w)
+            assert np.all(y.max(1) - y.min(1) == 3) and np.all(x.max(1) - x.min(1) == 7)

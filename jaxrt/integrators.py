@@ -446,7 +446,8 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
             keep = ca
         # Compaction: one scatter of candidate indices (dropped candidates go to distinct slots past
         # the end, so every index is unique: plain stores, not a serialised scatter), then gathers,
-        # which XLA fuses into one kernel for all seven arrays (seven scatters cost ~4x as much).
+        # which XLA fuses into one kernel for all seven arrays rather than seven scatters
+        # (BENCHMARKS.md, fourth session).
         slot = jnp.where(keep, jnp.cumsum(keep) - 1, B + jnp.arange(2 * B))
         src = jnp.full(B, 2 * B, jnp.int32).at[slot].set(jnp.arange(2 * B, dtype=jnp.int32), mode="drop",
                                                          unique_indices=True)

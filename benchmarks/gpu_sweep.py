@@ -77,8 +77,7 @@ def sweep_pallas(args):
     kw = dict(zip(("builder", "layout"), args.builder.split("/"))) if args.builder else {}
     tree = bvh.build(m.vertices, m.faces, **kw)
     arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
-    arrays["rows"] = jax.jit(bvh_pallas.pack_rows)(**arrays)
-    arrays["skips"] = jax.jit(bvh_pallas.pack_skips)(tree.node_leaf, tree.links)
+    arrays["rows"], arrays["skips"] = jax.jit(bvh_pallas.pack_tables)(**arrays)
     o, d, light = camera_rays(m.vertices, args.res)
     n = len(o)
     od, dd = jnp.asarray(o), jnp.asarray(d)

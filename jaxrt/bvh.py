@@ -122,13 +122,11 @@ def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, 
     arrays = {k: put(a[k]) for k in ("node_box", "node_leaf", "links", "triangles")}
     rows = skips = None
     if leaf_size == 1 and jax.default_backend() == "gpu":
-        rows = _pack_rows(**arrays)
-        skips = _pack_skips(arrays["node_leaf"], arrays["links"])
+        rows, skips = _pack_tables(**arrays)
     return BVH(**arrays, prim_ids=put(a["prim_ids"]), rows=rows, skips=skips, leaf_size=leaf_size)
 
 
-_pack_rows = jax.jit(bvh_pallas.pack_rows)
-_pack_skips = jax.jit(bvh_pallas.pack_skips)
+_pack_tables = jax.jit(bvh_pallas.pack_tables)
 
 
 def stats(tree: BVH) -> BVHStats:

@@ -18,13 +18,13 @@ and shadow rays); the miss links of the threaded tree still order the traversal.
 leads to a node's farther child, whose box the ray tested when it visited the parent: a per-ray bit
 trail (one bit per depth, set when both children were hit) says whether it was hit, and where not the
 ray takes that node's miss link at once instead of stepping into it (`pack_skips`: a quarter of the
-dragon's steps, simulated). The kernel is
-bound by instruction issue more than by memory (BENCHMARKS.md): the triangle test runs only in
-warps where some ray is at a leaf, and u, v are divided once per ray at the end. The hit distance
-is float32 and may differ from the XLA path's in the last ulp where the compiler contracts a
-multiply-add differently, so two triangles at the same distance to within an ulp may be chosen
-differently (ties); `bvh.intersect` then refines t of the chosen triangle in double-float in XLA
-for both paths.
+dragon's steps, simulated). The kernel is bound by instruction issue more than by memory
+(BENCHMARKS.md): the triangle test runs only in warps where some ray is at a leaf, and u, v are
+divided once per ray at the end. The per-ray constants are `bvh_traverse.ray_constants`, computed
+in the kernel. The hit distance is float32 and may differ from the XLA path's in the last ulp where
+the compiler contracts a multiply-add differently, so two triangles at the same distance to within
+an ulp may be chosen differently (ties); `bvh.intersect` then refines t of the chosen triangle in
+double-float in XLA for both paths.
 
 Tables are read with vector gathers from flat row-major arrays (`ref[index_vector]`).
 """
@@ -84,30 +84,6 @@ def _edge_sign(ax, ay, bx, by, p1, p2, exact: bool):
     return s
 
 
-def _pick(k, x, y, z):
-    return jnp.where(k == 0, x, jnp.where(k == 1, y, z))
-
-
-def _ray_constants(o, d, tmin):
-    """bvh_traverse.precompute for one block of rays, in registers: (ox, oy, oz, inv x3, shear x3, kx, ky,
-    kz, class, tmin). Bit for bit XLA's on the same GPU (measured on 1M rays: both divide with the same
-    approximate f32 division) and on the CPU (interpret mode)."""
-    tiny, m_tiny = jnp.float32(1e-20), jnp.float32(-1e-20)
-    neg = [lax.bitcast_convert_type(x, jnp.int32) < 0 for x in d]  # signbit
-    d_safe = [jnp.where(jnp.abs(x) < tiny, jnp.where(sg, m_tiny, tiny), x) for x, sg in zip(d, neg)]
-    inv = [1.0 / x for x in d_safe]
-    ad = [jnp.abs(x) for x in d]
-    kz = jnp.where((ad[0] >= ad[1]) & (ad[0] >= ad[2]), 0, jnp.where(ad[1] >= ad[2], 1, 2)).astype(jnp.int32)
-    dz = _pick(kz, *d)
-    kx = jnp.where(kz == 2, 0, kz + 1)
-    ky = jnp.where(kx == 2, 0, kx + 1)
-    flip = dz < 0  # swap kx and ky to preserve the winding
-    kx, ky = jnp.where(flip, ky, kx), jnp.where(flip, kx, ky)
-    shear = [_pick(kx, *d) / dz, _pick(ky, *d) / dz, 1.0 / dz]
-    cls = 2 * kz + flip.astype(jnp.int32)
-    return (*o, *inv, *shear, kx, ky, kz, cls, tmin)
-
-
 def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *, any_hit: bool,
             leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str, gate_exact: bool, skip_tri: bool,
             trail: int, block: int):
@@ -118,9 +94,9 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         px, py, pz = [], [], []
         for j in range(3):
             qx, qy, qz = vs[3 * j] - ox, vs[3 * j + 1] - oy, vs[3 * j + 2] - oz
-            px.append(_pick(kx, qx, qy, qz))
-            py.append(_pick(ky, qx, qy, qz))
-            pz.append(_pick(kz, qx, qy, qz))
+            px.append(bvh_traverse.pick3(kx, qx, qy, qz))
+            py.append(bvh_traverse.pick3(ky, qx, qy, qz))
+            pz.append(bvh_traverse.pick3(kz, qx, qy, qz))
         x = [px[j] - _opaque(sx * pz[j], zero) for j in range(3)]
         y = [py[j] - _opaque(sy * pz[j], zero) for j in range(3)]
         z = [sz * pz[j] for j in range(3)]
@@ -292,10 +268,11 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         return node, hit, bits
 
     # One block of consecutive rays per program, traced until the slowest of them ends. The per-ray
-    # constants are computed here rather than read: an XLA pass writing 14 columns cost as much as a
-    # fifth of a shadow launch.
+    # constants are computed here (the XLA path's own function, bit for bit) rather than read: an XLA
+    # pass writing 14 columns cost as much as a fifth of a shadow launch.
     i3 = (pl.program_id(0) * block + jnp.arange(block, dtype=jnp.int32)) * 3
-    ray = _ray_constants([o_r[i3 + k] for k in range(3)], [d_r[i3 + k] for k in range(3)], tmin_r[...])
+    inv, shear, kx, ky, kz, cls = bvh_traverse.ray_constants(*(d_r[i3 + k] for k in range(3)))
+    ray = (*(o_r[i3 + k] for k in range(3)), *inv, *shear, kx, ky, kz, cls, tmin_r[...])
     shape = ray[0].shape
     z = jnp.zeros(shape, jnp.float32)
     hit = (tmax_r[...], jnp.full(shape, -1, jnp.int32), z, z, z + 1.0)
@@ -328,15 +305,17 @@ def node_depth(node_leaf, links) -> Array:
     return depth
 
 
-def pack_rows(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"]) -> Float[Array, "nn 16"]:
+def pack_rows(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"],
+              depth=None) -> Float[Array, "nn 16"]:
     """The kernel's node table (nn, 16) float32 (int fields stored bit-cast), one row per node:
 
     interior: box of child a (6), box of child b (6), a, b, order bits, -(depth + 1) — child a is the
               first child of ray class 0; bit c of `order` set where class c visits b first
     leaf:     its triangle v0 v1 v2 (9), its leaf-order triangle index, 0 ... 0, 1
 
-    From a BVH's arrays (see bvh.BVH; leaf_size 1). Built once per tree (`bvh.build` stores it as
-    `BVH.rows`), not per traversal call: for the full dragon it is 111 MB.
+    From a BVH's arrays (see bvh.BVH; leaf_size 1) and optionally `node_depth`'s result. Built once
+    per tree (`bvh.build` stores it as `BVH.rows`), not per traversal call: for the full dragon it is
+    111 MB.
     """
     nn = node_box.shape[0]
     is_leaf, a, b, lk = _children(node_leaf, links)
@@ -345,23 +324,31 @@ def pack_rows(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float
         order = order | ((lk[c, :, 0] != a) & ~is_leaf).astype(jnp.int32) << c
     f32 = lambda x: lax.bitcast_convert_type(x.astype(jnp.int32), jnp.float32)  # noqa: E731
     inner = jnp.concatenate([node_box[a], node_box[b], f32(a)[:, None], f32(b)[:, None], f32(order)[:, None],
-                             f32(-1 - node_depth(node_leaf, links))[:, None]], axis=1)
+                             f32(-1 - (node_depth(node_leaf, links) if depth is None else depth))[:, None]],
+                            axis=1)
     first = jnp.where(is_leaf, node_leaf[:, 0], 0)
     leaf = jnp.concatenate([triangles[first], f32(first)[:, None], jnp.zeros((nn, 5), jnp.float32),
                             f32(jnp.ones(nn))[:, None]], axis=1)
     return jnp.where(is_leaf[:, None], leaf, inner)
 
 
-def pack_skips(node_leaf, links) -> Array:
+def pack_skips(node_leaf, links, depth=None) -> Array:
     """The child-box kernel's link table (classes * nn,) int32: per ray class c and node n (entry c*nn + n),
     miss link << 5 | depth of the node it leads to (31 for depth 31 and deeper; -1 << 5 | 0 where it
-    ends). Built once per tree with `pack_rows` (`BVH.skips`)."""
+    ends). Built once per tree with `pack_rows` (`BVH.skips`); `depth`: `node_depth`'s result, if at hand."""
     nn = node_leaf.shape[0]
     if nn >= 1 << (31 - _SKIP_SHIFT):
         raise ValueError(f"bvh_pallas: {nn} nodes do not fit the skip table's {31 - _SKIP_SHIFT}-bit links")
     miss = links.reshape(-1, 2)[:, 1]
-    depth = jnp.minimum(node_depth(node_leaf, links), _SKIP_DEPTH)[jnp.maximum(miss, 0)]
+    depth = node_depth(node_leaf, links) if depth is None else depth
+    depth = jnp.minimum(depth, _SKIP_DEPTH)[jnp.maximum(miss, 0)]
     return lax.shift_left(miss, jnp.int32(_SKIP_SHIFT)) | jnp.where(miss >= 0, depth, 0)
+
+
+def pack_tables(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"]):
+    """(`pack_rows`, `pack_skips`) of one tree, its node depths computed once for both."""
+    depth = node_depth(node_leaf, links)
+    return pack_rows(node_box, node_leaf, links, triangles, depth), pack_skips(node_leaf, links, depth)
 
 
 LAYOUTS = ("childbox", "inline", "tables")
@@ -384,15 +371,16 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     with the Pallas interpreter (any backend; slow, for tests). gate_exact: evaluate the exact
     edge signs only in programs where a rounded-product tie occurs (else always).
     layout (default "childbox" for leaf_size 1, else "tables"): the node table a step reads —
-      "childbox": each node's row holds its children's boxes (`pack_rows`; arrays["rows"] when
-                  present, else packed per call): a step tests both children and moves straight
+      "childbox": each node's row holds its children's boxes (`pack_tables`: arrays["rows"] and
+                  arrays["skips"] when present, else packed per call): a step tests both children and moves straight
                   to the nearer one that is hit, so missed children are never loaded;
       "inline":   one 12-word row per node, an interior node's box or a leaf's triangle (packed
                   per call);
       "tables":   separate box / leaf-range / triangle tables, any leaf size.
     skip_tri: a warp none of whose rays is at a leaf skips the triangle test's arithmetic (a
     warp-uniform branch). trail (child-box layout): levels of the tree covered by the bit trail that
-    skips farther children known to be missed (0 to 31; 0 = no trail). All options give the same results; BENCHMARKS.md has their speeds.
+    skips farther children known to be missed (0 to 31; 0 = no trail). All options give the same
+    results; BENCHMARKS.md has their speeds.
     """
     layout = layout or ("childbox" if leaf_size == 1 else "tables")
     if layout not in LAYOUTS:
@@ -414,8 +402,10 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     box, leaf, tri = arrays["node_box"], arrays["node_leaf"], arrays["triangles"]
     links = arrays["links"]
     if layout == "childbox":
-        box = arrays["rows"] if "rows" in arrays else pack_rows(box, leaf, links, tri)
-        links = arrays["skips"] if "skips" in arrays else pack_skips(leaf, links)
+        if "rows" in arrays:
+            box, links = arrays["rows"], arrays["skips"]
+        else:
+            box, links = pack_tables(box, leaf, links, tri)
         leaf, tri = leaf[:1], tri[:1]  # unused by this layout
     elif layout == "inline":
         is_leaf = (leaf[:, 1] > 0)[:, None]

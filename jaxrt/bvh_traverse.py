@@ -127,25 +127,36 @@ def _edge_sign(ax, ay, bx, by, p1, p2, exact: bool):
     return s
 
 
+def pick3(k, x, y, z):
+    """x, y or z where k is 0, 1 or 2 (elementwise, by exact selects)."""
+    return jnp.where(k == 0, x, jnp.where(k == 1, y, z))
+
+
+def ray_constants(dx, dy, dz):
+    """Per-ray constants from direction components (arrays of any one shape), by elementwise ops only
+    so that the Pallas kernel computes them in registers with the same bits: slab inverse directions
+    (3), the Woop shear (3), the axis permutation kx, ky, kz and the ray class."""
+    d = (dx, dy, dz)
+    tiny, m_tiny = jnp.float32(1e-20), jnp.float32(-1e-20)
+    neg = [lax.bitcast_convert_type(x, jnp.int32) < 0 for x in d]  # signbit
+    inv = [1.0 / jnp.where(jnp.abs(x) < tiny, jnp.where(sg, m_tiny, tiny), x) for x, sg in zip(d, neg)]
+    ad = [jnp.abs(x) for x in d]
+    kz = jnp.where((ad[0] >= ad[1]) & (ad[0] >= ad[2]), 0, jnp.where(ad[1] >= ad[2], 1, 2)).astype(jnp.int32)  # argmax
+    d_z = pick3(kz, *d)
+    kx = jnp.where(kz == 2, 0, kz + 1)
+    ky = jnp.where(kx == 2, 0, kx + 1)
+    flip = d_z < 0  # swap kx and ky to preserve the winding
+    kx, ky = jnp.where(flip, ky, kx), jnp.where(flip, kx, ky)
+    shear = [pick3(kx, *d) / d_z, pick3(ky, *d) / d_z, 1.0 / d_z]
+    return inv, shear, kx, ky, kz, 2 * kz + flip.astype(jnp.int32)
+
+
 def precompute(origins, directions):
     """Per-ray constants: slab inverse directions, ray class, and the Woop shear/permutation."""
-    d = directions
-    tiny = jnp.float32(1e-20)
-    d_safe = jnp.where(jnp.abs(d) < tiny, jnp.where(jnp.signbit(d), -tiny, tiny), d)
-    inv = 1.0 / d_safe
-    ad = jnp.abs(d)
-    kz = jnp.argmax(ad, axis=-1).astype(jnp.int32)
-    dz = jnp.take_along_axis(d, kz[:, None], axis=-1)[:, 0]
-    kx = (kz + 1) % 3
-    ky = (kx + 1) % 3
-    flip = dz < 0  # swap kx and ky to preserve the winding
-    kx, ky = jnp.where(flip, ky, kx), jnp.where(flip, kx, ky)
-    dx = jnp.take_along_axis(d, kx[:, None], axis=-1)[:, 0]
-    dy = jnp.take_along_axis(d, ky[:, None], axis=-1)[:, 0]
-    shear = jnp.stack([dx / dz, dy / dz, 1.0 / dz], axis=-1)
-    ray_class = 2 * kz + flip.astype(jnp.int32)
+    inv, shear, kx, ky, kz, ray_class = ray_constants(*(directions[:, i] for i in range(3)))
     zero = lax.shift_right_logical(kz.astype(jnp.uint32), jnp.uint32(8))  # 0, unknown to the compiler
-    return dict(o=origins, inv=inv, kx=kx, ky=ky, kz=kz, shear=shear, ray_class=ray_class, zero=zero)
+    return dict(o=origins, inv=jnp.stack(inv, axis=-1), kx=kx, ky=ky, kz=kz, shear=jnp.stack(shear, axis=-1),
+                ray_class=ray_class, zero=zero)
 
 
 def _pick(a, k):

@@ -133,7 +133,7 @@ def test_pallas_layout_variants_agree():
         arr, o, d, lo, hi, any_hit=any_hit, leaf_size=1, block=block, interpret=True, **kw)]
     found, t, tri, u, v_ = run()
     assert 0.5 < found.mean() < 1
-    packed = dict(arrays, rows=bvh_pallas.pack_rows(**arrays), skips=bvh_pallas.pack_skips(tree.node_leaf, tree.links))
+    packed = dict(arrays, **dict(zip(("rows", "skips"), bvh_pallas.pack_tables(**arrays))))
     variants = (dict(arr=packed), dict(trail=0), dict(trail=2), dict(gate_exact=False), dict(layout="inline"),
                 dict(layout="tables"), dict(skip_tri=False), dict(layout="tables", block=32),
                 dict(layout="inline", steps_per_iter=3))

@@ -50,16 +50,20 @@ def peak_gb(dev):
     return (st or {}).get("peak_bytes_in_use", float("nan")) / 2**30
 
 
-def shadow_segments(tree, o, d, light):
-    """Shadow segments from the closest hits of rays (o, d) to the light: origins, directions (to the
-    light, unnormalised), tmin, tmax (in units of the segment, 1e-4 off each end)."""
-    hit = bvh.intersect(tree, jnp.asarray(o), jnp.asarray(d), 0.0, jnp.inf)
-    prim, t = np.asarray(hit.prim), np.asarray(hit.t)
+SHADOW_EPS = np.float32(1e-4)  # shadow segments are traced over [eps, 1 - eps] of their length
+
+
+def shadow_segments(o, d, prim, t, light):
+    """Shadow segments from the hits (prim, t) of rays (o, d) to the light: origins and directions (to
+    the light, unnormalised), numpy float32, one per hit."""
     ok = prim >= 0
     p = o[ok] + t[ok, None] * d[ok]
-    so, sd = p.astype(np.float32), (light[None] - p).astype(np.float32)
-    eps = np.float32(1e-4)
-    return jnp.asarray(so), jnp.asarray(sd), jnp.full(len(so), eps), jnp.full(len(so), 1 - eps)
+    return p.astype(np.float32), (light[None] - p).astype(np.float32)
+
+
+def segment_args(so, sd):
+    """(origins, directions, tmin, tmax) device arrays for `bvh.occluded` over [eps, 1 - eps]."""
+    return jnp.asarray(so), jnp.asarray(sd), jnp.full(len(so), SHADOW_EPS), jnp.full(len(so), 1 - SHADOW_EPS)
 
 
 def bench_rays(name, res, impls, repeats, embree, builder=None, shadow_res=None):
@@ -76,7 +80,11 @@ def bench_rays(name, res, impls, repeats, embree, builder=None, shadow_res=None)
     rows, ref, ref_big = [], None, None
     # Shadow rays from the hits of a shadow_res² camera: ~4x as many at 2x the resolution, a launch the
     # size of the 1M-ray launches OptiX's figures are quoted for (a 231k-ray launch is partly latency).
-    big = shadow_segments(tree, *camera_rays(m.vertices, shadow_res)) if shadow_res else None
+    big = None
+    if shadow_res:
+        ob, db, _ = camera_rays(m.vertices, shadow_res)
+        hb = bvh.intersect(tree, jnp.asarray(ob), jnp.asarray(db))
+        big = segment_args(*shadow_segments(ob, db, np.asarray(hb.prim), np.asarray(hb.t), light))
     for impl in impls:
         f_hit = jax.jit(lambda tr, o_, d_, lo, impl=impl: bvh.intersect(tr, o_, d_, lo, jnp.inf, impl=impl))
         f_occ = jax.jit(lambda tr, o_, d_, lo, hi, impl=impl: bvh.occluded(tr, o_, d_, hi, lo, impl=impl))
@@ -88,12 +96,8 @@ def bench_rays(name, res, impls, repeats, embree, builder=None, shadow_res=None)
         hit = jax.tree.map(np.asarray, c_hit(tree, od, dd, z))
         t_prim = median_time(lambda: jax.block_until_ready(c_hit(tree, od, dd, z)), repeats)
         if ref is None:  # shadow rays from the first implementation's hits, so all time the same rays
-            ok = hit.prim >= 0
-            p = o[ok] + hit.t[ok, None] * d[ok]
-            so, sd = p.astype(np.float32), (light[None] - p).astype(np.float32)
-            eps = np.float32(1e-4)
-            sod, sdd = jnp.asarray(so), jnp.asarray(sd)
-            smin, smax = jnp.full(len(so), eps), jnp.full(len(so), 1 - eps)
+            so, sd = shadow_segments(o, d, hit.prim, hit.t, light)
+            sod, sdd, smin, smax = segment_args(so, sd)
         t = time.perf_counter()
         c_occ = f_occ.lower(tree, sod, sdd, smin, smax).compile()
         t_compile_occ = time.perf_counter() - t
@@ -124,7 +128,7 @@ def bench_rays(name, res, impls, repeats, embree, builder=None, shadow_res=None)
     if embree:
         esc, t_ebuild = embree_scene(m.vertices, m.faces)
         e_prim = median_time(lambda: esc.run(o, d, output=1), repeats)
-        e_occ = median_time(lambda: esc.run(so + sd * eps, sd * (1 - 2 * eps), query="OCCLUDED"), repeats)
+        e_occ = median_time(lambda: esc.run(so + sd * SHADOW_EPS, sd * (1 - 2 * SHADOW_EPS), query="OCCLUDED"), repeats)
         row = dict(model=name, res=res, tris=int(m.num_faces), impl="embree", builder="embree", sah_cost=float("nan"),
                    build_s=t_ebuild, compile_s=0.0, shadow_rev=float("nan"), agree_rev=float("nan"),
                    shadow_res=0, shadow_big_n=float("nan"), shadow_big=float("nan"), shadow_big_rev=float("nan"),

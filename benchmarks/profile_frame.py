@@ -38,24 +38,24 @@ def main(argv=None):
     ap.add_argument("--hlo", help="also write the frame's optimized HLO text here (maps kernel names to ops)")
     args = ap.parse_args(argv)
     scn = S.load(args.scene, overrides={"camera.width": args.res, "camera.height": args.res})
-    if args.part == "frame":
-        fn, arg = render.frame, scn
-    elif args.part == "trace":
-        fn, arg = render.trace, scn
+    if args.part == "shade":
+        fn, fargs = render.shade, (jax.block_until_ready(render.trace(scn)), scn)
     else:
-        gb = jax.block_until_ready(render.trace(scn))
-        fn, arg = (lambda s: render.shade(gb, s)), scn
-    jax.block_until_ready(fn(arg))
+        fn, fargs = (render.frame if args.part == "frame" else render.trace), (scn,)
+    jax.block_until_ready(fn(*fargs))
     if args.hlo:
-        Path(args.hlo).write_text((render.shade.lower(gb, scn) if args.part == 'shade' else fn.lower(scn)).compile().as_text())
+        from jaxrt.fsutil import atomic_path
+
+        with atomic_path(args.hlo) as p:
+            Path(p).write_text(fn.lower(*fargs).compile().as_text())
     t = time.perf_counter()
     for _ in range(args.frames):
-        jax.block_until_ready(fn(arg))
+        jax.block_until_ready(fn(*fargs))
     wall = (time.perf_counter() - t) / args.frames
     with tempfile.TemporaryDirectory() as tmp:
         with jax.profiler.trace(tmp, create_perfetto_trace=True):
             for _ in range(args.frames):
-                jax.block_until_ready(fn(arg))
+                jax.block_until_ready(fn(*fargs))
         path = next(Path(tmp).rglob("*.trace.json.gz"))
         events = json.load(gzip.open(path))
     events = events["traceEvents"] if isinstance(events, dict) else events

@@ -600,7 +600,7 @@ def _whitted(scene, aovs):
 def _whitted_fwd(scene, aovs):
     # differentiated: exactly the two-pass composition (trace, then shade with its VJP), so a
     # gradient costs what it did before the fusion; the pullback (a pytree of residuals) is the residual
-    gb = _trace_loop(scene, record=True, image=False)[0]
+    gb = trace(scene)
     return jax.vjp(lambda sc: shade(gb, sc, aovs=aovs), scene)
 
 

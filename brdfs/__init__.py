@@ -32,7 +32,7 @@ def get(name: str) -> Model:
     try:
         return MODELS[name]
     except (KeyError, TypeError):
-        from jaxrt.errors import InputError
+        from brdfs.errors import InputError
 
         raise InputError(f"unknown BRDF model {name!r}; allowed: {', '.join(MODELS)}") from None
 

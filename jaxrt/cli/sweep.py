@@ -6,11 +6,12 @@ import argparse
 import math
 import sys
 
+import brdfs
 from jaxrt.errors import InputError
 
-EPILOG = """\
-MODEL is a registered BRDF (lambert, phong, blinn_phong, cook_torrance, ward, ashikhmin_shirley,
-glass); PARAM is one of its parameters (see `jaxrt brdf-report`) or `delta`, the mirror reflection
+EPILOG = f"""\
+MODEL is a registered BRDF ({', '.join(brdfs.names())}); PARAM is one of its parameters (see
+`jaxrt brdf-report`) or `delta`, the mirror reflection
 coefficient δ (not for glass). RGB parameters are swept grey. Without --from/--to the parameter's
 whole declared range is swept, on its natural scale (log for exponents and roughnesses).
 
@@ -29,7 +30,7 @@ Exit codes: 0 success, 2 bad input (unknown model/parameter, value out of range)
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = EPILOG
-    parser.add_argument("model", metavar="MODEL", help="BRDF model name")
+    parser.add_argument("model", metavar="MODEL", help=f"BRDF model: {', '.join(brdfs.names())}")
     parser.add_argument("param", metavar="PARAM", help="parameter to sweep, or delta")
     parser.add_argument("--from", dest="start", type=float, help="first value (default: the declared minimum)")
     parser.add_argument("--to", dest="stop", type=float, help="last value (default: the declared maximum)")

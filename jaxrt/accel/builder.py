@@ -1,4 +1,4 @@
-"""BVH construction in vectorised numpy (host side). Public entry point: `jaxrt.bvh.build`.
+"""BVH construction in vectorised numpy (host side). Public entry point: `jaxrt.accel.bvh.build`.
 
 The builder is a top-down LBVH (Lauterbach et al. 2009; Karras 2012's split rule): triangle
 centroids are quantised to 17 bits per axis and sorted by 51-bit Morton code; a node covering the
@@ -15,7 +15,7 @@ that axis, and each node stores `links[c, node] = (hit, miss)`: where to go afte
 leaf is done (the next node in that class's pre-order after the subtree, -1 at the end). This is
 the multiple-threaded BVH of Hachisuka (2015) in flat-array form.
 
-`finish` (bounds, threading, output) is shared with the binned-SAH topology of `jaxrt.bvh_sah`;
+`finish` (bounds, threading, output) is shared with the binned-SAH topology of `jaxrt.accel.sah`;
 nodes are numbered breadth-first, or depth-first with layout="dfs" (subtrees contiguous in memory).
 """
 
@@ -23,34 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxrt.accel import sah
+from jaxrt.accel.morton import highest_bit, morton_codes
 from jaxrt.errors import InputError
 
 NUM_RAY_CLASSES = 6  # (dominant axis, sign)
-
-
-def _spread_bits(x: np.ndarray) -> np.ndarray:
-    """Insert two zero bits between each of the low 21 bits of x (uint64)."""
-    x = x & np.uint64(0x1FFFFF)
-    x = (x | (x << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
-    x = (x | (x << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
-    x = (x | (x << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
-    x = (x | (x << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
-    x = (x | (x << np.uint64(2))) & np.uint64(0x1249249249249249)
-    return x
-
-
-def morton_codes(points: np.ndarray, bits: int = 17) -> np.ndarray:
-    """51-bit Morton codes (uint64) of points (P,3), quantised to `bits` bits per axis in their bounds."""
-    lo = points.min(axis=0)
-    ext = points.max(axis=0) - lo
-    scale = np.where(ext > 0, ((1 << bits) - 1) / np.where(ext > 0, ext, 1.0), 0.0)
-    q = np.clip(((points - lo) * scale).astype(np.int64), 0, (1 << bits) - 1).astype(np.uint64)
-    return (_spread_bits(q[:, 0]) << np.uint64(2)) | (_spread_bits(q[:, 1]) << np.uint64(1)) | _spread_bits(q[:, 2])
-
-
-def _highest_bit(x: np.ndarray) -> np.ndarray:
-    """Index of the highest set bit of nonzero uint64 values below 2**53 (exact in float64)."""
-    return (np.frexp(x.astype(np.float64))[1] - 1).astype(np.uint64)
 
 
 BUILDERS = ("lbvh", "sah")
@@ -58,11 +35,11 @@ LAYOUTS = ("bfs", "dfs")
 
 
 def build_arrays(vertices, faces, leaf_size: int = 4, builder: str = "lbvh",
-                 layout: str = "bfs") -> dict[str, np.ndarray]:
-    """Build the flat BVH arrays (see `jaxrt.bvh.BVH` for their layout). Host-side numpy.
+                 layout: str = "bfs", sah_settings: sah.SahSettings = sah.DEFAULT) -> dict[str, np.ndarray]:
+    """Build the flat BVH arrays (see `jaxrt.accel.bvh.BVH` for their layout). Host-side numpy.
 
     builder: "lbvh" (Morton-code splits, this module) or "sah" (binned SAH splits for large nodes,
-    Morton splits below; `jaxrt.bvh_sah`). Both give the same output layout. layout: node
+    Morton splits below; `jaxrt.accel.sah`). Both give the same output layout. layout: node
     numbering, "bfs" (breadth-first) or "dfs" (depth-first; see `finish`).
     """
     v = np.asarray(vertices)
@@ -90,9 +67,7 @@ def build_arrays(vertices, faces, leaf_size: int = 4, builder: str = "lbvh",
     codes = morton_codes(cent)
     order = np.argsort(codes, kind="stable")
     if builder == "sah":
-        from jaxrt import bvh_sah  # late: bvh_sah imports this module
-
-        order, left, start, count, levels = bvh_sah.topology(tmin, tmax, cent, codes, order, leaf_size)
+        order, left, start, count, levels = sah.topology(tmin, tmax, cent, codes, order, leaf_size, sah_settings)
         return finish(tri, tmin, tmax, order, left, start, count, levels, layout)
     cs = codes[order]
 
@@ -114,7 +89,7 @@ def build_arrays(vertices, faces, leaf_size: int = 4, builder: str = "lbvh",
             break
         x = cs[s] ^ cs[e - 1]
         same = x == 0
-        b = _highest_bit(np.where(same, np.uint64(1), x))
+        b = highest_bit(np.where(same, np.uint64(1), x))
         target = (cs[e - 1] >> b) << b
         split = np.where(same, (s + e) // 2, np.searchsorted(cs, target, side="left"))
         k = len(ids)
@@ -157,7 +132,7 @@ def finish(tri, tmin, tmax, order, left, start, count, levels, layout: str = "bf
             lo[ids] = np.minimum(lo[left[ids]], lo[left[ids] + 1])
             hi[ids] = np.maximum(hi[left[ids]], hi[left[ids] + 1])
     # Pad outward by a few ulps so that a triangle lying in a box face is never culled by the
-    # float32 slab test (the traversal also widens the far distance; see bvh_traverse).
+    # float32 slab test (the traversal also widens the far distance; see traverse_xla).
     lo_pad = lo - np.abs(lo) * np.float32(2.0**-20) - np.float32(1e-30)
     hi_pad = hi + np.abs(hi) * np.float32(2.0**-20) + np.float32(1e-30)
 

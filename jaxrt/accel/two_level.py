@@ -1,9 +1,9 @@
 """Two-level BVH for instanced geometry: a top-level tree over instances, one bottom-level tree
 per prototype (shared by all its instances), stackless traversal in one lane pool.
 
-    tree = bvh_instanced.build(prototypes, inst_proto, object_to_world)
-    hit = bvh_instanced.intersect(tree, origins, directions, tmin, tmax)   # Hit(t, prim, u, v)
-    blocked = bvh_instanced.occluded(tree, origins, directions, tmax)
+    tree = two_level.build(prototypes, inst_proto, object_to_world)
+    hit = two_level.intersect(tree, origins, directions, tmin, tmax)   # Hit(t, prim, u, v)
+    blocked = two_level.occluded(tree, origins, directions, tmax)
 
 Layout. All node arrays of the top level (TLAS) and of every prototype's tree (BLAS) are
 concatenated: nodes [0, num_tlas_nodes) are the TLAS (root 0), prototype p's nodes start at
@@ -12,7 +12,7 @@ ends at -1). A TLAS leaf holds one instance: node_leaf = [instance index, 1]. Tr
 prototypes are stored once, in object (prototype) space; instances hold only a 3x4
 object-to-world affine map, its inverse and a prototype id, so N instances cost O(N) memory.
 
-Traversal. Per-ray state adds three things to the single-level state of `bvh_traverse`: the
+Traversal. Per-ray state adds three things to the single-level state of `traverse_xla`: the
 current instance (-1 in the TLAS), the TLAS node to resume at when the instance's BLAS is done,
 and the ray constants (Woop shear, slab inverses, ray class) of the ray currently traversed. On
 reaching a TLAS leaf whose box is hit, the ray is mapped into the instance's object space
@@ -22,7 +22,7 @@ goes to the prototype's root. When the BLAS threading ends (-1) the world ray's 
 back and traversal resumes in the TLAS. Because d' is not renormalised, o' + t·d' = W2O(o + t·d):
 t is the same number in both spaces, so closest-hit t values compare across instances directly
 and tmin/tmax/t_best need no rescaling. Within an instance every triangle is tested against the
-same transformed ray with the watertight test of `bvh_traverse`, so watertightness holds per
+same transformed ray with the watertight test of `traverse_xla`, so watertightness holds per
 instance (across instances, surfaces only meet where the scene author placed them).
 
 Hit identity. `prim` is a global "virtual" face id: inst_face_offset[instance] + local face index
@@ -43,9 +43,10 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrt import bvh_build
-from jaxrt.bvh import Hit, _default_lanes, _default_steps
-from jaxrt.bvh_traverse import _df_add, _df_mul, _df_neg, node_step, precompute
+from jaxrt.accel import builder
+from jaxrt.accel.bvh import Hit, default_lanes, default_steps
+from jaxrt.accel.predicates import df_add, df_mul, df_neg, opaque_zero
+from jaxrt.accel.traverse_xla import node_step, precompute
 from jaxrt.errors import InputError
 
 # Outward padding of instance world boxes, relative to the box's magnitude: the TLAS test uses the
@@ -111,7 +112,7 @@ def build(prototypes, inst_proto, object_to_world) -> InstancedBVH:
                          "transform")
     inv = affine_inverse(xf).astype(np.float32)
 
-    blas = [bvh_build.build_arrays(v, f, leaf_size=1) for v, f in prototypes]
+    blas = [builder.build_arrays(v, f, leaf_size=1) for v, f in prototypes]
     face_counts = np.array([len(np.asarray(f)) for _, f in prototypes], np.int64)
     offsets = np.concatenate([[0], np.cumsum(face_counts[inst_proto])])
     if offsets[-1] > 2**31 - 1:
@@ -128,7 +129,7 @@ def build(prototypes, inst_proto, object_to_world) -> InstancedBVH:
     pad = _BOX_PAD * (np.abs(w).max(1) + (hi - lo).max(1, keepdims=True)) + 1e-30
     lo, hi = lo - pad, hi + pad
     # An LBVH over boxes: the "triangle" (lo, hi, hi) has exactly the box [lo, hi] as its bounds.
-    top = bvh_build.build_arrays(np.concatenate([lo, hi]), np.stack(
+    top = builder.build_arrays(np.concatenate([lo, hi]), np.stack(
         [np.arange(n_inst), np.arange(n_inst) + n_inst, np.arange(n_inst) + n_inst], 1), leaf_size=1)
     nt = top["node_box"].shape[0]
     t_leaf = top["node_leaf"].copy()
@@ -141,7 +142,7 @@ def build(prototypes, inst_proto, object_to_world) -> InstancedBVH:
     node_off = np.cumsum([0] + nodes)[:-1]
     tri_off = np.cumsum([0] + [len(b["prim_ids"]) for b in blas])[:-1]
     n_all = int(sum(nodes))
-    k = bvh_build.NUM_RAY_CLASSES
+    k = builder.NUM_RAY_CLASSES
 
     def shifted_links(a, off, n):
         lk = a["links"].reshape(k, n, 2).astype(np.int64)
@@ -179,7 +180,7 @@ def _linear(m, d):
 
 
 def _traverse(tree: InstancedBVH, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_iter):
-    """Lane-pool traversal (as `bvh_traverse.traverse`) of the two-level tree.
+    """Lane-pool traversal (as `traverse_xla.traverse`) of the two-level tree.
 
     Returns (found, t, triangle (leaf order, global), instance, u, v), each (N,)."""
     node_box, node_leaf, links, tris = tree.node_box, tree.node_leaf, tree.links, tree.triangles
@@ -273,8 +274,8 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         z = jnp.zeros(0, jnp.float32)
         zi = jnp.zeros(0, jnp.int32)
         return jnp.zeros(0, bool), z, zi, zi, z, z, tmin, tmax
-    res = _traverse(tree, origins, directions, tmin, tmax, any_hit=any_hit, lanes=lanes or _default_lanes(),
-                    steps_per_iter=steps_per_iter or _default_steps())
+    res = _traverse(tree, origins, directions, tmin, tmax, any_hit=any_hit, lanes=lanes or default_lanes(),
+                    steps_per_iter=steps_per_iter or default_steps())
     return res + (tmin, tmax)
 
 
@@ -285,7 +286,7 @@ def _df_affine(m, p, zero):
     for i in range(3):
         acc = (m[:, i, 3], z)
         for j in range(3):
-            acc = _df_add(acc, _df_mul((m[:, i, j], z), (p[:, j], z), zero))
+            acc = df_add(acc, df_mul((m[:, i, j], z), (p[:, j], z), zero))
         rows.append(acc)
     return rows  # [(hi, lo)] per component
 
@@ -294,11 +295,11 @@ def _refine_world_t(tree, inst, tri_idx, o, d, t32):
     """t of the world ray against the hit triangle mapped exactly (double-float) to world space."""
     m = tree.object_to_world[inst]
     tri = tree.triangles[tri_idx]
-    zero = lax.shift_right_logical(jnp.argmax(jnp.abs(d), axis=-1).astype(jnp.uint32), jnp.uint32(8))
-    mul = lambda x, y: _df_mul(x, y, zero)  # noqa: E731
+    zero = opaque_zero(jnp.argmax(jnp.abs(d), axis=-1))
+    mul = lambda x, y: df_mul(x, y, zero)  # noqa: E731
     v0, v1, v2 = (_df_affine(m, tri[:, 3 * k:3 * k + 3], zero) for k in range(3))
     z = jnp.zeros_like(t32)
-    sub = lambda x, y: _df_add(x, _df_neg(y))  # noqa: E731
+    sub = lambda x, y: df_add(x, df_neg(y))  # noqa: E731
     a = [sub(v0[i], (o[:, i], z)) for i in range(3)]
     e1 = [sub(v1[i], v0[i]) for i in range(3)]
     e2 = [sub(v2[i], v0[i]) for i in range(3)]
@@ -307,12 +308,12 @@ def _refine_world_t(tree, inst, tri_idx, o, d, t32):
         return sub(mul(e1[i], e2[j]), mul(e1[j], e2[i]))
 
     nrm = [cross(1, 2), cross(2, 0), cross(0, 1)]
-    num = _df_add(_df_add(mul(nrm[0], a[0]), mul(nrm[1], a[1])), mul(nrm[2], a[2]))
-    den = _df_add(_df_add(mul(nrm[0], (d[:, 0], z)), mul(nrm[1], (d[:, 1], z))), mul(nrm[2], (d[:, 2], z)))
+    num = df_add(df_add(mul(nrm[0], a[0]), mul(nrm[1], a[1])), mul(nrm[2], a[2]))
+    den = df_add(df_add(mul(nrm[0], (d[:, 0], z)), mul(nrm[1], (d[:, 1], z))), mul(nrm[2], (d[:, 2], z)))
     q1 = num[0] / den[0]
-    r = _df_add(num, _df_neg(mul((q1, z), den)))
+    r = df_add(num, df_neg(mul((q1, z), den)))
     t = q1 + r[0] / den[0]
-    # No closeness test against t32 (unlike bvh_traverse.refine_t): for grazing rays the float32
+    # No closeness test against t32 (unlike traverse_xla.refine_t): for grazing rays the float32
     # object-space t also carries the rounding of the transformed ray and can be off by percents;
     # the plane intersection of the chosen triangle is the right answer whenever it is finite.
     good = jnp.isfinite(t) & (den[0] != 0)
@@ -329,7 +330,7 @@ def intersect(
     lanes: int | None = None,
     steps_per_iter: int | None = None,
 ) -> Hit:
-    """Closest hit, as `jaxrt.bvh.intersect`; prim is the virtual face id (see `decode`)."""
+    """Closest hit, as `jaxrt.accel.bvh.intersect`; prim is the virtual face id (see `decode`)."""
     found, t, best, inst, u, v, tmin_b, tmax_b = _run(tree, origins, directions, tmin, tmax, any_hit=False,
                                                       lanes=lanes, steps_per_iter=steps_per_iter)
     best = jnp.maximum(best, 0)
@@ -352,7 +353,7 @@ def occluded(
     lanes: int | None = None,
     steps_per_iter: int | None = None,
 ) -> Bool[Array, " N"]:
-    """Any hit with t in [tmin, tmax] (early exit), as `jaxrt.bvh.occluded`."""
+    """Any hit with t in [tmin, tmax] (early exit), as `jaxrt.accel.bvh.occluded`."""
     found, *_ = _run(tree, origins, directions, tmin, tmax, any_hit=True, lanes=lanes, steps_per_iter=steps_per_iter)
     return found
 

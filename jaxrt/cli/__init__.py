@@ -15,14 +15,16 @@ import sys
 
 from jaxrt.errors import InputError
 
+__all__ = ["COMMANDS", "build_parser", "main"]
+
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "render": ("jaxrt.cli_render", "render a scene file to EXR/PNG"),
-    "sweep": ("jaxrt.cli_sweep", "render a parameter sweep of one BRDF model as a labelled image strip"),
-    "view": ("jaxrt.viewer", "open an interactive window with sliders for materials, light and camera"),
-    "fit": ("fitting.cli", "recover a BRDF's parameters from target renders (--demo for a self-contained run)"),
-    "fit-matrix": ("fitting.cli_matrix", "fit every model to every other model's renders; table and heat map"),
-    "brdf-report": ("brdfs.report", "print each BRDF model's albedo table and write a lobe plot PNG"),
+    "render": ("jaxrt.cli.render", "render a scene file to EXR/PNG"),
+    "sweep": ("jaxrt.cli.sweep", "render a parameter sweep of one BRDF model as a labelled image strip"),
+    "view": ("jaxrt.cli.view", "open an interactive window with sliders for materials, light and camera"),
+    "fit": ("jaxrt.cli.fit", "recover a BRDF's parameters from target renders (--demo for a self-contained run)"),
+    "fit-matrix": ("jaxrt.cli.fit_matrix", "fit every model to every other model's renders; table and heat map"),
+    "brdf-report": ("jaxrt.cli.brdf_report", "print each BRDF model's albedo table and write a lobe plot PNG"),
 }
 
 

@@ -42,14 +42,10 @@ ray_budget = 1 loses nothing; the default is 2 for scenes with glass. The levels
 `lax.while_loop` that stops as soon as no ray is alive, so a scene without mirrors traces one
 level whatever max_depth is. A child whose weight is zero at trace time (δ = 0) is not traced.
 
-Ray offsets
------------
-Secondary and shadow rays start at the hit point moved along the geometric normal to the side they
-leave towards, by 2^-16·(1 + max|p|): far above float32 rounding of the barycentric hit point
-(≈ 2^-23·max|p|) and far below any feature size, so there is no self-intersection acne and
-objects that touch or interpenetrate still occlude and reflect each other. Hit points are
-recomputed from barycentrics rather than o + t·d for the same reason. Surfaces are two-sided for
-opaque materials; glass decides inside/outside from the geometric normal of each hit (no nested
+Surfaces
+--------
+Rays leave hit points offset along the geometric normal (`jaxrt.shading.surface`). Surfaces are
+two-sided for opaque materials; glass decides inside/outside from the geometric normal of each hit (no nested
 media: glass inside glass is treated as glass in air). Glass casts opaque shadows (Whitted).
 """
 
@@ -60,14 +56,18 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 import brdfs
-from jaxrt import bvh, bvh_instanced, camera, instancing, lights as _lights
+from jaxrt import camera
+from jaxrt import lights as _lights
+from jaxrt.integrators.common import intersect_active, sample_order
+from jaxrt.shading.aovs import build_aovs
+from jaxrt.shading.direct import local_radiance
+from jaxrt.shading.material import delta_and_glass, glass_split, is_glass
+from jaxrt.shading.surface import dot, mirror_dir, normalize, offset_scale, oriented
 
 MIRROR, GLASS_R, GLASS_T = 0, 1, 2
-_OFFSET = 2.0**-16
 
 
 class GBuffer(eqx.Module):
@@ -96,227 +96,12 @@ class GBuffer(eqx.Module):
     dropped: Int[Array, ""]
 
 
-class Surface(eqx.Module):
-    """Differentiable re-evaluation of hit points (B,): position, geometric and shading normals
-    (outward, as the mesh is wound), tangent, material id."""
-
-    p: Float[Array, "B 3"]
-    ng: Float[Array, "B 3"]
-    ns: Float[Array, "B 3"]
-    tangent: Float[Array, "B 3"]
-    material: Int[Array, "B"]
-    uv: Float[Array, "B 2"] | None = None  # interpolated texture coordinates
-
-
-def _dot(a, b):
-    return jnp.sum(a * b, axis=-1)
-
-
-def _normalize(v):
-    n2 = _dot(v, v)
-    ok = n2 > 1e-30
-    return jnp.where(ok[..., None], v * jax.lax.rsqrt(jnp.where(ok, n2, 1.0))[..., None], 0.0)
-
-
-def surface(geometry, prim: Int[Array, "B"], u: Float[Array, "B"], v: Float[Array, "B"]) -> Surface:
-    """Hit point, normals and frame of faces `prim` at barycentrics (u, v); misses (-1) give face 0.
-
-    Works on `scene.Geometry` and on `instancing.InstancedGeometry` (prim = virtual face id)."""
-    if instancing.is_instanced(geometry):
-        p, ng, ns, tg, mat, uv = instancing.surface_arrays(geometry, prim, u, v)
-        ng = _normalize(ng)
-        ns = _normalize(ns)
-        ns = jnp.where((_dot(ns, ns) > 0.5)[:, None], ns, ng)
-        return Surface(p, ng, ns, tg, mat, uv)
-    f = geometry.faces[jnp.maximum(prim, 0)]  # (B, 3)
-    v0, v1, v2 = (geometry.vertices[f[:, k]] for k in range(3))
-    w = (1.0 - u - v)[:, None]
-    p = w * v0 + u[:, None] * v1 + v[:, None] * v2
-    ng = _normalize(jnp.cross(v1 - v0, v2 - v0))
-    n0, n1, n2 = (geometry.normals[f[:, k]] for k in range(3))
-    ns = _normalize(w * n0 + u[:, None] * n1 + v[:, None] * n2)
-    ns = jnp.where((_dot(ns, ns) > 0.5)[:, None], ns, ng)
-    t0, t1, t2 = (geometry.tangents[f[:, k]] for k in range(3))
-    tg = w * t0 + u[:, None] * t1 + v[:, None] * t2
-    uvs = getattr(geometry, "uvs", None)
-    if uvs is None:
-        uv = jnp.zeros(u.shape + (2,), p.dtype)
-    else:
-        uv = w * uvs[f[:, 0]] + u[:, None] * uvs[f[:, 1]] + v[:, None] * uvs[f[:, 2]]
-    return Surface(p, ng, ns, tg, geometry.material[jnp.maximum(prim, 0)], uv)
-
-
-def _frame(n: Float[Array, "B 3"], t: Float[Array, "B 3"]):
-    """Orthonormal (t, b, n) with t as close to the mesh tangent as possible."""
-    t = t - _dot(t, n)[..., None] * n
-    ok = _dot(t, t) > 1e-12
-    # fallback basis (Duff et al. 2017) where the interpolated tangent degenerates
-    sign = jnp.where(n[..., 2] >= 0, 1.0, -1.0)
-    a = -1.0 / (sign + n[..., 2])
-    b = n[..., 0] * n[..., 1] * a
-    t_fb = jnp.stack([1.0 + sign * n[..., 0] ** 2 * a, sign * b, -sign * n[..., 0]], axis=-1)
-    t = jnp.where(ok[..., None], _normalize(t), t_fb)
-    return t, jnp.cross(n, t), n
-
-
-def _to_local(w, frame):
-    t, b, n = frame
-    return jnp.stack([_dot(w, t), _dot(w, b), _dot(w, n)], axis=-1)
-
-
-def _from_local(w, frame):
-    t, b, n = frame
-    return w[..., :1] * t + w[..., 1:2] * b + w[..., 2:] * n
-
-
-def _offset_scale(p):
-    return _OFFSET * (1.0 + jnp.max(jnp.abs(p), axis=-1, keepdims=True))
-
-
-def _gather_params(materials, mat: Int[Array, "B"], k: int, uv: Float[Array, "B 2"] | None = None) -> dict:
-    """Model k's parameters for every slot (rows of other models' materials point at row 0).
-
-    With `uv`, a textured parameter (`materials.bindings`) takes its texture's value at the slot's
-    uv (jaxrt.textures.lookup) instead of the table's constant; uv=None gives the constants.
-    """
-    row = jnp.where(materials.model_id[mat] == k, materials.row[mat], 0)
-    out = {name: table[row] for name, table in materials.params[k].items()}
-    if uv is not None:
-        from jaxrt import textures as _tx
-
-        model = brdfs.get(materials.models[k])
-        for mk, r, name, t in getattr(materials, "bindings", ()):
-            if mk != k:
-                continue
-            sel = (materials.model_id[mat] == k) & (materials.row[mat] == r)
-            val = _tx.value(materials.textures[t], uv, model.param(name).rgb)
-            out[name] = jnp.where(sel[:, None] if val.ndim == 2 else sel, val, out[name])
-    return out
-
-
-def _oriented(s: Surface, d: Float[Array, "B 3"]):
-    """Normals flipped to the side the ray arrives from (two-sided opaque surfaces)."""
-    back = _dot(d, s.ng) > 0
-    sign = jnp.where(back, -1.0, 1.0)[:, None]
-    ng = s.ng * sign
-    ns = s.ns * sign
-    ns = jnp.where((_dot(ns, ng) > 0)[:, None], ns, ng)  # shading normal never past the horizon
-    return ng, ns, back
-
-
-def _glass_frame(s: Surface, d):
-    """Local frame with +z the outward normal, as brdfs.glass expects; geometric normal wherever the
-    interpolated one disagrees about which side the ray is on."""
-    wo = -d
-    agree = jnp.sign(_dot(wo, s.ns)) == jnp.sign(_dot(wo, s.ng))
-    n = jnp.where(agree[:, None], s.ns, s.ng)
-    return _frame(n, s.tangent)
-
-
-def _glass_split(materials, s: Surface, d, k: int):
-    """(R, reflected dir, transmitted dir, transmission valid) for glass (model k) at every slot."""
-    glass = brdfs.get(materials.models[k])
-    p = _gather_params(materials, s.material, k)
-    frame = _glass_frame(s, d)
-    wo = _to_local(-d, frame)
-    entering = wo[:, 2] > 0
-    r = glass.extras["fresnel"](p, jnp.abs(wo[:, 2]), entering)
-    wt, ok = glass.extras["refract"](p, wo)
-    wr = glass.extras["reflect"](wo)
-    return r, _from_local(wr, frame), _from_local(wt, frame), ok & (r < 1.0)
-
-
-def _mirror_dir(d, ng, ns):
-    r = d - 2.0 * _dot(d, ns)[:, None] * ns
-    r_geo = d - 2.0 * _dot(d, ng)[:, None] * ng
-    return jnp.where((_dot(r, ng) > 0)[:, None], r, r_geo)
-
-
-def _model_masks(materials, mat):
-    mid = materials.model_id[mat]
-    return [(mid == k) for k in range(len(materials.models))]
-
-
-def _is_glass(materials, mat):
-    out = jnp.zeros(mat.shape, bool)
-    for k, name in enumerate(materials.models):
-        if brdfs.get(name).delta:
-            out = out | (materials.model_id[mat] == k)
-    return out
-
-
-def _intersect(tree, o, d, active):
-    # inactive slots get an empty interval so traversal rejects them at the root
-    tmax = jnp.where(active, jnp.inf, -1.0)
-    if isinstance(tree, bvh_instanced.InstancedBVH):
-        return bvh_instanced.intersect(tree, o, d, tmin=0.0, tmax=tmax)
-    return bvh.intersect(tree, o, d, tmin=0.0, tmax=tmax)
-
-
-def _occluded(tree, o, d, tmax, from_end: bool = False):
-    if isinstance(tree, bvh_instanced.InstancedBVH):
-        return bvh_instanced.occluded(tree, o, d, tmax)
-    return bvh.occluded(tree, o, d, tmax, from_end=from_end)
-
-
-def _delta_and_glass(mats, s: Surface, found: Bool[Array, "B"]):
-    """(δ of opaque hits, 0 elsewhere; glass hit mask), each (B,): the branch coefficients trace and
-    shade both derive the ray tree's throughput from."""
-    glass = found & _is_glass(mats, s.material)
-    return jnp.where(found & ~glass, mats.delta[s.material], 0.0), glass
-
-
-def _local_radiance(scene, s: Surface, d, visible, found, delta, glass) -> Float[Array, "B 3"]:
-    """Radiance a ray (B,) collects at its own hit, before its path throughput: (1 − δ)·direct on
-    opaque hits, 0 on glass (all of it is carried by the children), the escaped radiance on misses."""
-    direct, _, _ = _direct(scene, s, d, visible)
-    local = jnp.where(found[:, None], (1.0 - delta)[:, None] * direct, escaped_radiance(scene, d))
-    return jnp.where(glass[:, None], 0.0, local)
-
-
-def _aov_dict(scene, prim, u, v, t, d, visible) -> dict:
-    """The AOVs (see `shade`) from the level-0 hit of each pixel's first sample, each (npix, ...)."""
-    cam = scene.camera
-    found = prim >= 0
-    s = surface(scene.geometry, prim, u, v)
-    _, albedo, ns = _direct(scene, s, d, visible)
-    hw = (cam.height, cam.width)
-    return {
-        "depth": jnp.where(found, t, 0.0).reshape(hw),
-        "normal": jnp.where(found[:, None], ns, 0.0).reshape(hw + (3,)),
-        "albedo": jnp.where(found[:, None], albedo, 0.0).reshape(hw + (3,)),
-        "object_id": jnp.where(found, instancing.face_object(scene.geometry, prim), -1).reshape(hw),
-    }
-
-
-_BLOCK = (8, 4)  # pixels (wide, high) per block of level-0 slots: one GPU warp's 32 rays
-
-
-def sample_order(height: int, width: int, spp: int) -> tuple[np.ndarray, np.ndarray]:
-    """Level-0 ray order: (sample index, in `camera.generate_rays` order, of each level-0 slot (n,);
-    level-0 slot of each pixel's first sample (npix,)), static numpy.
-
-    Pixels go in 8x4 blocks, blocks row by row, the spp samples of a pixel together: the 32 rays of a
-    GPU warp then cover a block rather than a 32-pixel strip of a row, and stay more alike down the
-    tree (children keep their parents' order). Simulated on the dragon at 512²: 18 % fewer steps for
-    a warp's slowest ray.
-    """
-    y, x = np.divmod(np.arange(height * width), width)
-    bw, bh = _BLOCK
-    key = ((y // bh) * (-(-width // bw)) + x // bw) * (bw * bh) + (y % bh) * bw + x % bw
-    pixels = np.argsort(key, kind="stable")
-    samples = (pixels[:, None] * spp + np.arange(spp)[None, :]).reshape(-1)
-    first = np.empty(height * width, np.int64)
-    first[pixels] = np.arange(height * width) * spp
-    return samples.astype(np.int32), first.astype(np.int32)
-
-
 def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
     """The ray-tree loop shared by `trace` and the fused `whitted` forward pass.
 
     record: fill a GBuffer; image: accumulate each level's contribution (path throughput ·
-    `_local_radiance`) into the image as the level is traced; aovs: keep the level-0 hit of each
-    pixel's first sample for `_aov_dict`. The flags are static: a pass that does not record carries
+    `local_radiance`) into the image as the level is traced; aovs: keep the level-0 hit of each
+    pixel's first sample for `build_aovs`. The flags are static: a pass that does not record carries
     no GBuffer at all (not relying on XLA to drop dead loop state).
 
     Returns:
@@ -339,7 +124,7 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
     pad = B - n
     o0 = jnp.pad(o0, ((0, pad), (0, 0)))
     d0 = jnp.pad(d0, ((0, pad), (0, 0)), constant_values=1.0)
-    d0 = _normalize(d0)
+    d0 = normalize(d0)
     act0 = jnp.arange(B) < n
     pix0 = jnp.pad(jnp.asarray(order // st.spp), (0, pad))
 
@@ -356,7 +141,7 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
     rec = None
     if aovs:
         rec = dict(prim=jnp.full((npix,), -1, jnp.int32), u=jnp.zeros(npix), v=jnp.zeros(npix), t=jnp.zeros(npix),
-                   d=jnp.zeros((npix, 3)), visible=jnp.zeros((npix, L), bool))
+                   d=jnp.zeros((npix, 3)))
     ray0 = (o0, d0, act0, pix0, jnp.full((B,), -1, jnp.int32), jnp.zeros((B,), jnp.int32), act0.astype(wdtype))
 
     def cond(carry):
@@ -365,20 +150,20 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
 
     def body(carry):
         k, (o, d, act, pix, parent, branch, weight), buf, img, rec = carry
-        hit = _intersect(geo.tree, o, d, act)
+        hit = intersect_active(geo, o, d, act)
         prim = jnp.where(act, hit.prim, -1)
         found = prim >= 0
         u, v, t = (jnp.where(found, x, 0.0) for x in (hit.u, hit.v, hit.t))
-        s = surface(geo, prim, u, v)
-        ng, ns, _ = _oriented(s, d)
-        eps = _offset_scale(s.p)
+        s = geo.surface(prim, u, v)
+        ng, ns, _ = oriented(s, d)
+        eps = offset_scale(s.p)
         # shadow rays, one per (slot, light)
         wi, dist, _ = _lights.incident(scene.lights, s.p)  # (B, L, 3), (B, L)
-        lit = found[:, None] & (_dot(wi, ng[:, None, :]) > 0) & ~_is_glass(mats, s.material)[:, None]
+        lit = found[:, None] & (dot(wi, ng[:, None, :]) > 0) & ~is_glass(mats, s.material)[:, None]
         so = jnp.broadcast_to(s.p[:, None, :] + ng[:, None, :] * eps[:, None, :], wi.shape)
         smax = jnp.where(lit, dist - 2.0 * eps, -1.0)
         # from the light: coherent origins (single-level BVH; the two-level one traces forwards)
-        occ = _occluded(geo.tree, so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1),
+        occ = geo.occluded(so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1),
                         from_end=True).reshape(B, L)
         visible = lit & ~occ
         if record:
@@ -389,26 +174,26 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
                 pixel=buf.pixel.at[k].set(pix), visible=buf.visible.at[k].set(visible),
                 weight=buf.weight.at[k].set(jnp.where(act, weight, 0.0)), dropped=buf.dropped,
             )
-        delta, glass = _delta_and_glass(mats, s, found)
+        delta, glass = delta_and_glass(mats, s, found)
         if image:
             # `weight` is the product of δ, R, 1 − R along the path for the current values: the
             # throughput `shade` rebuilds from the parents, so the sum is the same image
-            local = _local_radiance(scene, s, d, visible, found, delta, glass)
+            local = local_radiance(scene, s, d, visible, found, delta, glass)
             contrib = jnp.where(act[:, None], weight[:, None] * local, 0.0)
             # (indices_are_sorted, though true, made this scatter-add 2.4x slower on an H200)
             img = img.at[jnp.where(act, pix, npix)].add(contrib, mode="drop")
         if aovs:
-            new = dict(prim=prim[first], u=u[first], v=v[first], t=t[first], d=d[first], visible=visible[first])
+            new = dict(prim=prim[first], u=u[first], v=v[first], t=t[first], d=d[first])
             rec = jax.tree_util.tree_map(lambda a, b: jnp.where(k == 0, b, a), rec, new)
         # children: (primary, secondary) per parent
         w_mirror = weight * delta
         r = jnp.zeros(B, wdtype)
-        dr = _mirror_dir(d, ng, ns)
+        dr = mirror_dir(d, ng, ns)
         dt = d
         t_ok = jnp.zeros(B, bool)
         for kk, name in enumerate(mats.models):
             if brdfs.get(name).delta:
-                rk, drk, dtk, okk = _glass_split(mats, s, d, kk)
+                rk, drk, dtk, okk = glass_split(mats, s, d, kk)
                 sel = glass & (mats.model_id[s.material] == kk)
                 r = jnp.where(sel, rk, r)
                 dr = jnp.where(sel[:, None], drk, dr)
@@ -455,7 +240,7 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
         src = jnp.minimum(src, 2 * B - 1)
         new = lambda x, fill: jnp.where(filled.reshape((B,) + (1,) * (x.ndim - 1)), x[src], fill)  # noqa: E731
         ray = (
-            new(co, 0.0), _normalize(new(cd, 1.0)), new(keep, False), new(cpix, 0), new(cparent, -1),
+            new(co, 0.0), normalize(new(cd, 1.0)), new(keep, False), new(cpix, 0), new(cparent, -1),
             new(cb, 0), new(cw, 0.0),
         )
         if record:
@@ -466,7 +251,7 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
     if image:
         img = (img / st.spp).reshape(cam.height, cam.width, 3)
     if aovs:
-        rec = _aov_dict(scene, **rec)
+        rec = build_aovs(scene, **rec)
     return buf, img, rec
 
 
@@ -475,67 +260,14 @@ def trace(scene) -> GBuffer:
     return _trace_loop(scene, record=True, image=False)[0]
 
 
-def direct_terms(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Array, "B L"]):
-    """What the direct-lighting sum needs besides the BRDF, for hits `s` seen along rays `d`.
-
-    Returns:
-        wi: (B, L, 3) local-frame directions to the lights; wo: (B, 1, 3) local direction to the
-        viewer; light: (B, L, 3) cosθ_i·I/d²·V per light (0 behind the geometric surface or shadowed).
-        Σ_l f(wi, wo)·light is the (1 − δ)-less direct term of the seed's equation.
-    """
-    ng, ns, _ = _oriented(s, d)
-    frame = _frame(ns, s.tangent)
-    wi, _, scale = _lights.incident(scene.lights, s.p)  # (B, L, 3), (B, L, 3)
-    wo_l = _to_local(-d, frame)[:, None, :]
-    wi_l = _to_local(wi, tuple(x[:, None, :] for x in frame))
-    cos = jnp.maximum(wi_l[..., 2], 0.0)
-    above = _dot(wi, ng[:, None, :]) > 0
-    light = jnp.where(visible & above, cos, 0.0)[..., None] * scale
-    return wi_l, wo_l, light
-
-
-def _direct(scene, s: Surface, d, visible):
-    """Σ_l f_r·I·cosθ/d²·V for opaque models (without the 1 − δ), the albedo AOV and the shading
-    normal facing the viewer, each (B, 3)."""
-    mats = scene.materials
-    _, ns, _ = _oriented(s, d)
-    wi_l, wo_l, weight = direct_terms(scene, s, d, visible)
-    out = jnp.zeros(s.p.shape)
-    albedo = jnp.zeros(s.p.shape)
-    for k, name in enumerate(mats.models):
-        model = brdfs.get(name)
-        sel = mats.model_id[s.material] == k
-        p = _gather_params(mats, s.material, k, s.uv)
-        if "rho_d" in p:
-            albedo = jnp.where(sel[:, None], p["rho_d"], albedo)
-        elif "base_color" in p:  # Disney
-            albedo = jnp.where(sel[:, None], p["base_color"], albedo)
-        if model.delta:
-            albedo = jnp.where(sel[:, None], 1.0, albedo)
-            continue
-        f = model.eval({n_: x[:, None] for n_, x in p.items()}, wi_l, wo_l)  # (B, L, 3)
-        out = jnp.where(sel[:, None], jnp.sum(f * weight, axis=1), out)
-    return out, albedo, ns
-
-
 def _glass_r(scene, s, d):
     mats = scene.materials
     r = jnp.zeros(d.shape[0])
     for k, name in enumerate(mats.models):
         if brdfs.get(name).delta:
-            rk, *_ = _glass_split(mats, s, d, k)
+            rk, *_ = glass_split(mats, s, d, k)
             r = jnp.where(mats.model_id[s.material] == k, rk, r)
     return r
-
-
-def escaped_radiance(scene, d: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
-    """Radiance of rays that leave the scene along d: the environment if the scene has one, else
-    the background."""
-    if getattr(scene, "environment", None) is None:
-        return jnp.broadcast_to(scene.settings.background, d.shape)
-    from jaxrt import envmap
-
-    return envmap.radiance(scene.environment, d)
 
 
 def shade(gbuffer: GBuffer, scene, aovs: bool = False):
@@ -543,10 +275,8 @@ def shade(gbuffer: GBuffer, scene, aovs: bool = False):
 
     Returns:
         image (H, W, 3) linear radiance, or with `aovs=True` a pair (image, dict) where the dict has
-        depth (H, W) [scene units along the primary ray; 0 where nothing was hit], normal (H, W, 3)
-        (world shading normal facing the camera; 0 on misses), albedo (H, W, 3) (rho_d or base_color, 1 for glass,
-        0 for models without rho_d or misses) and object_id (H, W) int32 (-1 on misses), each from
-        the pixel's first sample.
+        the AOVs of `jaxrt.shading.aovs` (depth, normal, albedo, object_id), each from the pixel's
+        first sample.
     """
     mats, st, cam = scene.materials, scene.settings, scene.camera
     npix = cam.num_pixels
@@ -564,11 +294,11 @@ def shade(gbuffer: GBuffer, scene, aovs: bool = False):
         tput = jnp.where(act, tput, 0.0)
 
         def hit_terms(_):
-            s = surface(scene.geometry, prim, g["u"], g["v"])
+            s = scene.geometry.surface(prim, g["u"], g["v"])
             found = prim >= 0
-            delta, glass = _delta_and_glass(mats, s, found)
+            delta, glass = delta_and_glass(mats, s, found)
             r = jnp.where(glass, _glass_r(scene, s, g["direction"]), 0.0)
-            return _local_radiance(scene, s, g["direction"], g["visible"], found, delta, glass), delta, r
+            return local_radiance(scene, s, g["direction"], g["visible"], found, delta, glass), delta, r
 
         def empty(_):
             return jnp.zeros((B, 3)), jnp.zeros(B), jnp.zeros(B)
@@ -587,8 +317,8 @@ def shade(gbuffer: GBuffer, scene, aovs: bool = False):
     if not aovs:
         return image
     first = sample_order(cam.height, cam.width, st.spp)[1]  # level-0 slot of each pixel's first sample
-    return image, _aov_dict(scene, *(x[0, first] for x in (gbuffer.prim, gbuffer.u, gbuffer.v, gbuffer.t,
-                                                           gbuffer.direction, gbuffer.visible)))
+    return image, build_aovs(scene, *(x[0, first] for x in (gbuffer.prim, gbuffer.u, gbuffer.v, gbuffer.t,
+                                                           gbuffer.direction)))
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(1,))

@@ -1,8 +1,8 @@
 """Binned-SAH BVH topology in vectorised numpy (host side); `bvh.build(..., builder="sah")`.
 
-Top-down, one level at a time like the LBVH of `jaxrt.bvh_build`, but a node with more than
-`SAH_MIN` triangles is split by the surface area heuristic over `BINS` centroid bins along the
-axis of its widest centroid extent (Wald 2007). Nodes with at most `SAH_MIN` triangles (and nodes
+Top-down, one level at a time like the LBVH of `jaxrt.accel.builder`, but a node with more than
+`sah_min` triangles is split by the surface area heuristic over `bins` centroid bins along the
+axis of its widest centroid extent (Wald 2007). Nodes with at most `sah_min` triangles (and nodes
 where no bin boundary separates the centroids) take the LBVH split: the highest differing Morton
 bit of their range, or its middle where all codes are equal.
 
@@ -14,10 +14,10 @@ The build runs in phases so that no level moves triangle data (`_sah_levels`):
    triangles (left or right child). Triangles of finished nodes are dropped from the working set.
    Centroid bounds, which place the bins, are not recomputed per node: a child's are its
    parent's cut at the split plane and clipped to twice the child's box (exact from the bins),
-   so they are conservative; `EXACT_BOUNDS` recomputes them (6 more scatter passes per level)
+   so they are conservative; `exact_bounds` recomputes them (6 more scatter passes per level)
    and then gives the tree of the first version of this module, node for node.
-   Near the root (nodes above `RUN_NODES` triangles) the elements are clusters: the triangles of
-   one cell of a Morton grid coarse enough for ~`RUN` triangles per cell, binned at their mean
+   Near the root (nodes above `run_nodes` triangles) the elements are clusters: the triangles of
+   one cell of a Morton grid coarse enough for ~`run` triangles per cell, binned at their mean
    centroid with their box and count. A cluster whose centroids straddle its node's chosen split
    plane is replaced by its triangles, so every split is the plane's exact partition; only the
    choice of the plane sees clusters.
@@ -25,7 +25,7 @@ The build runs in phases so that no level moves triangle data (`_sah_levels`):
    node puts every node's triangles in one contiguous range, in Morton order inside; then the
    Morton splits of the small nodes run on those ranges (a vectorised binary search per level,
    O(nodes)), and the nodes are renumbered breadth-first.
-The output goes through the same `bvh_build.finish` as the LBVH, so the layout, the six threaded
+The output goes through the same `builder.finish` as the LBVH, so the layout, the six threaded
 link orders and both traversals are unchanged. Deterministic: no randomness, no threads.
 
 Measured (BENCHMARKS.md, "Tree quality"): SAH splits pay at every level, not only the top ones
@@ -36,17 +36,44 @@ bounds and the clusters cost +0.06 % (53.79 → 53.82, node visits unchanged); t
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from jaxrt.bvh_build import _highest_bit
+from jaxrt.accel.morton import highest_bit
+from jaxrt.errors import InputError
 
-BINS = 16  # 32 measured no better
-SAH_MIN = 16  # nodes with more triangles are binned; a module setting so benchmarks can vary it
-ALL_AXES = False  # bin all three axes: lower SAH cost, but no fewer node visits (measured)
-EXACT_BOUNDS = False  # exact centroid bounds per node (slower; no clusters): the first version's tree
-RUN = 8  # near the root, clusters of ~RUN triangles (one Morton grid cell) are binned as one ...
-RUN_NODES = 4096  # ... in nodes with more triangles than this (1024: SAH cost +0.1 %, no faster)
-_COMPACT = 0.2  # drop finished elements from the working arrays once they are this fraction
+
+
+@dataclasses.dataclass(frozen=True)
+class SahSettings:
+    """The binned-SAH builder's settings (an argument of `topology`, so a build never depends on
+    module state); the defaults are the measured best (BENCHMARKS.md, "Tree quality").
+
+    bins: centroid bins per split (32 measured no better); sah_min: nodes with more triangles
+    are binned, the rest split by Morton code; all_axes: bin all three axes (lower SAH cost, but
+    no fewer node visits, measured); exact_bounds: exact centroid bounds per node (slower, no
+    clusters); run: near the root, clusters of ~run triangles (one Morton grid cell) are binned as
+    one element ... run_nodes: ... in nodes with more triangles than this (1024: SAH cost +0.1 %,
+    no faster); compact: drop finished elements from the working arrays once they are this
+    fraction.
+    """
+
+    bins: int = 16
+    sah_min: int = 16
+    all_axes: bool = False
+    exact_bounds: bool = False
+    run: int = 8
+    run_nodes: int = 4096
+    compact: float = 0.2
+
+    def __post_init__(self):
+        if not (2 <= self.bins <= 256 and self.sah_min >= 1 and self.run >= 1 and self.run_nodes >= 1
+                and 0.0 < self.compact <= 1.0):
+            raise InputError(f"SahSettings: out of range: {self}")
+
+
+DEFAULT = SahSettings()
 
 
 def _segment_reduce(ufunc, rows: np.ndarray, key: np.ndarray, size: int) -> np.ndarray:
@@ -58,7 +85,7 @@ def _segment_reduce(ufunc, rows: np.ndarray, key: np.ndarray, size: int) -> np.n
     return out
 
 
-def _sweep(nb: np.ndarray, blo: np.ndarray, bhi: np.ndarray, cnt: np.ndarray):
+def _sweep(nb: np.ndarray, blo: np.ndarray, bhi: np.ndarray, cnt: np.ndarray, exact: bool):
     """Best binned split per node: cost (k,) (inf where no split separates the
     triangles), bin j (k,) (left = bins 0..j), left count (k,) and the children's boxes (k, 2, 6)
     [lo xyz, hi xyz] float32. nb (bins, k) counts, blo/bhi (3, bins, k) float32 bin boxes (+inf /
@@ -76,8 +103,8 @@ def _sweep(nb: np.ndarray, blo: np.ndarray, bhi: np.ndarray, cnt: np.ndarray):
         np.minimum(left[i - 1], box[i], out=left[i])
         np.minimum(right[bins - 1 - i], box[bins - 1 - i], out=right[bins - 2 - i])
 
-    # float32 is plenty to rank the splits; EXACT_BOUNDS keeps the first version's float64
-    dtype = np.float64 if EXACT_BOUNDS else np.float32
+    # float32 is plenty to rank the splits; exact (bounds) keeps the first version's float64
+    dtype = np.float64 if exact else np.float32
 
     def area(b):  # half surface area; 0 for an empty side
         e = b[:, 3:].astype(dtype)
@@ -146,7 +173,7 @@ class _Nodes:
         return lid
 
 
-def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand=None):
+def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, settings: SahSettings, label, pos, expand=None):
     """Binned-SAH splits, level by level, of the nodes `big` and their descendants with more
     than `stop` triangles. Elements are triangles (or clusters of them, see `expand`): x (9, n)
     float32 rows lo xyz, hi xyz, centroid xyz (as lo + hi); w (n,) triangles per element (None:
@@ -159,6 +186,7 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand
     triangles' (x, codes, pos). A cluster whose centroids straddle its node's split plane is
     replaced by its triangles, so that every split is the plane's exact partition; the bin
     counts and boxes that chose the plane count each cluster at its mean centroid."""
+    bins = settings.bins
     ar = np.arange(len(lab))
     while len(big):
         k = len(big)
@@ -170,13 +198,13 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand
         loc = loc_of[lab]
         gone = loc == k
         n_gone = int(gone.sum())
-        if n_gone > _COMPACT * n:  # drop the elements of finished nodes
+        if n_gone > settings.compact * n:  # drop the elements of finished nodes
             label[pos[gone]] = lab[gone]
             keep = np.flatnonzero(~gone)
             x, pos, lab, loc, codes = np.take(x, keep, axis=1), pos[keep], lab[keep], loc[keep], codes[keep]
             w = None if w is None else w[keep]
             n, n_gone = len(lab), 0
-        if EXACT_BOUNDS:
+        if settings.exact_bounds:
             clo = _segment_reduce(np.minimum, x[6:], loc, k + 1)[:, :k]
             chi = _segment_reduce(np.maximum, x[6:], loc, k + 1)[:, :k]
         else:
@@ -184,7 +212,7 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand
         ext = chi - clo  # (3, k)
         xc = x[6:].reshape(-1)
         rows = ar[:n]
-        for ci, cand in enumerate(range(3) if ALL_AXES else [None]):
+        for ci, cand in enumerate(range(3) if settings.all_axes else [None]):
             axis = np.argmax(ext, axis=0) if cand is None else np.full(k, cand)
             ea = ext[axis, np.arange(k)]
             scale = np.where(ea > 0, bins * (1 - 1e-6) / np.where(ea > 0, ea, 1), 0.0).astype(np.float32)
@@ -199,7 +227,7 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand
             nb = np.bincount(key, w, minlength=bins * (k + 1)).reshape(bins, k + 1)[:, :k].astype(np.int64)
             blo = _segment_reduce(np.minimum, x[:3], key, bins * (k + 1)).reshape(3, bins, k + 1)[:, :, :k]
             bhi = _segment_reduce(np.maximum, x[3:6], key, bins * (k + 1)).reshape(3, bins, k + 1)[:, :, :k]
-            cost, j, nl, boxes = _sweep(nb, blo, bhi, cnt)
+            cost, j, nl, boxes = _sweep(nb, blo, bhi, cnt, settings.exact_bounds)
             ccb = _child_bounds(clo, chi, axis, scale, j, boxes)
             if ci == 0:
                 best = [cost, j, nl, boxes, ccb, key]
@@ -255,7 +283,7 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand
             cs = codes[sel]
             xb = cs[first] ^ cs[last]
             same = xb == 0
-            bit = _highest_bit(np.where(same, np.uint64(1), xb))
+            bit = highest_bit(np.where(same, np.uint64(1), xb))
             target = (cs[last] >> bit) << bit
             ws = np.ones(len(sel), np.int64) if w is None else w[sel]
             before = np.cumsum(ws) - ws  # triangles before each element ...
@@ -290,15 +318,14 @@ def _sah_levels(nodes, x, w, codes, lab, big, cb, stop, bins, label, pos, expand
     label[pos] = lab
 
 
-def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None, sah_min: int | None = None):
+def topology(tmin, tmax, cent, codes, order, leaf_size, settings: SahSettings = DEFAULT):
     """Node topology by binned SAH (nodes above sah_min triangles) and Morton splits (below).
 
     tmin/tmax (F,3) float32 triangle boxes, cent (F,3) float32 their centres as tmin + tmax,
     codes (F,) uint64 Morton codes, order (F,) the Morton sort. Returns (order, left, start,
-    count, levels) in `bvh_build.finish`'s form; `order` is a new array (leaf order -> face index).
+    count, levels) in `builder.finish`'s form; `order` is a new array (leaf order -> face index).
     """
-    bins = BINS if bins is None else bins
-    sah_min = SAH_MIN if sah_min is None else sah_min
+    sah_min = settings.sah_min
     nf = len(order)
     big_min = max(sah_min, leaf_size)  # nodes with more triangles are binned
     nodes = _Nodes(nf)
@@ -310,13 +337,13 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
     codes_m = codes[order]
     label = np.zeros(nf, np.int64)  # final phase-1 node of each triangle (Morton position)
     if nf > big_min:
-        if nf > RUN_NODES and not (ALL_AXES or EXACT_BOUNDS):
+        if nf > settings.run_nodes and not (settings.all_axes or settings.exact_bounds):
             # Near the root, bin clusters instead of triangles: the triangles of one cell of a
-            # coarser Morton grid (consecutive in Morton order; ~RUN per cluster) as one element
+            # coarser Morton grid (consecutive in Morton order; ~run per cluster) as one element
             # with their box, mean centroid, centroid bounds and count.
             grid = codes_m.copy()
             for _ in range(17):
-                if np.count_nonzero(grid[1:] != grid[:-1]) < nf / RUN:
+                if np.count_nonzero(grid[1:] != grid[:-1]) < nf / settings.run:
                     break
                 grid >>= np.uint64(3)
             first = np.flatnonzero(np.concatenate([[True], grid[1:] != grid[:-1]]))
@@ -339,8 +366,8 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
 
             lab_r = np.full(nc + nf, -1, np.int64)
             cb = np.concatenate([xr[6:9].min(1), xr[6:9].max(1)])[None]
-            _sah_levels(nodes, xr, wr, codes_m[first], np.zeros(nc, np.int64), np.array([0]), cb, RUN_NODES,
-                        bins, lab_r, np.arange(nc), expand)
+            _sah_levels(nodes, xr, wr, codes_m[first], np.zeros(nc, np.int64), np.array([0]), cb,
+                        settings.run_nodes, settings, lab_r, np.arange(nc), expand)
             label = np.where(lab_r[nc:] >= 0, lab_r[nc:], lab_r[cl])
         big = np.flatnonzero((nodes.left[:nodes.n] < 0) & (nodes.count[:nodes.n] > big_min))
         if len(big):
@@ -350,7 +377,7 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
             loc = loc_of[label]
             cb = np.concatenate([_segment_reduce(np.minimum, x[6:], loc, len(big) + 1),
                                  _segment_reduce(np.maximum, x[6:], loc, len(big) + 1)])[:, :-1].T
-            _sah_levels(nodes, x, None, codes_m, label.copy(), big, cb, big_min, bins, label, np.arange(nf))
+            _sah_levels(nodes, x, None, codes_m, label.copy(), big, cb, big_min, settings, label, np.arange(nf))
     tleft, tstart, tcount, ntemp = nodes.left, nodes.start, nodes.count, nodes.n
     split_levels = nodes.splits
 
@@ -370,7 +397,7 @@ def topology(tmin, tmax, cent, codes, order, leaf_size, bins: int | None = None,
         cs_s, cs_e = cs[s], cs[e - 1]
         xb = cs_s ^ cs_e
         same = xb == 0
-        bit = _highest_bit(np.where(same, np.uint64(1), xb))
+        bit = highest_bit(np.where(same, np.uint64(1), xb))
         target = (cs_e >> bit) << bit
         lo, hi = s.copy(), e - 1
         for _ in range(int(np.max(e - s)).bit_length() + 1):

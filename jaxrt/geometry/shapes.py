@@ -1,6 +1,6 @@
 """Procedural primitives (sphere, plane, box) as triangle meshes.
 
-Each primitive is built in its own object space and returned as a `jaxrt.mesh.Mesh`; the scene
+Each primitive is built in its own object space and returned as a `jaxrt.geometry.mesh.Mesh`; the scene
 loader places it with `Mesh.transformed`. Triangulation comes from trimesh; only the normals are
 set here, because the analytic ones are exact (a sphere's normal is its unit position) and a box
 must keep flat faces rather than averaged corner normals.
@@ -9,9 +9,8 @@ must keep flat faces rather than averaged corner normals.
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
-from jaxrt import mesh as _mesh
+from jaxrt.geometry import mesh as _mesh
 
 
 def sphere(radius: float = 1.0, subdivisions: int = 4, name: str = "sphere") -> "_mesh.Mesh":
@@ -20,6 +19,8 @@ def sphere(radius: float = 1.0, subdivisions: int = 4, name: str = "sphere") -> 
     Vertex normals are the exact sphere normals, so smooth shading shows no faceting in the
     highlight (silhouettes stay polygonal).
     """
+    import trimesh  # loaded where first used: it is slow to import
+
     tm = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     v = np.asarray(tm.vertices, np.float64)
     n = v / np.linalg.norm(v, axis=1, keepdims=True)
@@ -56,6 +57,8 @@ def plane(size: tuple[float, float] = (1.0, 1.0), name: str = "plane") -> "_mesh
 def box(size: tuple[float, float, float] = (1.0, 1.0, 1.0), name: str = "box") -> "_mesh.Mesh":
     """Axis-aligned box centred at the origin with edge lengths `size`, flat-shaded (36 unshared vertices);
     each face's uv spans [0, 1]^2 over its two in-plane axes."""
+    import trimesh
+
     tm = trimesh.creation.box(extents=np.asarray(size, np.float64))
     # unshare corners: each triangle gets its own vertices so every face keeps its own normal
     faces = np.asarray(tm.faces, np.int64)

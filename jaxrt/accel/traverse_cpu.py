@@ -1,12 +1,12 @@
 """BVH traversal as a native CPU kernel: an XLA FFI custom call written in C++ (`jaxrt/native/traverse.cc`).
 
-The pure-XLA traversal (`jaxrt.bvh_traverse.traverse`) runs ~100 small XLA:CPU kernels per
-traversal step; Pallas, which solves the same problem on the GPU (`jaxrt.bvh_pallas`), has no CPU
+The pure-XLA traversal (`jaxrt.accel.traverse_xla.traverse`) runs ~100 small XLA:CPU kernels per
+traversal step; Pallas, which solves the same problem on the GPU (`jaxrt.accel.traverse_pallas`), has no CPU
 backend. This module is the CPU analogue: one C++ function traces each ray to the end with its
 state in registers, over threads (chunks of consecutive rays: image tiles, coherent).
 
 Results are the XLA path's: the same ray classes and links, the same slab box test (with
-`bvh_traverse._FAR_SCALE`), the same watertight triangle test and tie rule (strict <, the earlier
+`FAR_SCALE`), the same watertight triangle test and tie rule (strict <, the earlier
 triangle on exact ties), any-hit early exit. Edge signs are exact (via double, see the C++ file).
 The float32 hit distance may differ from the XLA path's in the last ulp where XLA contracts a
 multiply-add into an FMA (the C++ is compiled with -ffp-contract=off), so triangles at the same
@@ -39,7 +39,7 @@ import jaxlib
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxrt import bvh_traverse
+from jaxrt.accel.predicates import FAR_SCALE
 
 TARGET = "jaxrt_bvh_traverse"
 _SYMBOL = "JaxrtBvhTraverse"
@@ -56,7 +56,7 @@ _state: dict = {}
 
 
 def _source() -> bytes:
-    return resources.files("jaxrt").joinpath("native", "traverse.cc").read_bytes()
+    return resources.files("jaxrt.accel").joinpath("native", "traverse.cc").read_bytes()
 
 
 def _cache_dir() -> Path:
@@ -120,21 +120,21 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
              tmax: Float[Array, " N"], *, any_hit: bool, refine: bool = False, threads: int = 0,
              lanes: int = LANES):
     """Trace N rays on the CPU; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
-    `bvh_traverse.traverse` (without the step counts).
+    `traverse_xla.traverse` (without the step counts).
 
     arrays: node_box (nn,6) float32, node_leaf (nn,2) int32, links (6nn,2) int32, triangles (F,9)
     float32 (see bvh.BVH; leaves of any size); origins, directions (N,3) float32; tmin, tmax (N,)
     float32; t is in units of |direction|. refine: t of each hit recomputed in double from its
-    triangle's plane (what `bvh_traverse.refine_t` does in double-float; `bvh.intersect` asks for
+    triangle's plane (what `traverse_xla.refine_t` does in double-float; `jaxrt.accel.intersect` asks for
     it). threads: worker threads (0: XLA's intra-op thread pool);
     lanes: rays in flight per thread, 1..32 (both only affect speed). Lowers for the CPU only.
     Under vmap the kernel runs once per batch element. Raises RuntimeError where the kernel is not
     `available()` (`bvh` checks first and uses the XLA loop).
     """
     if not 1 <= lanes <= 32 or threads < 0:
-        raise ValueError(f"bvh_cpu.traverse: lanes must be in 1..32 and threads >= 0; got {lanes}, {threads}")
+        raise ValueError(f"traverse_cpu.traverse: lanes must be in 1..32 and threads >= 0; got {lanes}, {threads}")
     if not available():
-        raise RuntimeError("jaxrt.bvh_cpu: the native kernel could not be built (see the warning)")
+        raise RuntimeError("jaxrt.accel.traverse_cpu: the native kernel could not be built (see the warning)")
     n = origins.shape[0]
     f32 = jax.ShapeDtypeStruct((n,), jnp.float32)
     i32 = jax.ShapeDtypeStruct((n,), jnp.int32)
@@ -142,6 +142,6 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     t, best, u, v = call(jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32),
                          jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32),
                          arrays["node_box"], arrays["node_leaf"], arrays["links"], arrays["triangles"],
-                         any_hit=bool(any_hit), refine=bool(refine), far_scale=np.float32(bvh_traverse._FAR_SCALE),
+                         any_hit=bool(any_hit), refine=bool(refine), far_scale=np.float32(FAR_SCALE),
                          chunk=np.int64(CHUNK), threads=np.int64(threads), lanes=np.int64(lanes))
     return best >= 0, t, best, u, v

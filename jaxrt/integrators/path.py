@@ -59,34 +59,14 @@ from jaxtyping import Array, Float, Int
 import brdfs
 from jaxrt import camera, envmap
 from jaxrt import lights as _lights
-from jaxrt.integrators import (
-    _intersect,
-    _occluded,
-    _dot,
-    _frame,
-    _from_local,
-    _gather_params,
-    _glass_split,
-    _is_glass,
-    _mirror_dir,
-    _normalize,
-    _offset_scale,
-    _oriented,
-    _to_local,
-    surface,
-)
+from jaxrt.integrators.common import intersect_active, power_heuristic
+from jaxrt.shading.aovs import build_aovs
+from jaxrt.shading.material import gather_params, glass_split, is_glass
+from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented, to_local
 
 RR_DEPTH = 3
 _NU = 8  # uniforms per path and bounce (see module docstring)
 _sg = lax.stop_gradient
-
-
-def _power(a, b):
-    """Power heuristic a² / (a² + b²) in a form that neither overflows nor divides by 0."""
-    a = jnp.minimum(a, 1e30)
-    b = jnp.minimum(b, 1e30)
-    r = b / jnp.where(a > 0, a, 1.0)
-    return jnp.where(a > 0, 1.0 / (1.0 + r * r), 0.0)
 
 
 class EmitterTable(eqx.Module):
@@ -105,15 +85,14 @@ def emitter_table(scene) -> EmitterTable:
     """Areas and selection probabilities of the scene's emissive triangles (detached values)."""
     geo = _sg(scene.geometry)
     al = _sg(scene.area_lights)
-    f = geo.faces[al.prims]
-    v0, v1, v2 = (geo.vertices[f[:, k]] for k in range(3))
+    v0, v1, v2 = geo.triangles(al.prims)
     area = 0.5 * jnp.linalg.norm(jnp.cross(v1 - v0, v2 - v0), axis=-1)
-    power = area * envmap.luminance(al.emission[geo.material[al.prims]])
+    power = area * envmap.luminance(al.emission[geo.face_material(al.prims)])
     total = jnp.sum(power)
     norm = jnp.where(total > 0, total, 1.0)
     cdf = jnp.concatenate([jnp.zeros(1), jnp.cumsum(power) / norm])
     pdf_area = jnp.where(area > 0, power / norm / jnp.where(area > 0, area, 1.0), 0.0)
-    face_pdf = jnp.zeros(geo.faces.shape[0]).at[al.prims].set(pdf_area)
+    face_pdf = jnp.zeros(geo.face_count).at[al.prims].set(pdf_area)
     return EmitterTable(cdf, face_pdf, total)
 
 
@@ -128,7 +107,7 @@ def _light_classes(scene):
 def _params(mats, s, k: int) -> dict:
     # textured parameters are looked up at the hit's uv where the Surface carries one
     uv = getattr(s, "uv", None)
-    return _gather_params(mats, s.material, k) if uv is None else _gather_params(mats, s.material, k, uv)
+    return gather_params(mats, s.material, k) if uv is None else gather_params(mats, s.material, k, uv)
 
 
 def _bsdf_models(mats):
@@ -151,7 +130,6 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     """
     st, cam, mats = scene.settings, _sg(scene.camera), scene.materials
     geo = _sg(scene.geometry)
-    tree = geo.tree
     D = st.max_depth
     spp = st.spp
     npix = cam.num_pixels
@@ -167,7 +145,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     kcam, kpath = jax.random.split(key)
     cam_seed = jax.random.bits(kcam, (), jnp.uint32)
     o0, d0 = camera.generate_rays(cam, spp, cam_seed, jitter)
-    d0 = _normalize(d0)
+    d0 = normalize(d0)
     path_keys = jax.vmap(lambda i: jax.random.fold_in(kpath, i))(jnp.arange(B, dtype=jnp.uint32))
 
     def uniforms(k):
@@ -176,33 +154,33 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     def work(k, carry):
         o, d, alive, tput, specular, pdf_prev, L, first = carry
         u = uniforms(k)
-        hit = _intersect(tree, o, d, alive)  # dispatches to the two-level BVH for instanced scenes
+        hit = intersect_active(geo, o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0
         first = jax.tree.map(lambda a, b: jnp.where(k == 0, b, a), first,
                              dict(prim=prim, u=hit.u, v=hit.v, t=jnp.where(found, hit.t, 0.0), d=d))
-        s = surface(geo, prim, hit.u, hit.v)
+        s = geo.surface(prim, hit.u, hit.v)
         s = eqx.tree_at(lambda x: x.material, s, jnp.where(found, s.material, 0))
 
         # ---- emission found by the previous ray
         if env is not None:
             le = envmap.radiance(env, d)
-            w = jnp.where(specular, 1.0, _power(pdf_prev, p_env * _sg(envmap.pdf(env, d))))
+            w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_env * _sg(envmap.pdf(env, d))))
             L = L + jnp.where((alive & ~found)[:, None], tput * w[:, None] * le, 0.0)
         if table is not None:
             le = al.emission[s.material]
-            cos_l = -_dot(d, s.ng)
+            cos_l = -dot(d, s.ng)
             t = jnp.where(found, hit.t, 0.0)
             p_l = p_tri * table.face_pdf[jnp.maximum(prim, 0)] * t * t / jnp.where(cos_l > 0, cos_l, 1.0)
-            w = jnp.where(specular, 1.0, _power(pdf_prev, p_l))
+            w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_l))
             L = L + jnp.where((found & (cos_l > 0))[:, None], tput * w[:, None] * le, 0.0)
 
         cont = found & (k < D)
-        ng, ns, _ = _oriented(s, d)
-        frame = _frame(ns, s.tangent)
-        wo = _to_local(-d, frame)
-        eps = _offset_scale(s.p)
-        glass = cont & _is_glass(mats, s.material)
+        ng, ns, _ = oriented(s, d)
+        frame = local_frame(ns, s.tangent)
+        wo = to_local(-d, frame)
+        eps = offset_scale(s.p)
+        glass = cont & is_glass(mats, s.material)
         opaque = cont & ~glass
         delta = jnp.where(opaque, mats.delta[s.material], 0.0)
         q = _sg(delta)
@@ -224,8 +202,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         rays_o, rays_d, rays_t = [], [], []
         if nl > 0:
             wi_p, dist_p, scale_p = _lights.incident(scene.lights, s.p)  # (B, L, 3), (B, L), (B, L, 3)
-            lit_p = opaque[:, None] & (_dot(wi_p, ng[:, None, :]) > 0)
-            wi_pl = _to_local(wi_p, tuple(x[:, None, :] for x in frame))
+            lit_p = opaque[:, None] & (dot(wi_p, ng[:, None, :]) > 0)
+            wi_pl = to_local(wi_p, tuple(x[:, None, :] for x in frame))
             f_p, _ = eval_f(wi_pl, wo[:, None, :], extra_dims=1)
             c_p = f_p * jnp.maximum(wi_pl[..., 2], 0.0)[..., None] * scale_p  # (B, L, 3)
             rays_o.append(jnp.broadcast_to(origin[:, None, :], wi_p.shape).reshape(-1, 3))
@@ -240,22 +218,21 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             if table is not None:
                 j = jnp.clip(jnp.searchsorted(table.cdf, u[:, 1], side="right") - 1, 0, al.count - 1)
                 face = al.prims[j]
-                fv = geo.faces[face]
-                v0, v1, v2 = (geo.vertices[fv[:, i]] for i in range(3))
+                v0, v1, v2 = geo.triangles(face)
                 su = jnp.sqrt(u[:, 2])
                 b1, b2 = 1.0 - su, u[:, 3] * su
                 y = (1.0 - b1 - b2)[:, None] * v0 + b1[:, None] * v1 + b2[:, None] * v2
-                n_l = _normalize(jnp.cross(v1 - v0, v2 - v0))
+                n_l = normalize(jnp.cross(v1 - v0, v2 - v0))
                 # aim from the offset origin: a ray parallel to y - p would meet the light's plane
                 # eps/cosθ early, short of the shadow ray's end, and count as occluded
                 to = y - origin
-                d2 = _dot(to, to)
+                d2 = dot(to, to)
                 dist = jnp.sqrt(jnp.maximum(d2, 1e-30))
                 wi_t = to / dist[:, None]
-                cos_l = -_dot(wi_t, n_l)
+                cos_l = -dot(wi_t, n_l)
                 ok_t = (cos_l > 0) & (d2 > 1e-20) & (table.total > 0)
                 p_t = jnp.where(ok_t, p_tri * table.face_pdf[face] * d2 / jnp.where(ok_t, cos_l, 1.0), 0.0)
-                le_t = jnp.where(ok_t[:, None], al.emission[geo.material[face]], 0.0)
+                le_t = jnp.where(ok_t[:, None], al.emission[geo.face_material(face)], 0.0)
                 wi_c = jnp.where(pick_tri[:, None], wi_t, wi_c)
                 le_c = jnp.where(pick_tri[:, None], le_t, le_c)
                 p_c = jnp.where(pick_tri, p_t, p_c)
@@ -265,17 +242,17 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
                 wi_c = jnp.where(pick_tri[:, None], wi_c, wi_e)
                 le_c = jnp.where(pick_tri[:, None], le_c, le_e)
                 p_c = jnp.where(pick_tri, p_c, p_env * _sg(pdf_e))
-            wi_cl = _to_local(wi_c, frame)
+            wi_cl = to_local(wi_c, frame)
             f_c, pb = eval_f(wi_cl, wo)
-            lit_c = opaque & (_dot(wi_c, ng) > 0) & (p_c > 0)
-            w_c = _power(p_c, (1.0 - q) * pb)
+            lit_c = opaque & (dot(wi_c, ng) > 0) & (p_c > 0)
+            w_c = power_heuristic(p_c, (1.0 - q) * pb)
             c_c = f_c * (jnp.maximum(wi_cl[:, 2], 0.0) * w_c / jnp.where(p_c > 0, p_c, 1.0))[:, None] * le_c
             rays_o.append(origin)
             rays_d.append(wi_c)
             rays_t.append(jnp.where(lit_c, dist_c - 2.0 * eps[:, 0], -1.0))
         if rays_o:
             tmax = jnp.concatenate(rays_t)
-            occ = _occluded(tree, jnp.concatenate(rays_o), jnp.concatenate(rays_d), tmax)
+            occ = geo.occluded(jnp.concatenate(rays_o), jnp.concatenate(rays_d), tmax)
             vis = (tmax > 0) & ~occ
             direct = jnp.zeros((B, 3))
             if nl > 0:
@@ -298,8 +275,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         fac_b = f_s * (jnp.maximum(wi_s[:, 2], 0.0) * (1.0 - delta) / den)[:, None]
         mirror = u[:, 4] < q
         fac_m = jnp.broadcast_to((delta / jnp.where(q > 0, q, 1.0))[:, None], (B, 3))
-        d_op = jnp.where(mirror[:, None], _mirror_dir(d, ng, ns), _from_local(wi_s, frame))
-        ok_op = (mirror | ok_s) & (_dot(d_op, ng) > 0)
+        d_op = jnp.where(mirror[:, None], mirror_dir(d, ng, ns), from_local(wi_s, frame))
+        ok_op = (mirror | ok_s) & (dot(d_op, ng) > 0)
         fac_op = jnp.where(mirror[:, None], fac_m, fac_b)
         new_d, new_o, fac, ok = d_op, origin, fac_op, ok_op
         new_spec = mirror
@@ -308,7 +285,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         for kk, name in enumerate(mats.models):
             if not brdfs.get(name).delta:
                 continue
-            r, dr, dt, t_ok = _glass_split(mats, s, d, kk)
+            r, dr, dt, t_ok = glass_split(mats, s, d, kk)
             rq = _sg(r)
             pick_r = (u[:, 4] < rq) | ~t_ok
             fac_g = jnp.where(pick_r, r / jnp.where(rq > 0, rq, 1.0), (1.0 - r) / jnp.where(rq < 1, 1.0 - rq, 1.0))
@@ -327,7 +304,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         tput = jnp.where(rr, tput / q_rr[:, None], tput)
         good = alive & jnp.all(jnp.isfinite(tput), axis=-1)
         tput = jnp.where(good[:, None], tput, 0.0)
-        return (_sg(new_o), _normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first)
+        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first)
 
     def body(k, carry):
         return lax.cond(jnp.any(carry[2]), lambda c: work(k, c), lambda c: c, carry)
@@ -345,22 +322,10 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
 
 
 def _aovs(scene, first: dict) -> dict:
-    from jaxrt import integrators
-
-    cam, spp = scene.camera, scene.settings.spp
-    idx = jnp.arange(cam.num_pixels) * spp
-    prim = first["prim"][idx]
-    found = prim >= 0
-    s = surface(scene.geometry, prim, first["u"][idx], first["v"][idx])
-    vis = jnp.zeros((prim.shape[0], scene.lights.count), bool)
-    _, albedo, ns = integrators._direct(scene, s, first["d"][idx], vis)
-    hw = (cam.height, cam.width)
-    return {
-        "depth": jnp.where(found, first["t"][idx], 0.0).reshape(hw),
-        "normal": jnp.where(found[:, None], ns, 0.0).reshape(hw + (3,)),
-        "albedo": jnp.where(found[:, None], albedo, 0.0).reshape(hw + (3,)),
-        "object_id": jnp.where(found, scene.geometry.object_id[jnp.maximum(prim, 0)], -1).reshape(hw),
-    }
+    # paths are pixel-major (H·W·spp, the spp samples of a pixel together): the first sample of
+    # pixel i is path i·spp
+    idx = jnp.arange(scene.camera.num_pixels) * scene.settings.spp
+    return build_aovs(scene, *(first[k][idx] for k in ("prim", "u", "v", "t", "d")))
 
 
 def render(scene, pass_index: Int[Array, ""] | int = 0, *, aovs: bool = False, jitter: bool | None = None):

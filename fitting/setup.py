@@ -18,7 +18,6 @@ import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,9 +27,9 @@ import brdfs
 from brdfs.base import Model
 from fitting import compact
 from fitting.solve import FitResult, fit_images
-from jaxrt import instancing, integrators
-from jaxrt import render as _render
+from jaxrt import integrators
 from jaxrt import scene as _scene
+from jaxrt.scene import edit
 from jaxrt.errors import InputError
 
 FIT_MATERIAL = "fit"  # name given to the substituted material when the object's own name is shared
@@ -85,33 +84,17 @@ def _spec(source, overrides=None) -> _scene.SceneSpec:
     return _scene.parse(source, overrides=overrides)
 
 
-def _object(spec: _scene.SceneSpec, name: str):
-    return next(o for o in spec.objects if o.name == name)
-
-
 def _substitute(spec: _scene.SceneSpec, model: Model, obj: str | None) -> tuple[_scene.SceneSpec, str, str]:
-    """Give the object `obj` (default: the first object) its own material of `model`."""
-    names = [o.name for o in spec.objects]
-    if obj is None:
-        target = spec.objects[0]
-    else:
-        if obj not in names:
-            raise InputError(f"{spec.source}: no object named {obj!r}; objects: {', '.join(names)}")
-        target = spec.objects[names.index(obj)]
+    """Give the object `obj` (default: the first object) its own material of `model` (defaults; δ
+    kept from its own material unless that was glass)."""
+    target = edit.find_object(spec, obj)
     if model.delta:
         raise InputError(f"{model.name} is a delta BSDF; fitting supports the models with an eval: "
                          f"{', '.join(n for n in brdfs.names() if not brdfs.get(n).delta)}")
     old = spec.materials[target.material]
-    mat = _scene.MaterialSpec(
-        name=FIT_MATERIAL,
-        model=model.name,
-        params={p.name: np.asarray(p.check(p.default, model.name)) for p in model.spec},
-        delta=0.0 if brdfs.get(old.model).delta else old.delta,
-    )
-    materials = dict(spec.materials)
-    materials[FIT_MATERIAL] = mat
-    objects = tuple(dataclasses.replace(o, material=FIT_MATERIAL) if o is target else o for o in spec.objects)
-    return dataclasses.replace(spec, materials=materials, objects=objects), FIT_MATERIAL, target.name
+    delta = 0.0 if brdfs.get(old.model).delta else old.delta
+    mat = edit.material_spec(FIT_MATERIAL, model, {"delta": delta}, where=f"{spec.source}: object {target.name!r}")
+    return edit.wear(spec, target.name, mat), FIT_MATERIAL, target.name
 
 
 def prepare(
@@ -145,8 +128,8 @@ def prepare(
         # The ray tree depends on geometry, δ and which materials are glass, not on the opaque
         # model: trace the scene as given (one compilation per scene, whatever model is fitted)
         # unless the object was glass, whose branches the substituted model no longer has.
-        was_glass = brdfs.get(original.materials[_object(original, obj_name).material].model).delta
-        gb = _render.trace(sc if was_glass else _scene.build(original))
+        was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
+        gb = integrators.trace(sc if was_glass else _scene.build(original))
         built.append(sc)
         gbs.append(gb)
     shapes = {(s.camera.height, s.camera.width, s.settings.spp) for s in built}
@@ -158,7 +141,7 @@ def prepare(
         npix = s.camera.num_pixels
         first = integrators.sample_order(s.camera.height, s.camera.width, s.settings.spp)[1]
         prim = gb.prim[0, first]
-        hit_mat = jnp.where(prim >= 0, instancing.face_material(s.geometry, prim), -1)
+        hit_mat = jnp.where(prim >= 0, s.geometry.face_material(prim), -1)
         masks.append(np.asarray(hit_mat == mi, np.float32).reshape(s.camera.height, s.camera.width))
     mask = np.stack(masks)
     if not mask.any():
@@ -178,14 +161,6 @@ def prepare(
     )
 
 
-def inject(scene, model_index: int, row: int, params: Mapping[str, Array]):
-    """A copy of `scene` whose material table `model_index`, row `row`, holds `params`."""
-    tables = scene.materials.params
-    table = {k: v.at[row].set(jnp.asarray(params[k], v.dtype)) for k, v in tables[model_index].items()}
-    new = tuple(table if j == model_index else t for j, t in enumerate(tables))
-    return eqx.tree_at(lambda s: s.materials.params, scene, new)
-
-
 @functools.lru_cache(maxsize=None)
 def shader(model_index: int, row: int):
     """The `shade(params, (gbuffers, scenes)) -> (K, H, W, 3)` function for one material slot.
@@ -196,7 +171,7 @@ def shader(model_index: int, row: int):
     def shade(params, data):
         gbuffers, scenes = data
         return jnp.stack([
-            integrators.shade(gb, inject(sc, model_index, row, params)) for gb, sc in zip(gbuffers, scenes)
+            integrators.shade(gb, edit.set_material_row(sc, model_index, row, params)) for gb, sc in zip(gbuffers, scenes)
         ])
 
     return shade

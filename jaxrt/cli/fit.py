@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+import brdfs
 from jaxrt.errors import InputError
 
 # The demo: the default scene framed on its centre sphere, small enough to fit in seconds on a CPU.
@@ -22,6 +23,8 @@ DEMO_OVERRIDES = {
     "render.max_depth": 2,
 }
 DEMO_MODELS = ("phong", "cook_torrance", "ward")
+# every model with an eval: a delta BSDF has no parameters a render can recover this way
+FIT_MODELS = tuple(n for n in brdfs.names() if not brdfs.get(n).delta)
 # A second view lit from behind the sphere: grazing half-angles separate Cook-Torrance's ρs from η,
 # which front lighting determines only as ρs·F0.
 DEMO_RIM_LIGHT = {"position": [1.2, 1.6, -1.2], "intensity": [25.0, 25.0, 25.0]}
@@ -29,9 +32,9 @@ DEMO_RIM_LIGHT = {"position": [1.2, 1.6, -1.2], "intensity": [25.0, 25.0, 25.0]}
 
 def demo_views() -> list:
     """The demo's two views of the default scene: as shipped, and rim-lit."""
-    from fitting import scene_fit
+    from fitting import setup as fit_setup
 
-    return [DEMO_SCENE, scene_fit.variant(DEMO_SCENE, lights=[DEMO_RIM_LIGHT])]
+    return [DEMO_SCENE, fit_setup.variant(DEMO_SCENE, lights=[DEMO_RIM_LIGHT])]
 
 FIT_EPILOG = """\
 Targets are linear RGB EXR files rendered (or photographed) at the scene's resolution; give one
@@ -45,7 +48,7 @@ Exit codes: 0 success, 2 bad input (one-line message), 130 interrupted.
 """
 
 
-def _add_common(p: argparse.ArgumentParser) -> None:
+def add_common_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--solver", default="lm", help="lm (Levenberg–Marquardt, default), gauss_newton, dogleg, bfgs")
     p.add_argument("--starts", type=int, default=6, help="number of deterministic starts (default 6)")
     p.add_argument("--max-steps", type=int, default=200, help="solver iterations per start (default 200)")
@@ -59,7 +62,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("targets", nargs="*", metavar="TARGET.exr", help="target images (linear EXR)")
     parser.add_argument("--scene", action="append", metavar="SCENE",
                         help="scene file or shipped name; once, or once per target")
-    parser.add_argument("--model", help="model to fit (lambert, phong, blinn_phong, cook_torrance, ward, ashikhmin_shirley)")
+    parser.add_argument("--model", help=f"model to fit: {', '.join(FIT_MODELS)}")
     parser.add_argument("--object", help="object whose material is fitted (default: the scene's first object)")
     parser.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
                         help="hold a parameter fixed (RGB as r,g,b); repeatable")
@@ -70,7 +73,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--demo", action="store_true",
                         help="render targets of the default scene with hidden parameters and fit "
                              f"{', '.join(DEMO_MODELS)}")
-    _add_common(parser)
+    add_common_options(parser)
 
 
 def _assignments(items: list[str], flag: str) -> dict:
@@ -89,7 +92,7 @@ def _assignments(items: list[str], flag: str) -> dict:
     return out
 
 
-def _check_outputs(*pairs):
+def check_outputs(*pairs):
     from jaxrt.fsutil import check_output
 
     for path, suffix, flag in pairs:
@@ -97,16 +100,14 @@ def _check_outputs(*pairs):
             check_output(path, suffix, flag)
 
 
-def _write_json(path, obj) -> None:
+def write_json(path, obj) -> None:
     from jaxrt.fsutil import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(obj, indent=2))
 
 
-def _model(name: str | None):
-    import brdfs
-
+def fit_model(name: str | None):
     if name is None:
         raise InputError("--model is required (or use --demo)")
     model = brdfs.get(name)  # unknown names raise a ValueError listing the models
@@ -137,14 +138,15 @@ def _read_targets(paths: list[str]) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fitting import report, scene_fit
+    from fitting import report
+    from fitting import setup as fit_setup
 
-    _check_outputs((args.out, ".json", "--out"), (args.plot, ".png", "--plot"))
+    check_outputs((args.out, ".json", "--out"), (args.plot, ".png", "--plot"))
     if args.demo:
         return _demo(args)
     if not args.targets:
         raise InputError("give at least one TARGET.exr (or --demo)")
-    model = _model(args.model)
+    model = fit_model(args.model)
     fix, init = _assignments(args.fix, "--fix"), _assignments(args.init, "--init")
     model.params(**fix)  # bounds-check before any JAX work
     model.params(**init)
@@ -154,21 +156,21 @@ def run(args: argparse.Namespace) -> int:
     if len(scenes) == 1:
         scenes = scenes * len(args.targets)
     targets = _read_targets(args.targets)
-    setup = scene_fit.prepare(scenes, model, object=args.object)
+    setup = fit_setup.prepare(scenes, model, object=args.object)
     expect = setup.mask.shape[1:]
     for p, t in zip(args.targets, targets):
         if t.shape[:2] != expect:
             raise InputError(f"{p}: target is {t.shape[1]}x{t.shape[0]} but the scene renders {expect[1]}x{expect[0]}")
-    result, setup = scene_fit.fit(
+    result, setup = fit_setup.fit(
         None, np.stack(targets), model, setup=setup, fix=fix, init=init, rgb=not args.grey, solver=args.solver,
         starts=args.starts, max_steps=args.max_steps, progress=not args.quiet,
     )
     print(f"object {setup.object!r}, {int(setup.mask.sum())} pixels")
     print(report.format_result(result))
     if args.out:
-        _write_json(args.out, result.to_json())
+        write_json(args.out, result.to_json())
     if args.plot:
-        fitted = np.asarray(scene_fit.render_with(setup, _as_params(model, result)))
+        fitted = np.asarray(fit_setup.render_with(setup, _as_params(model, result)))
         report.comparison_png(args.plot, np.stack(targets), fitted, setup.mask, titles=[Path(p).name for p in args.targets])
     return 0
 
@@ -194,7 +196,8 @@ def hidden_params(model, seed: int) -> dict:
 
 
 def _demo(args) -> int:
-    from fitting import report, scene_fit
+    from fitting import report
+    from fitting import setup as fit_setup
 
     import brdfs
 
@@ -202,15 +205,15 @@ def _demo(args) -> int:
     targets, fits, titles, summary = [], [], [], []
     for i, name in enumerate(DEMO_MODELS):
         model = brdfs.get(name)
-        setup = scene_fit.prepare(demo_views(), model, object=DEMO_OBJECT, overrides=[DEMO_OVERRIDES] * 2)
+        setup = fit_setup.prepare(demo_views(), model, object=DEMO_OBJECT, overrides=[DEMO_OVERRIDES] * 2)
         truth = hidden_params(model, seed=100 + i)
-        target = scene_fit.render_with(setup, model.params(**truth))
-        result, _ = scene_fit.fit(None, target, model, setup=setup, rgb=not args.grey, solver=args.solver,
+        target = fit_setup.render_with(setup, model.params(**truth))
+        result, _ = fit_setup.fit(None, target, model, setup=setup, rgb=not args.grey, solver=args.solver,
                                   starts=args.starts, max_steps=args.max_steps, progress=not args.quiet)
         print(report.format_result(result, truth=truth))
         print()
         targets.append(np.asarray(target[0]))
-        fits.append(np.asarray(scene_fit.render_with(setup, _as_params(model, result))[0]))
+        fits.append(np.asarray(fit_setup.render_with(setup, _as_params(model, result))[0]))
         titles.append(name)
         summary.append({"truth": truth, "fit": result.to_json()})
     print(f"demo: {len(DEMO_MODELS)} fits in {time.perf_counter() - t0:.1f} s (including compilation)")
@@ -218,5 +221,5 @@ def _demo(args) -> int:
     report.comparison_png(plot, np.stack(targets), np.stack(fits), np.ones(np.stack(targets).shape[:-1]), titles=titles)
     print(f"wrote {plot}")
     if args.out:
-        _write_json(args.out, summary)
+        write_json(args.out, summary)
     return 0

@@ -7,9 +7,10 @@ import sys
 import time
 
 from jaxrt.errors import InputError
+from jaxrt import integrators
 from jaxrt.fsutil import check_output
+from jaxrt.shading import AOV_NAMES
 
-AOV_NAMES = ("depth", "normal", "albedo", "object_id")
 
 EPILOG = """\
 SCENE is a path to a TOML scene file or the name of a shipped scene (spheres, bunny, dragon,
@@ -39,7 +40,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--height", type=int, help="image height in pixels (overrides [camera] height)")
     parser.add_argument("--spp", type=int, help="samples per pixel, jittered when > 1 (overrides [render] spp)")
     parser.add_argument("--max-depth", type=int, help="ray tree depth, 1 = direct light only (overrides [render])")
-    parser.add_argument("--integrator", choices=("whitted", "path"),
+    parser.add_argument("--integrator", choices=integrators.names(),
                         help="whitted (point lights, mirrors, glass) or path (path tracing with area and "
                              "environment lights; overrides [render] integrator)")
     parser.add_argument("--seed", type=int, help="random seed for jittered samples (overrides [render] seed)")
@@ -75,13 +76,12 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from jaxrt import image, instancing
-    from jaxrt import render as _render
+    from jaxrt import image
 
     t0 = time.perf_counter()
     scn = _scene.build(spec)
     t1 = time.perf_counter()
-    img, aovs = _render.frame(scn, aovs=True)
+    img, aovs = integrators.frame(scn, aovs=True)
     img = np.asarray(img)
     t2 = time.perf_counter()
     if not np.all(np.isfinite(img)):  # a renderer bug, never bad input: refuse to write it
@@ -95,6 +95,6 @@ def run(args: argparse.Namespace) -> int:
         c = spec.camera
         outs = " and ".join(str(p) for p in (exr, png) if p is not None)
         print(f"{path.name}: {c.width}x{c.height}, {spec.render.spp} spp, "
-              f"{instancing.triangle_count(scn.geometry)} triangles; scene {t1 - t0:.2f} s, "
+              f"{scn.geometry.triangle_count} triangles; scene {t1 - t0:.2f} s, "
               f"render {t2 - t1:.2f} s (incl. compile); wrote {outs}", file=sys.stdout)
     return 0

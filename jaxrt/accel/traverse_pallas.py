@@ -1,6 +1,6 @@
 """BVH traversal as one Pallas kernel (Triton backend on GPU; interpret mode anywhere, for tests).
 
-The pure-XLA traversal (`jaxrt.bvh_traverse.traverse`) keeps every lane's state in HBM arrays and
+The pure-XLA traversal (`jaxrt.accel.traverse_xla.traverse`) keeps every lane's state in HBM arrays and
 pays a device->host round trip for the while-loop predicate every `steps_per_iter` steps. Here each
 program instance takes a block of `block` consecutive rays (image tiles: coherent), keeps their
 state in registers and loops on the GPU until all of the block's rays end; the GPU's block
@@ -20,7 +20,7 @@ trail (one bit per depth, set when both children were hit) says whether it was h
 ray takes that node's miss link at once instead of stepping into it (`pack_skips`: a quarter of the
 dragon's steps, simulated). The kernel is bound by instruction issue more than by memory
 (BENCHMARKS.md): the triangle test runs only in warps where some ray is at a leaf, and u, v are
-divided once per ray at the end. The per-ray constants are `bvh_traverse.ray_constants`, computed
+divided once per ray at the end. The per-ray constants are `predicates.ray_constants`, computed
 in the kernel. The hit distance is float32 and may differ from the XLA path's in the last ulp where
 the compiler contracts a multiply-add differently, so two triangles at the same distance to within
 an ulp may be chosen differently (ties); `bvh.intersect` then refines t of the chosen triangle in
@@ -40,48 +40,13 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plgpu
 from jaxtyping import Array, Float
 
-from jaxrt import bvh_traverse
-from jaxrt.bvh_build import NUM_RAY_CLASSES as NUM_CLASSES
+from jaxrt.accel.predicates import FAR_SCALE, edge_products, edge_sign, opaque, opaque_zero, pick3, ray_constants
+from jaxrt.accel.builder import NUM_RAY_CLASSES as NUM_CLASSES
 
-_FAR_SCALE = bvh_traverse._FAR_SCALE
 _ROW = 12  # words per node row with inline leaves: 9 (box or triangle), first, count, pad
 _CB_ROW = 16  # words per node row with child boxes (see pack_rows)
-_HI_MASK = -4096  # 0xFFFFF000 as int32: keeps sign, exponent and the top 11 mantissa bits
 _SKIP_SHIFT = 5  # skip-table entries (`pack_skips`): miss link << 5 | depth of its node (31: deeper)
 _SKIP_DEPTH = 31
-
-
-def _opaque(x, zero):
-    # As bvh_traverse._opaque (int32 here): stops FMA contraction of the rounded product.
-    return lax.bitcast_convert_type(lax.bitcast_convert_type(x, jnp.int32) ^ zero, jnp.float32)
-
-
-def _split(a):
-    hi = lax.bitcast_convert_type(lax.bitcast_convert_type(a, jnp.int32) & jnp.int32(_HI_MASK), jnp.float32)
-    return hi, a - hi
-
-
-def _product_error(a, b, p):
-    ah, al = _split(a)
-    bh, bl = _split(b)
-    return ((ah * bh - p) + ah * bl + al * bh) + al * bl
-
-
-def _edge_products(ax, ay, bx, by, zero):
-    """Rounded products (p1, p2) of the edge function ax*by - ay*bx."""
-    return _opaque(ax * by, zero), _opaque(ay * bx, zero)
-
-
-def _sign(x):
-    return jnp.where(x > 0, 1.0, jnp.where(x < 0, -1.0, 0.0)).astype(jnp.float32)
-
-
-def _edge_sign(ax, ay, bx, by, p1, p2, exact: bool):
-    """Sign of ax*by - ay*bx as in bvh_traverse._edge_sign: exact, or from the rounded products."""
-    s = jnp.where(p1 > p2, 1.0, jnp.where(p1 < p2, -1.0, 0.0)).astype(jnp.float32)
-    if exact:
-        s = jnp.where(p1 == p2, _sign(_product_error(ax, by, p1) - _product_error(ay, bx, p2)), s)
-    return s
 
 
 def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *, any_hit: bool,
@@ -90,28 +55,28 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
 
     def tri_test(ray, vs, valid, t_best):
         ox, oy, oz, _, _, _, sx, sy, sz, kx, ky, kz, _, t_lo = ray
-        zero = lax.shift_right_logical(kz, jnp.int32(8))  # 0, unknown to the compiler
+        zero = opaque_zero(kz)
         px, py, pz = [], [], []
         for j in range(3):
             qx, qy, qz = vs[3 * j] - ox, vs[3 * j + 1] - oy, vs[3 * j + 2] - oz
-            px.append(bvh_traverse.pick3(kx, qx, qy, qz))
-            py.append(bvh_traverse.pick3(ky, qx, qy, qz))
-            pz.append(bvh_traverse.pick3(kz, qx, qy, qz))
-        x = [px[j] - _opaque(sx * pz[j], zero) for j in range(3)]
-        y = [py[j] - _opaque(sy * pz[j], zero) for j in range(3)]
+            px.append(pick3(kx, qx, qy, qz))
+            py.append(pick3(ky, qx, qy, qz))
+            pz.append(pick3(kz, qx, qy, qz))
+        x = [px[j] - opaque(sx * pz[j], zero) for j in range(3)]
+        y = [py[j] - opaque(sy * pz[j], zero) for j in range(3)]
         z = [sz * pz[j] for j in range(3)]
         (ax, bx, cx), (ay, by, cy), (az, bz, cz) = x, y, z
         edges = ((cx, cy, bx, by), (ax, ay, cx, cy), (bx, by, ax, ay))
-        prods = [_edge_products(*e, zero) for e in edges]
+        prods = [edge_products(*e, zero) for e in edges]
         if gate_exact:
             # Tied rounded products are rare: the exact-sign arithmetic runs only for programs where
             # some tested ray/triangle pair needs it (a warp-uniform branch), as the XLA path's cond.
             tie = valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1]) | (prods[2][0] == prods[2][1]))
             su, sv, sw = lax.cond(jnp.max(tie.astype(jnp.int32)) > 0,
-                                  lambda: tuple(_edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)),
-                                  lambda: tuple(_edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods)))
+                                  lambda: tuple(edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)),
+                                  lambda: tuple(edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods)))
         else:
-            su, sv, sw = (_edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods))
+            su, sv, sw = (edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods))
         U, V, W = (jnp.abs(p1 - p2) * sg for (p1, p2), sg in zip(prods, (su, sv, sw)))
         inside = ((su >= 0) & (sv >= 0) & (sw >= 0)) | ((su <= 0) & (sv <= 0) & (sw <= 0))
         det = U + V + W
@@ -134,7 +99,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         t_near = jnp.maximum(jnp.maximum(jnp.maximum(jnp.minimum(t0x, t1x), jnp.minimum(t0y, t1y)),
                                          jnp.minimum(t0z, t1z)), t_lo)
         t_far = jnp.minimum(jnp.minimum(jnp.maximum(t0x, t1x), jnp.maximum(t0y, t1y)), jnp.maximum(t0z, t1z))
-        return t_near <= jnp.minimum(t_far * _FAR_SCALE, t_best)
+        return t_near <= jnp.minimum(t_far * FAR_SCALE, t_best)
 
     def keep(h, t, bary, idx, hit):
         # hit: (t, triangle, V, W, det) of the best so far; strict < keeps the earlier triangle on
@@ -271,7 +236,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
     # constants are computed here (the XLA path's own function, bit for bit) rather than read: an XLA
     # pass writing 14 columns cost as much as a fifth of a shadow launch.
     i3 = (pl.program_id(0) * block + jnp.arange(block, dtype=jnp.int32)) * 3
-    inv, shear, kx, ky, kz, cls = bvh_traverse.ray_constants(*(d_r[i3 + k] for k in range(3)))
+    inv, shear, kx, ky, kz, cls = ray_constants(*(d_r[i3 + k] for k in range(3)))
     ray = (*(o_r[i3 + k] for k in range(3)), *inv, *shear, kx, ky, kz, cls, tmin_r[...])
     shape = ray[0].shape
     z = jnp.zeros(shape, jnp.float32)
@@ -338,7 +303,7 @@ def pack_skips(node_leaf, links, depth=None) -> Array:
     ends). Built once per tree with `pack_rows` (`BVH.skips`); `depth`: `node_depth`'s result, if at hand."""
     nn = node_leaf.shape[0]
     if nn >= 1 << (31 - _SKIP_SHIFT):
-        raise ValueError(f"bvh_pallas: {nn} nodes do not fit the skip table's {31 - _SKIP_SHIFT}-bit links")
+        raise ValueError(f"traverse_pallas: {nn} nodes do not fit the skip table's {31 - _SKIP_SHIFT}-bit links")
     miss = links.reshape(-1, 2)[:, 1]
     depth = node_depth(node_leaf, links) if depth is None else depth
     depth = jnp.minimum(depth, _SKIP_DEPTH)[jnp.maximum(miss, 0)]
@@ -362,7 +327,7 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
              steps_per_iter: int = 1, num_warps: int = 1, interpret: bool = False, layout: str | None = None,
              gate_exact: bool = True, skip_tri: bool = True, trail: int = TRAIL_DEPTH):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
-    `bvh_traverse.traverse` (without the step counts).
+    `traverse_xla.traverse` (without the step counts).
 
     arrays: node_box (nn,6), node_leaf (nn,2), links (6nn,2), triangles (F,9), optionally rows
     (nn,16) and skips (6nn,) (see bvh.BVH); origins, directions (N,3) float32; tmin, tmax (N,) float32.
@@ -384,11 +349,11 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     """
     layout = layout or ("childbox" if leaf_size == 1 else "tables")
     if layout not in LAYOUTS:
-        raise ValueError(f"bvh_pallas: layout must be one of {LAYOUTS}, got {layout!r}")
+        raise ValueError(f"traverse_pallas: layout must be one of {LAYOUTS}, got {layout!r}")
     if not 0 <= trail <= TRAIL_DEPTH:
-        raise ValueError(f"bvh_pallas: trail must be in [0, {TRAIL_DEPTH}], got {trail}")
+        raise ValueError(f"traverse_pallas: trail must be in [0, {TRAIL_DEPTH}], got {trail}")
     if layout != "tables" and leaf_size != 1:
-        raise ValueError(f"bvh_pallas: layout {layout!r} needs leaf_size 1")
+        raise ValueError(f"traverse_pallas: layout {layout!r} needs leaf_size 1")
     nn = arrays["node_box"].shape[0]
     nf = arrays["triangles"].shape[0]
     n = origins.shape[0]

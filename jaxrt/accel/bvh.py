@@ -15,10 +15,10 @@ origins/directions are (N,3) float32 (directions need not be unit; t is in units
 Both work on CPU and GPU unchanged, can be called inside another jitted function with `tree` as a
 traced argument, and are not differentiable: their inputs pass through `lax.stop_gradient`, and a
 renderer recomputes the differentiable hit point from `prim` (DESIGN.md: trace once, shade many).
-Triangle tests are watertight (see `jaxrt.bvh_traverse`): a ray aimed at an edge or vertex shared
+Triangle tests are watertight (see `jaxrt.accel.traverse_xla`): a ray aimed at an edge or vertex shared
 by two triangles of a closed mesh always hits one of them. Build and traversal details are in
-`jaxrt.bvh_build` and `jaxrt.bvh_traverse` (pure JAX, portable), `jaxrt.bvh_pallas` (one Pallas
-kernel, the default where the computation is lowered for an NVIDIA GPU) and `jaxrt.bvh_cpu` (a C++
+`jaxrt.accel.builder` and `jaxrt.accel.traverse_xla` (pure JAX, portable), `jaxrt.accel.traverse_pallas` (one Pallas
+kernel, the default where the computation is lowered for an NVIDIA GPU) and `jaxrt.accel.traverse_cpu` (a C++
 XLA FFI kernel compiled on first use, the default where the computation is lowered for the CPU);
 `impl=` / JAXRT_TRAVERSAL choose one.
 """
@@ -36,7 +36,12 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrt import bvh_build, bvh_cpu, bvh_pallas, bvh_traverse
+from jaxrt.accel.builder import build_arrays
+from jaxrt.accel.sah import DEFAULT as SAH_DEFAULT
+from jaxrt.accel.sah import SahSettings
+from jaxrt.accel import traverse_cpu
+from jaxrt.accel import traverse_pallas
+from jaxrt.accel import traverse_xla
 from jaxrt.errors import InputError
 
 
@@ -49,12 +54,12 @@ class BVH(eqx.Module):
                                 (next node if the box is hit, next node if missed); -1 ends
     triangles (F, 9) float32    v0, v1, v2 of each triangle in leaf order
     prim_ids  (F,) int32        original face index of each leaf-order triangle
-    rows      (nn, 16) float32  the GPU kernel's node table (`bvh_pallas.pack_rows`: children's boxes
+    rows      (nn, 16) float32  the GPU kernel's node table (`traverse_pallas.pack_rows`: children's boxes
                                 in each interior row, the triangle in each leaf row), or None: packed
                                 once by `build` when the default backend is a GPU and leaf_size is 1
                                 (111 MB for the full dragon), else per call by the kernel.
     skips     (6*nn,) int32     the same kernel's links: per class and node, miss link << 5 | depth of
-                                its node (`bvh_pallas.pack_skips`); None when rows is None
+                                its node (`traverse_pallas.pack_skips`); None when rows is None
     leaf_size: static, the largest leaf
     """
 
@@ -103,21 +108,23 @@ RENDER_TREE = {"builder": "sah", "layout": "dfs"}
 
 
 def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, leaf_size: int = 1,
-          builder: str = "lbvh", layout: str = "bfs") -> BVH:
-    """Build a BVH over triangles `vertices[faces]` (host numpy, vectorised; see bvh_build).
+          builder: str = "lbvh", layout: str = "bfs", sah_settings: SahSettings = SAH_DEFAULT) -> BVH:
+    """Build a BVH over triangles `vertices[faces]` (host numpy, vectorised; see `jaxrt.accel.builder`).
 
-    builder: "lbvh" (default: Morton-code splits, `jaxrt.bvh_build`; the full dragon in ~1–1.9 s
+    builder: "lbvh" (default: Morton-code splits, `jaxrt.accel.builder`; the full dragon in ~1–1.9 s
     on a 2-core CPU) or "sah" (binned SAH splits down to 16 triangles, Morton splits below,
-    `jaxrt.bvh_sah`: ~10 % fewer node visits per ray, ~1.2–1.4x the LBVH's build time). layout:
+    `jaxrt.accel.sah`: ~10 % fewer node visits per ray, ~1.2–1.4x the LBVH's build time). layout:
     node numbering, "bfs" (default: breadth-first) or "dfs" (depth-first: every subtree contiguous
-    in memory). All give the same array layout, so every traversal takes any of them.
+    in memory). sah_settings: the SAH builder's `jaxrt.accel.sah.SahSettings`. All give the same
+    array layout, so every traversal takes any of them.
     `RENDER_TREE` is what scenes use: built once, traced every frame. BENCHMARKS.md ("Tree
     quality") has the measurements.
 
     vertices (V,3) float, faces (F,3) int in [0, V). Raises InputError on NaN/Inf vertices,
     out-of-range indices or no faces. Zero-area faces are kept (they are never hit).
     """
-    a = bvh_build.build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder, layout=layout)
+    a = build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder, layout=layout,
+                     sah_settings=sah_settings)
     put = jax.device_put
     arrays = {k: put(a[k]) for k in ("node_box", "node_leaf", "links", "triangles")}
     rows = skips = None
@@ -126,7 +133,7 @@ def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, 
     return BVH(**arrays, prim_ids=put(a["prim_ids"]), rows=rows, skips=skips, leaf_size=leaf_size)
 
 
-_pack_tables = jax.jit(bvh_pallas.pack_tables)
+_pack_tables = jax.jit(traverse_pallas.pack_tables)
 
 
 def stats(tree: BVH) -> BVHStats:
@@ -156,12 +163,12 @@ def stats(tree: BVH) -> BVHStats:
                     leaf_size_mean=float(counts.mean()), triangles=int(tree.prim_ids.shape[0]))
 
 
-def _default_lanes() -> int:
+def default_lanes() -> int:
     # CPU: a lane pool whose state stays in cache; GPU: enough lanes to fill the device.
     return 1024 if jax.default_backend() == "cpu" else 1 << 17
 
 
-def _default_steps() -> int:
+def default_steps() -> int:
     return 2 if jax.default_backend() == "cpu" else 16
 
 
@@ -196,24 +203,24 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         # relative accuracy (the float32 test's t degrades as eps / cos(angle)).
         found, t, best, u, v, steps = out
         if refine:
-            t = bvh_traverse.refine_t(tree.triangles[jnp.maximum(best, 0)], o, d, t)
+            t = traverse_xla.refine_t(tree.triangles[jnp.maximum(best, 0)], o, d, t)
         return found, t, best, u, v, steps
 
     def xla(o, d, lo, hi):
-        return refined(bvh_traverse.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
-                                             steps_per_iter=steps_per_iter or _default_steps(),
-                                             lanes=lanes or _default_lanes(), count_steps=count_steps), o, d)
+        return refined(traverse_xla.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
+                                             steps_per_iter=steps_per_iter or default_steps(),
+                                             lanes=lanes or default_lanes(), count_steps=count_steps), o, d)
 
     def pallas(o, d, lo, hi, interpret=False):
         # The interpreter runs program instances one after another: few, wide blocks are fastest.
         kw = dict(block=1024) if interpret else {}
-        out = bvh_pallas.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
+        out = traverse_pallas.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
                                   interpret=interpret, **kw)
         return refined((*out, jnp.zeros(n, jnp.int32)), o, d)
 
     def native(o, d, lo, hi):
         # the kernel refines t itself, in double, for hits only
-        out = bvh_cpu.traverse(arrays, o, d, lo, hi, any_hit=any_hit, refine=refine)
+        out = traverse_cpu.traverse(arrays, o, d, lo, hi, any_hit=any_hit, refine=refine)
         return (*out, jnp.zeros(n, jnp.int32))
 
     impl = _impl(impl)
@@ -227,7 +234,7 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
     # available() compiles the C++ kernel on first use; where it cannot, it warns once and "cpu"
     # and "auto" use the XLA loop. A GPU process does not build it for "auto" (its functions are
     # lowered for the GPU).
-    has_native = (impl == "cpu" or (impl == "auto" and jax.default_backend() == "cpu")) and bvh_cpu.available()
+    has_native = (impl == "cpu" or (impl == "auto" and jax.default_backend() == "cpu")) and traverse_cpu.available()
     if impl == "cpu":
         return native(*args) if has_native else xla(*args)
     # auto: the Pallas (Triton) kernel where the computation is lowered for an NVIDIA GPU, the
@@ -252,9 +259,9 @@ def intersect(
     lanes: rays in flight at once (default 1024 on CPU, 2**17 on GPU; finished lanes refill from
     the queue); steps_per_iter: traversal steps per loop iteration (default 2 on CPU, 16 on GPU).
     Both only affect speed, never results, and apply to the XLA loop only. impl: "auto" (default;
-    the Pallas kernel of `jaxrt.bvh_pallas` when lowered for an NVIDIA GPU, the C++ kernel of
-    `jaxrt.bvh_cpu` when lowered for the CPU, else the XLA loop), "xla" (the pure-JAX loop of
-    `jaxrt.bvh_traverse`), "cpu" (the C++ kernel; CPU only), "pallas" (GPU only) or
+    the Pallas kernel of `jaxrt.accel.traverse_pallas` when lowered for an NVIDIA GPU, the C++ kernel of
+    `jaxrt.accel.traverse_cpu` when lowered for the CPU, else the XLA loop), "xla" (the pure-JAX loop of
+    `jaxrt.accel.traverse_xla`), "cpu" (the C++ kernel; CPU only), "pallas" (GPU only) or
     "pallas-interpret" (the kernel in the Pallas interpreter, any backend, slow: for tests); the
     env var JAXRT_TRAVERSAL sets it when the argument is None. Where the C++ kernel cannot be
     compiled, "auto" and "cpu" warn once and use the XLA loop.

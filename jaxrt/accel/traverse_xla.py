@@ -3,7 +3,7 @@
 Per-ray state is five scalars: the current node, the closest t so far, the best triangle (leaf
 order) and its barycentrics. One traversal step tests the current node's box; a hit on a leaf also
 tests the leaf's (up to `leaf_size`) triangles; the next node is `links[class, node, hit ? 0 : 1]`
-(see bvh_build). A batch runs in a `lax.while_loop` whose body does `steps_per_iter` such steps,
+(see builder). A batch runs in a `lax.while_loop` whose body does `steps_per_iter` such steps,
 so the loop predicate (a device->host round trip on GPU) is paid once per several steps; rays
 that finish early idle (node = -1) until the slowest ray of their chunk ends. Rays are traced in
 chunks (`lax.map`) so that one slow ray only holds back its own chunk; callers that order rays
@@ -25,61 +25,22 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-# Widening of the slab test's far distance (Ize 2013: 1 + 2*gamma(3) suffices; this is ~2x that).
-_FAR_SCALE = 1.0 + 2.0**-20
-
-
-def _opaque(x, zero):
-    """x, unchanged, but as a value the compiler cannot fuse into a later add (no FMA contraction).
-
-    `zero` is a traced uint32 0 the compiler cannot prove is 0. XLA's CPU and GPU backends may
-    contract a*b+c into one FMA in one fusion and not in another; exact predicates need every
-    rounded product to be the same number everywhere it is used.
-    """
-    return lax.bitcast_convert_type(lax.bitcast_convert_type(x, jnp.uint32) ^ zero, jnp.float32)
-
-
-def _split(a):
-    """a = hi + lo exactly, each with at most 12 significant bits (float32)."""
-    hi = lax.bitcast_convert_type(lax.bitcast_convert_type(a, jnp.uint32) & jnp.uint32(0xFFFFF000), jnp.float32)
-    return hi, a - hi
-
-
-def _product_error(a, b, p):
-    """Exact a*b - p for p = fl(a*b) (Dekker's TwoProduct), barring underflow."""
-    ah, al = _split(a)
-    bh, bl = _split(b)
-    return ((ah * bh - p) + ah * bl + al * bh) + al * bl
+from jaxrt.accel.predicates import (
+    FAR_SCALE,
+    df_add,
+    df_mul,
+    df_neg,
+    edge_products,
+    edge_sign,
+    opaque,
+    opaque_zero,
+    ray_constants,
+    two_sum,
+)
 
 
 # --- double-float (float32 pair) arithmetic, for re-evaluating t of the final hit -------------------
 # Error-free transforms that hold under FMA contraction (products of split halves are exact).
-
-
-def _two_sum(a, b):
-    s = a + b
-    bb = s - a
-    return s, (a - (s - bb)) + (b - bb)
-
-
-def _fast_two_sum(a, b):
-    s = a + b
-    return s, b - (s - a)
-
-
-def _df_add(x, y):
-    s, e = _two_sum(x[0], y[0])
-    return _fast_two_sum(s, e + (x[1] + y[1]))
-
-
-def _df_neg(x):
-    return -x[0], -x[1]
-
-
-def _df_mul(x, y, zero):
-    p = _opaque(x[0] * y[0], zero)
-    e = _product_error(x[0], y[0], p)
-    return _fast_two_sum(p, e + (x[0] * y[1] + x[1] * y[0]))
 
 
 def refine_t(tri, o, d, t32):
@@ -92,69 +53,31 @@ def refine_t(tri, o, d, t32):
     grazing rays.
     """
     v0, v1, v2 = tri[:, 0:3], tri[:, 3:6], tri[:, 6:9]
-    zero = lax.shift_right_logical(jnp.argmax(jnp.abs(d), axis=-1).astype(jnp.uint32), jnp.uint32(8))
-    mul = lambda x, y: _df_mul(x, y, zero)  # noqa: E731
-    a = _two_sum(v0, -o)
-    e1 = _two_sum(v1, -v0)
-    e2 = _two_sum(v2, -v0)
+    zero = opaque_zero(jnp.argmax(jnp.abs(d), axis=-1))
+    mul = lambda x, y: df_mul(x, y, zero)  # noqa: E731
+    a = two_sum(v0, -o)
+    e1 = two_sum(v1, -v0)
+    e2 = two_sum(v2, -v0)
     comp = lambda x, i: (x[0][:, i], x[1][:, i])  # noqa: E731
 
     def cross(i, j):
-        return _df_add(mul(comp(e1, i), comp(e2, j)), _df_neg(mul(comp(e1, j), comp(e2, i))))
+        return df_add(mul(comp(e1, i), comp(e2, j)), df_neg(mul(comp(e1, j), comp(e2, i))))
 
     n = [cross(1, 2), cross(2, 0), cross(0, 1)]
-    num = _df_add(_df_add(mul(n[0], comp(a, 0)), mul(n[1], comp(a, 1))), mul(n[2], comp(a, 2)))
+    num = df_add(df_add(mul(n[0], comp(a, 0)), mul(n[1], comp(a, 1))), mul(n[2], comp(a, 2)))
     z = jnp.zeros_like(t32)
-    den = _df_add(_df_add(mul(n[0], (d[:, 0], z)), mul(n[1], (d[:, 1], z))), mul(n[2], (d[:, 2], z)))
+    den = df_add(df_add(mul(n[0], (d[:, 0], z)), mul(n[1], (d[:, 1], z))), mul(n[2], (d[:, 2], z)))
     q1 = num[0] / den[0]
-    r = _df_add(num, _df_neg(mul((q1, z), den)))
+    r = df_add(num, df_neg(mul((q1, z), den)))
     t = q1 + r[0] / den[0]
     good = jnp.isfinite(t) & (den[0] != 0) & (jnp.abs(t - t32) <= 1e-2 * jnp.abs(t32) + 1e-30)
     return jnp.where(good, t, t32)
 
 
-def _edge_products(ax, ay, bx, by, zero):
-    """Rounded products (p1, p2) of the edge function ax*by - ay*bx (opaque: see `_opaque`)."""
-    return _opaque(ax * by, zero), _opaque(ay * bx, zero)
-
-
-def _edge_sign(ax, ay, bx, by, p1, p2, exact: bool):
-    """Sign of ax*by - ay*bx: exact (see module docstring) or from the rounded products only."""
-    s = jnp.where(p1 > p2, 1.0, jnp.where(p1 < p2, -1.0, 0.0))
-    if exact:
-        e = _product_error(ax, by, p1) - _product_error(ay, bx, p2)
-        s = jnp.where(p1 == p2, jnp.sign(e), s)
-    return s
-
-
-def pick3(k, x, y, z):
-    """x, y or z where k is 0, 1 or 2 (elementwise, by exact selects)."""
-    return jnp.where(k == 0, x, jnp.where(k == 1, y, z))
-
-
-def ray_constants(dx, dy, dz):
-    """Per-ray constants from direction components (arrays of any one shape), by elementwise ops only
-    so that the Pallas kernel computes them in registers with the same bits: slab inverse directions
-    (3), the Woop shear (3), the axis permutation kx, ky, kz and the ray class."""
-    d = (dx, dy, dz)
-    tiny, m_tiny = jnp.float32(1e-20), jnp.float32(-1e-20)
-    neg = [lax.bitcast_convert_type(x, jnp.int32) < 0 for x in d]  # signbit
-    inv = [1.0 / jnp.where(jnp.abs(x) < tiny, jnp.where(sg, m_tiny, tiny), x) for x, sg in zip(d, neg)]
-    ad = [jnp.abs(x) for x in d]
-    kz = jnp.where((ad[0] >= ad[1]) & (ad[0] >= ad[2]), 0, jnp.where(ad[1] >= ad[2], 1, 2)).astype(jnp.int32)  # argmax
-    d_z = pick3(kz, *d)
-    kx = jnp.where(kz == 2, 0, kz + 1)
-    ky = jnp.where(kx == 2, 0, kx + 1)
-    flip = d_z < 0  # swap kx and ky to preserve the winding
-    kx, ky = jnp.where(flip, ky, kx), jnp.where(flip, kx, ky)
-    shear = [pick3(kx, *d) / d_z, pick3(ky, *d) / d_z, 1.0 / d_z]
-    return inv, shear, kx, ky, kz, 2 * kz + flip.astype(jnp.int32)
-
-
 def precompute(origins, directions):
     """Per-ray constants: slab inverse directions, ray class, and the Woop shear/permutation."""
     inv, shear, kx, ky, kz, ray_class = ray_constants(*(directions[:, i] for i in range(3)))
-    zero = lax.shift_right_logical(kz.astype(jnp.uint32), jnp.uint32(8))  # 0, unknown to the compiler
+    zero = opaque_zero(kz)
     return dict(o=origins, inv=jnp.stack(inv, axis=-1), kx=kx, ky=ky, kz=kz, shear=jnp.stack(shear, axis=-1),
                 ray_class=ray_class, zero=zero)
 
@@ -179,20 +102,20 @@ def intersect_triangles(ray, tri, tmin, tmax, valid):
     zero = ray["zero"][:, None, None]
     # A vertex shared by two triangles must shear to the same 2D point in both: the products are
     # made opaque so that no fusion computes px - sx*pz as a single FMA.
-    x = px - _opaque(sx * pz, zero)
-    y = py - _opaque(sy * pz, zero)
+    x = px - opaque(sx * pz, zero)
+    y = py - opaque(sy * pz, zero)
     z = sz * pz
     (ax, bx, cx), (ay, by, cy), (az, bz, cz) = ([w[..., i] for i in range(3)] for w in (x, y, z))
     edges = ((cx, cy, bx, by), (ax, ay, cx, cy), (bx, by, ax, ay))
     zero = zero[..., 0]
-    prods = [_edge_products(*e, zero) for e in edges]
+    prods = [edge_products(*e, zero) for e in edges]
     # Rounded products that tie leave the sign open; that is rare, so the exact path (4x the
     # arithmetic) runs only for batches where some valid ray/triangle pair needs it.
     need_exact = jnp.any(valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1])
                                   | (prods[2][0] == prods[2][1])))
     signs = lax.cond(need_exact,
-                     lambda: [_edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)],
-                     lambda: [_edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods)])
+                     lambda: [edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)],
+                     lambda: [edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods)])
     su, sv, sw = signs
     # |p1 - p2| carries the magnitude; the sign comes from the exact test (the subtraction may be
     # FMA-contracted or round to zero).
@@ -208,7 +131,7 @@ def intersect_triangles(ray, tri, tmin, tmax, valid):
 
 def node_step(ray, node_box, node_leaf, tris, n, active, hit, ar, leaf_ok=True):
     """One traversal step's tests for lanes at nodes n (B,): the box (slab test, far distance
-    widened by _FAR_SCALE, clipped to the best t) and, where it is hit and is a leaf (and leaf_ok),
+    widened by FAR_SCALE, clipped to the best t) and, where it is hit and is a leaf (and leaf_ok),
     the leaf's triangles, keeping the closest hit.
 
     ray: precompute() dict plus "tmin" (B,); hit: (t_best, best, bu, bv) (B,) each; ar: arange of
@@ -222,7 +145,7 @@ def node_step(ray, node_box, node_leaf, tris, n, active, hit, ar, leaf_ok=True):
     t0 = (box[:, :3] - ray["o"]) * ray["inv"]
     t1 = (box[:, 3:] - ray["o"]) * ray["inv"]
     t_near = jnp.maximum(jnp.max(jnp.minimum(t0, t1), axis=-1), t_lo)
-    t_far = jnp.minimum(jnp.min(jnp.maximum(t0, t1), axis=-1) * _FAR_SCALE, t_best)
+    t_far = jnp.minimum(jnp.min(jnp.maximum(t0, t1), axis=-1) * FAR_SCALE, t_best)
     box_hit = active & (t_near <= t_far)
     leaf = node_leaf[n]
     leaf_hit = box_hit & (leaf[:, 1] > 0)

@@ -97,7 +97,6 @@ _KIND = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 _META = "__meta__"
 _TMP_PREFIX = ".tmp-"
 _TMP_MAX_AGE_S = 3600.0  # temporary files older than this are left over from a killed writer
-_XLA_SUFFIXES = ("-cache", "-atime")  # JAX's entry files (and its access-time files where it records them)
 
 
 class CacheWarning(RuntimeWarning):
@@ -448,23 +447,36 @@ def info() -> CacheInfo:
             arrays = (arrays[0] + 1, arrays[1] + size)
         else:
             compiled = (compiled[0] + 1, compiled[1] + size)
+    xla_bytes = sum(st.st_size for top, _, files in os.walk(cfg.cache_dir / "xla") for n in files
+                    if (st := _stat(Path(top) / n)) is not None)
     return CacheInfo(dir=cfg.cache_dir, enabled=cfg.cache, array_entries=arrays[0], array_bytes=arrays[1],
-                     compiled_entries=compiled[0], compiled_bytes=compiled[1], bound=cfg.cache_size)
+                     compiled_entries=compiled[0], compiled_bytes=max(compiled[1], xla_bytes), bound=cfg.cache_size)
 
 
 def clear() -> int:
     """Delete every entry of both parts (and leftover temporary files); returns the bytes freed.
 
-    Works with JAXRT_CACHE=off too. Files that cannot be deleted are skipped.
+    Everything under ``xla/`` is JAX's (its entries, and on a GPU XLA's autotuning results) and goes;
+    under ``arrays/`` only entry and temporary files go. Works with JAXRT_CACHE=off too. Files that
+    cannot be deleted are skipped.
     """
     root = _config.config().cache_dir
     freed = 0
-    for sub, match in (("arrays", lambda n: n.endswith(".npz") or n.startswith(_TMP_PREFIX)),
-                       ("xla", lambda n: n.endswith(_XLA_SUFFIXES) or n.startswith(_TMP_PREFIX))):
-        for p in _listdir(root / sub):
+    for p in _listdir(root / "arrays"):
+        st = _stat(p)
+        if st is not None and p.is_file() and (p.suffix == ".npz" or p.name.startswith(_TMP_PREFIX)) and _unlink(p):
+            freed += st.st_size
+    for top, dirs, files in os.walk(root / "xla", topdown=False):
+        for n in files:
+            p = Path(top) / n
             st = _stat(p)
-            if st is not None and p.is_file() and match(p.name) and _unlink(p):
+            if st is not None and _unlink(p):
                 freed += st.st_size
+        for n in dirs:
+            try:
+                (Path(top) / n).rmdir()
+            except OSError:
+                pass
     return freed
 
 

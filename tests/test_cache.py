@@ -355,11 +355,15 @@ def test_clear_removes_entries_and_keeps_other_files(cdir):
     cache.cached_arrays("test", {"k": 1}, _build([]))
     (cdir / "xla").mkdir()
     (cdir / "xla" / "jit_g-99-cache").write_bytes(b"y" * 10)
+    (cdir / "xla" / "autotune").mkdir()  # XLA's GPU autotuning results live under xla/ too
+    (cdir / "xla" / "autotune" / "r.textproto").write_bytes(b"z" * 5)
     other = cdir / "traverse-abc.so"  # the native kernel's library and the data registry's files stay
     other.write_bytes(b"elf")
-    assert cache.info().entries == 2
-    freed = cache.clear()
-    assert freed > 0 and cache.info().entries == 0 and cache.info().bytes == 0 and other.exists()
+    assert cache.info().entries == 2 and cache.info().compiled_bytes == 15
+    expected = 15 + sum(p.stat().st_size for p in _entries(cdir))
+    assert cache.clear() == expected
+    assert cache.info().entries == 0 and cache.info().bytes == 0 and other.exists()
+    assert list((cdir / "xla").iterdir()) == [] and list((cdir / "arrays").iterdir()) == []
 
 
 def test_cli_cache_info_and_clear(cdir, capsys):
@@ -646,3 +650,25 @@ def test_compilation_cache_unwritable_or_off(tmp_path):
     ok = _py(code, tmp_path / "ok")
     assert ok["on"] == [True, True] and ok["dir"] == str(tmp_path / "ok" / "xla")
     assert len(list((tmp_path / "ok" / "xla").glob("*-cache"))) >= 1
+
+
+def test_compilation_cache_follows_the_folder_and_leaves_a_users_setting(tmp_path):
+    code = _COUNT + """
+    import os
+    from jaxrt import cache
+    assert cache.enable_compilation_cache()
+    jax.jit(lambda x: x + 1)(jax.numpy.arange(3.0)).block_until_ready()
+    os.environ["JAXRT_CACHE_DIR"] = os.environ["SECOND"]  # the folder moves within the process
+    assert cache.enable_compilation_cache()
+    jax.jit(lambda x: x * 3)(jax.numpy.arange(5.0)).block_until_ready()
+    print(json.dumps(dict(dir=jax.config.jax_compilation_cache_dir)))
+    """
+    out = _py(code, tmp_path / "a", SECOND=tmp_path / "b")
+    assert out["dir"] == str(tmp_path / "b" / "xla")
+    assert len(list((tmp_path / "a" / "xla").glob("*-cache"))) >= 1 and len(list((tmp_path / "b" / "xla").glob("*-cache"))) >= 1
+    mine = _py("""
+        import json, jax
+        from jaxrt import cache
+        print(json.dumps(dict(on=cache.enable_compilation_cache(), dir=jax.config.jax_compilation_cache_dir)))
+    """, tmp_path / "c", JAX_COMPILATION_CACHE_DIR=tmp_path / "mine")
+    assert mine == dict(mine, on=True, dir=str(tmp_path / "mine")) and not (tmp_path / "c").exists()

@@ -14,7 +14,7 @@ the total fits (array entries count as used when read; compiled programs when wr
 cache does not record reads). `info()` reports the folder, entry counts, bytes and the bound;
 `clear()` empties both subfolders (``jaxrt cache info`` / ``jaxrt cache clear`` from a shell). Other
 files in the folder (the data registry's meshes, the native traversal kernel's library) are left
-alone. Sizes for orientation: the full dragon's mesh entry is ~32 MB and its render BVH ~180 MB
+alone. Sizes for orientation: the full dragon's mesh entry is ~30 MB and its render BVH ~175 MB
 (~330 MB where the GPU kernel's node tables are stored too); a CPU frame program is ~0.1-2 MB.
 
 Array entries. `cached_arrays(kind, key, build)` hashes (FORMAT_VERSION, kind, key) into a file
@@ -44,6 +44,9 @@ available()` runs inside `jaxrt.bvh`'s traversal), which is before JAX looks the
 cache, so a cached program that calls the kernel always finds it registered. JAX writes entries
 in place (not through a rename): a process that reads an entry while another writes it warns
 (``Error reading persistent compilation cache entry``) and compiles for itself; it never fails.
+JAX does not replace an entry that is there, so one left truncated by a killed writer or a full
+disk makes each later process warn and compile that program until `clear()` or the size bound
+removes it.
 
 Process-local counters (`stats()`: hits, misses, writes, rebuilds, evictions, bypasses) let tests
 and benchmarks see what the cache did without timing it.

@@ -78,6 +78,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "FORMAT_VERSION",
+    "SAH_SETTINGS",
     "CacheInfo",
     "CacheStats",
     "CacheWarning",

@@ -69,7 +69,7 @@ def main():
 
 PALLAS_VARIANTS = [  # bvh_pallas.traverse keyword arguments; BENCHMARKS.md has the earlier variants' numbers
     dict(steps_per_iter=2, layout="inline", skip_tri=False),  # the kernel before child-box rows
-    dict(layout="childbox", trail=0),  # child-box rows without the bit trail (third session's default)
+    dict(layout="childbox", trail=0),  # child-box rows without the bit trail (the default before the bit trail)
     dict(layout="childbox"),
     dict(layout="childbox", steps_per_iter=2),
 ]

@@ -14,7 +14,7 @@ JAXRT_CACHE_DIR set to a new empty folder (cold), then again with the same folde
 figures show what a second process reuses, whether or not the commands use `jaxrt.cache` yet.
 The native CPU kernel's library ($XDG_CACHE_HOME/jaxrt, compiled once per machine) is not reset.
 `--preview-wiring` runs a prelude in each process that calls `jaxrt.cache.enable_compilation_cache()`
-and routes `jaxrt.mesh.load` / `jaxrt.bvh.build` through `jaxrt.cache.load_mesh` / `build_bvh`: the
+and routes `jaxrt.geometry.mesh.load` / `jaxrt.accel.bvh.build` through `jaxrt.cache.load_mesh` / `build_bvh`: the
 figures the caches give once the CLI and the scene builder call them. The table's last column is
 Mitsuba 3 on the same machine where `import mitsuba` works (cuda_ad_rgb on a GPU, else llvm_ad_rgb):
 scene load + first render of the same dragon view and resolution, and a 4-parameter `mi.ad.Adam`
@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # A prelude for --preview-wiring: the compilation cache on, meshes and BVHs through the array cache.
 PREVIEW = """
-import jaxrt.bvh as _B, jaxrt.cache as _C, jaxrt.mesh as _M
+import jaxrt.accel.bvh as _B, jaxrt.cache as _C, jaxrt.geometry.mesh as _M
 _C.enable_compilation_cache()
 _load, _build, _inside = _M.load, _B.build, []
 def _cached(orig, via):
@@ -64,7 +64,8 @@ DRAGON_FRAME = """
 import json, time
 t0 = time.perf_counter()
 import jax
-from jaxrt import render as R, scene as S
+from jaxrt import scene as S
+from jaxrt import api as R
 t1 = time.perf_counter()
 scn = S.load("dragon", overrides={{"camera.width": {size}, "camera.height": {size}}})
 t2 = time.perf_counter()
@@ -80,8 +81,8 @@ import json, time
 t0 = time.perf_counter()
 import numpy as np
 import brdfs
-from fitting import scene_fit
-from fitting.cli import hidden_params
+from fitting import setup as scene_fit
+from jaxrt.cli.fit import hidden_params
 t1 = time.perf_counter()
 model = brdfs.get("cook_torrance")
 view = scene_fit.variant("bunny", camera={{"width": {size}, "height": {size}}})
@@ -206,12 +207,12 @@ def cases(args) -> dict[str, Case]:
                               needs_data=True, peer="mitsuba-render"),
         "render-spheres": Case("`jaxrt render spheres`", (*cli, "render", "spheres")),
         "fit-demo": Case("`jaxrt fit --demo`", (*cli, "fit", "--demo")),
-        "fit-bunny": Case(f"bunny {fit}² 4-parameter fit (`fitting.scene_fit`)",
+        "fit-bunny": Case(f"bunny {fit}² 4-parameter fit (`fitting.setup`)",
                           ("-c", FIT_BUNNY.format(size=fit)), needs_data=True, peer="mitsuba-fit"),
         "dragon-frame": Case(f"dragon scene load + first frame ({frame}²; compile = first frame compile)",
                              ("-c", DRAGON_FRAME.format(size=frame)), needs_data=True, peer="mitsuba-frame"),
-        "imports": Case("Python imports before any work (jax, jaxrt.scene/render, fitting.scene_fit)",
-                        ("-c", "import jax, jaxrt.scene, jaxrt.render, brdfs, fitting.scene_fit")),
+        "imports": Case("Python imports before any work (jax, jaxrt.scene/render, fitting.setup)",
+                        ("-c", "import jax, jaxrt.scene, jaxrt.api, brdfs, fitting.setup")),
         "import-jaxrt": Case("`import jaxrt`", ("-c", "import jaxrt")),
         "import-brdfs": Case("`import brdfs`", ("-c", "import brdfs")),
         "import-fitting": Case("`import fitting`", ("-c", "import fitting")),
@@ -272,7 +273,8 @@ def _mitsuba_args(kind: str, size: int, variant: str, tmp: Path) -> tuple[str, d
     import numpy as np
     import trimesh
 
-    from jaxrt import mesh, scene
+    from jaxrt import scene
+    from jaxrt.geometry import mesh
 
     name = "bunny" if kind == "mitsuba-fit" else "dragon"
     spec = scene.parse(scene.find_scene(name))

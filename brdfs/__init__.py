@@ -23,7 +23,7 @@ MODELS: dict[str, Model] = {m.MODEL.name: m.MODEL for m in _MODULES}
 
 
 def names() -> tuple[str, ...]:
-    """The registered model names, in the seed's order."""
+    """The registered model names, in the order of Größler & Zettwitz, "An interactive ray tracing system based on Nvidia OptiX", 2015."""
     return tuple(MODELS)
 
 

@@ -15,7 +15,7 @@ Packages (docs/ARCHITECTURE.md has the layout and data flow):
 Modules: camera, lights, envmap, image (EXR/PNG), sweep (parameter sweeps), viewer, fsutil, errors.
 """
 
-from jaxrt import accel, geometry, integrators, scene, shading
+from jaxrt import accel, cache, geometry, integrators, scene, shading
 from jaxrt.api import gbuffer, render, reshade
 from jaxrt.errors import InputError
 from jaxrt.integrators import frame, shade, trace
@@ -24,7 +24,11 @@ from jaxrt.scene import load as load_scene
 
 __version__ = "0.1.0"
 
+# Compiled programs are kept across processes (JAX's persistent compilation cache) unless
+# JAXRT_CACHE=off; `jaxrt.cache` says where and how to clear it.
+cache.enable_compilation_cache()
+
 __all__ = [
-    "InputError", "Scene", "accel", "frame", "gbuffer", "geometry", "integrators", "load_scene", "render",
+    "InputError", "Scene", "accel", "cache", "frame", "gbuffer", "geometry", "integrators", "load_scene", "render",
     "reshade", "scene", "shade", "shading", "trace",
 ]

@@ -9,9 +9,9 @@ standard library and `jaxrt.errors`, so anything may import it without pulling i
 
 | variable | meaning | allowed (default) |
 |---|---|---|
-| JAXRT_DATA | a folder searched first for the registry's data files (`jaxrt.data`) | a path (unset: only the user cache) |
+| JAXRT_DATA | a folder searched first for the registry's data files (`jaxrt.geometry.data`) | a path (unset: only the user cache) |
 | JAXRT_DEBUG | the CLI prints tracebacks instead of one-line errors | 1/true/yes/on, 0/false/no/off ("" = off) |
-| JAXRT_TRAVERSAL | BVH traversal when a call passes none (`jaxrt.bvh.intersect`) | auto, xla, cpu, pallas, pallas-interpret (auto) |
+| JAXRT_TRAVERSAL | BVH traversal when a call passes none (`jaxrt.accel.bvh.intersect`) | auto, xla, cpu, pallas, pallas-interpret (auto) |
 | JAXRT_CACHE_DIR | the per-user cache folder (compiled programs, meshes, BVHs) | a path ($XDG_CACHE_HOME/jaxrt, else ~/.cache/jaxrt) |
 | JAXRT_CACHE | whether the on-disk caches are used | on, off (on) |
 | JAXRT_CACHE_SIZE | the cache folder's size bound; least recently used entries go first | bytes, or a number with K/M/G/T (binary units) (2G) |
@@ -34,7 +34,7 @@ from jaxrt.errors import InputError
 
 __all__ = ["DEFAULT_CACHE_SIZE", "TRAVERSALS", "VARIABLES", "Config", "config", "default_cache_dir", "parse_size"]
 
-#: The traversal implementations `JAXRT_TRAVERSAL` may name (`jaxrt.bvh.IMPLS` holds the same tuple).
+#: The traversal implementations `JAXRT_TRAVERSAL` may name (`jaxrt.accel.bvh.IMPLS` holds the same tuple).
 TRAVERSALS = ("auto", "xla", "cpu", "pallas", "pallas-interpret")
 
 #: The default bound of the cache folder, in bytes (2 GiB).
@@ -76,7 +76,7 @@ class Config:
 
 def default_cache_dir(environ: Mapping[str, str] | None = None) -> Path:
     """``$XDG_CACHE_HOME/jaxrt`` where XDG_CACHE_HOME is set and not empty, else ``~/.cache/jaxrt``
-    (the folder `jaxrt.data` and `jaxrt.bvh_cpu` use today)."""
+    (the folder `jaxrt.geometry.data` and `jaxrt.accel.traverse_cpu` use today)."""
     env = os.environ if environ is None else environ
     xdg = env.get("XDG_CACHE_HOME", "")
     return (Path(xdg).expanduser() if xdg else Path.home() / ".cache") / "jaxrt"
@@ -120,7 +120,7 @@ def config(environ: Mapping[str, str] | None = None) -> Config:
     JAXRT_DEBUG/JAXRT_CONFINE that is not a yes/no word, a JAXRT_TRAVERSAL not in `TRAVERSALS`,
     a JAXRT_CACHE other than on/off, a JAXRT_CACHE_SIZE/JAXRT_MEMORY that is not a size, and a
     JAXRT_CACHE_DIR that names an existing non-folder. JAXRT_DATA is not checked for existence here:
-    `jaxrt.data.find` names it when a file is missing.
+    `jaxrt.geometry.data.find` names it when a file is missing.
     """
     env = os.environ if environ is None else environ
 

@@ -27,7 +27,7 @@ overwritten. A folder that cannot be written (read-only, full, no permission) gi
 `CacheWarning` per process and folder, then results are still returned, just not stored (entries
 already there are still read). Bad cache contents never fail a load: the worst case is a rebuild.
 
-`load_mesh` and `build_bvh` are `jaxrt.mesh.load` and `jaxrt.bvh.build` through that cache, with
+`load_mesh` and `build_bvh` are `jaxrt.geometry.mesh.load` and `jaxrt.accel.build` through that cache, with
 results bit-identical to the uncached calls (every array equal, same dtypes). Their keys hold
 everything the result depends on: the file's sha256 and name, `flat` and `name` for meshes; the
 vertex and face bytes, builder, layout, leaf size and the SAH builder's module settings for BVHs;
@@ -39,8 +39,8 @@ Compiled programs. `enable_compilation_cache()` points JAX's persistent compilat
 ``xla/`` and caches every compilation (no minimum compile time or size: most of a render's
 compilations take well under JAX's default one-second threshold on a CPU). JAX keys an entry on the
 lowered program, so tracing still runs in every process; only XLA compilation is skipped. A traced
-program that calls the native CPU kernel registers its FFI target while tracing (`jaxrt.bvh_cpu.
-available()` runs inside `jaxrt.bvh`'s traversal), which is before JAX looks the program up in the
+program that calls the native CPU kernel registers its FFI target while tracing (`jaxrt.accel.traverse_cpu.
+available()` runs inside `jaxrt.accel.bvh`'s traversal), which is before JAX looks the program up in the
 cache, so a cached program that calls the kernel always finds it registered. JAX writes entries
 in place (not through a rename): a process that reads an entry while another writes it warns
 (``Error reading persistent compilation cache entry``) and compiles for itself; it never fails.
@@ -73,12 +73,12 @@ import numpy as np
 from jaxrt import _config
 
 if TYPE_CHECKING:
-    from jaxrt.bvh import BVH
-    from jaxrt.mesh import Mesh
+    from jaxrt.accel import BVH
+    from jaxrt.accel.sah import SahSettings
+    from jaxrt.geometry.mesh import Mesh
 
 __all__ = [
     "FORMAT_VERSION",
-    "SAH_SETTINGS",
     "CacheInfo",
     "CacheStats",
     "CacheWarning",
@@ -213,8 +213,9 @@ def enable_compilation_cache() -> bool:
     try:
         _probe(xla)
     except OSError as e:
-        _warn_once("unwritable", str(xla), f"jaxrt cache: cannot write compiled programs to {xla} ({_reason(e)}); "
-                                           f"continuing without the compilation cache")
+        # one warning per cache folder, whichever cache meets the problem first
+        _warn_once("unwritable", str(cfg.cache_dir), f"jaxrt cache: cannot store entries in {xla} ({_reason(e)}); "
+                                                     f"continuing without caching compiled programs")
         return False
     if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
@@ -367,8 +368,8 @@ def cached_arrays(kind: str, key: Mapping, build: Callable[[], Mapping[str, np.n
     except OSError as e:
         with _lock:
             _unwritable.add(str(folder))
-        _warn_once("unwritable", str(folder), f"jaxrt cache: cannot store arrays in {folder} ({_reason(e)}); "
-                                              f"continuing without storing meshes and BVHs")
+        _warn_once("unwritable", str(cfg.cache_dir), f"jaxrt cache: cannot store entries in {folder} ({_reason(e)}); "
+                                                     f"continuing without storing meshes and BVHs")
         return arrays
     _count("writes")
     _trim(cfg.cache_dir, cfg.cache_size, keep=path)
@@ -520,15 +521,15 @@ _SOURCE = "\0source\0"  # stands for the file's path in stored warning messages
 
 
 def load_mesh(path: str | os.PathLike, flat: bool = False, *, name: str | None = None) -> Mesh:
-    """`jaxrt.mesh.load(path, flat=flat, name=name)` through the array cache (bit-identical result).
+    """`jaxrt.geometry.mesh.load(path, flat=flat, name=name)` through the array cache (bit-identical result).
 
-    Key: the file's sha256 and name, flat, name, the source of `jaxrt.mesh` and the numpy and
+    Key: the file's sha256 and name, flat, name, the source of `jaxrt.geometry.mesh` and the numpy and
     trimesh versions. Warnings the load gave (zero-area triangles removed) are given again on a
     cache hit, naming `path`. An uncached ``.gltf`` (its buffers are separate files the key would
-    not cover) and a path that is not a file go straight to `jaxrt.mesh.load`, which reports errors.
+    not cover) and a path that is not a file go straight to `jaxrt.geometry.mesh.load`, which reports errors.
     """
-    from jaxrt import data as _data
-    from jaxrt import mesh as _mesh
+    from jaxrt.geometry import data as _data
+    from jaxrt.geometry import mesh as _mesh
 
     path = Path(path)
     if not path.is_file() or path.name.lower().endswith(".gltf"):
@@ -557,36 +558,36 @@ def load_mesh(path: str | os.PathLike, flat: bool = False, *, name: str | None =
                       tangents=a["tangents"], object_id=a["object_id"], names=tuple(_from_json_array(a["names"])))
 
 
-#: The SAH builder's module settings that change the tree it builds (read at each call).
-SAH_SETTINGS = ("BINS", "SAH_MIN", "ALL_AXES", "EXACT_BOUNDS", "RUN", "RUN_NODES")
-
-
-def build_bvh(vertices, faces, *, leaf_size: int = 1, builder: str = "lbvh", layout: str = "bfs") -> BVH:
-    """`jaxrt.bvh.build(vertices, faces, leaf_size=..., builder=..., layout=...)` through the array
-    cache (bit-identical result; arguments and errors as there).
+def build_bvh(vertices, faces, *, leaf_size: int = 1, builder: str = "lbvh", layout: str = "bfs",
+              sah_settings: SahSettings | None = None) -> BVH:
+    """`jaxrt.accel.build(vertices, faces, leaf_size=..., builder=..., layout=..., sah_settings=...)`
+    through the array cache (bit-identical result; arguments and errors as there).
 
     Key: sha256 of the vertex and face arrays (dtype, shape, bytes), leaf_size, builder, layout, the
-    SAH builder's settings (`SAH_SETTINGS` of `jaxrt.bvh_sah`), the source of the modules that build
+    SAH builder's settings (`jaxrt.accel.sah.SahSettings`), the source of the modules that build
     and pack the tree, numpy's version and the default backend (a GPU build also stores the GPU
     kernel's node tables, and then keys on JAX's version too).
     """
     import jax
 
-    from jaxrt import bvh as _bvh
-    from jaxrt import bvh_build, bvh_pallas, bvh_sah
+    from jaxrt.accel import builder as _builder
+    from jaxrt.accel import bvh as _bvh
+    from jaxrt.accel import morton, sah, traverse_pallas
+
+    sah_settings = sah.DEFAULT if sah_settings is None else sah_settings
 
     v = np.asarray(vertices)
     f = np.asarray(faces)
     backend = jax.default_backend()
     key = {"vertices": _array_hash(v), "faces": _array_hash(f), "leaf_size": leaf_size, "builder": builder,
-           "layout": layout, "code": _source_hash(_bvh, bvh_build, bvh_sah, bvh_pallas), "numpy": np.__version__,
+           "layout": layout, "code": _source_hash(_bvh, _builder, sah, morton, traverse_pallas), "numpy": np.__version__,
            "backend": backend, "jax": jax.__version__ if backend == "gpu" else None,
-           "sah": {s: getattr(bvh_sah, s) for s in SAH_SETTINGS} if builder == "sah" else None}
+           "sah": dataclasses.asdict(sah_settings) if builder == "sah" else None}
     fields = dataclasses.fields(_bvh.BVH)
     built = []
 
     def build():
-        tree = _bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout=layout)
+        tree = _bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout=layout, sah_settings=sah_settings)
         built.append(tree)
         out = {x.name: np.asarray(getattr(tree, x.name)) for x in fields
                if not x.metadata.get("static") and getattr(tree, x.name) is not None}

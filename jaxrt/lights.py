@@ -1,7 +1,7 @@
 """Point lights.
 
 A point light of radiant intensity I [W/sr] at position x_l gives a surface point p the
-irradiance E = I·cosθ/d² (the seed's equation 3), with d = |x_l − p| and θ the angle between the
+irradiance E = I·cosθ/d² (Größler & Zettwitz, "An interactive ray tracing system based on Nvidia OptiX", 2015, eq. 3), with d = |x_l − p| and θ the angle between the
 surface normal and wi = (x_l − p)/d. Positions and intensities are traced arrays: moving or
 dimming a light never recompiles; the number of lights is static.
 """

@@ -80,7 +80,7 @@ def _delta(before: cache.CacheStats) -> dict:
 
 def _obj(path: Path, degenerate: bool = False) -> Path:
     """A small OBJ (a subdivided sphere with UVs; optionally one zero-area triangle) written to `path`."""
-    from jaxrt import shapes
+    from jaxrt.geometry import shapes
 
     m = shapes.sphere(subdivisions=3)
     lines = [f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in m.vertices]
@@ -141,7 +141,7 @@ def test_config_cache_dir_must_not_be_a_file(tmp_path):
 
 
 def test_config_traversals_match_bvh():
-    from jaxrt import bvh
+    from jaxrt.accel import bvh
 
     assert _config.TRAVERSALS == bvh.IMPLS
 
@@ -368,7 +368,7 @@ def test_clear_removes_entries_and_keeps_other_files(cdir):
 def test_cli_cache_info_and_clear(cdir, capsys):
     import argparse
 
-    from jaxrt import cli_cache
+    from jaxrt.cli import cache as cli_cache
 
     p = argparse.ArgumentParser()
     cli_cache.configure(p)
@@ -455,7 +455,7 @@ def _tree_arrays(t) -> dict:
 
 @pytest.mark.parametrize("flat", [False, True])
 def test_load_mesh_is_bit_identical_and_replays_warnings(cdir, tmp_path, flat):
-    from jaxrt import mesh
+    from jaxrt.geometry import mesh
 
     path = _obj(tmp_path / "ball.obj", degenerate=True)
     with pytest.warns(UserWarning, match="zero-area"):
@@ -478,7 +478,8 @@ def test_load_mesh_is_bit_identical_and_replays_warnings(cdir, tmp_path, flat):
 
 
 def test_load_mesh_of_a_data_file(cdir, data_dir):
-    from jaxrt import data, mesh
+    from jaxrt.geometry import data
+    from jaxrt.geometry import mesh
 
     ref = mesh.load(data.find("bunny"))
     before = cache.stats()
@@ -503,7 +504,8 @@ def test_load_mesh_errors_are_the_loaders(cdir, tmp_path):
 @pytest.mark.parametrize("settings", [dict(), dict(builder="sah", layout="dfs"), dict(leaf_size=4, layout="dfs"),
                                       dict(builder="sah", leaf_size=2)])
 def test_build_bvh_is_bit_identical(cdir, settings):
-    from jaxrt import bvh, shapes
+    from jaxrt.accel import bvh
+    from jaxrt.geometry import shapes
 
     m = shapes.sphere(subdivisions=4)
     ref = bvh.build(m.vertices, m.faces, **settings)
@@ -521,16 +523,16 @@ def test_build_bvh_is_bit_identical(cdir, settings):
     assert all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(h0, h1))
 
 
-def test_build_bvh_key_covers_inputs_and_sah_settings(cdir, monkeypatch):
-    from jaxrt import bvh_sah, shapes
+def test_build_bvh_key_covers_inputs_and_sah_settings(cdir):
+    from jaxrt.accel import sah as bvh_sah
+    from jaxrt.geometry import shapes
 
     m = shapes.sphere(subdivisions=3)
     cache.build_bvh(m.vertices, m.faces, builder="sah")
     before = cache.stats()
     cache.build_bvh(m.vertices, m.faces, builder="sah", leaf_size=2)
     cache.build_bvh(m.vertices * np.float32(2), m.faces, builder="sah")
-    monkeypatch.setattr(bvh_sah, "SAH_MIN", bvh_sah.SAH_MIN * 2)
-    cache.build_bvh(m.vertices, m.faces, builder="sah")
+    cache.build_bvh(m.vertices, m.faces, builder="sah", sah_settings=bvh_sah.SahSettings(sah_min=2 * bvh_sah.DEFAULT.sah_min))
     assert _delta(before)["misses"] == 3 and _delta(before)["hits"] == 0
     with pytest.raises(InputError, match="leaf_size"):
         cache.build_bvh(m.vertices, m.faces, leaf_size=99)
@@ -541,7 +543,8 @@ def test_second_process_hits_mesh_and_bvh(tmp_path):
     path = _obj(tmp_path / "ball.obj")
     code = f"""
         import json, hashlib, numpy as np
-        from jaxrt import cache, bvh
+        from jaxrt import cache
+        from jaxrt.accel import bvh
         m = cache.load_mesh({str(path)!r})
         t = cache.build_bvh(m.vertices, m.faces, **bvh.RENDER_TREE)
         h = hashlib.sha256()
@@ -577,7 +580,8 @@ def test_second_process_compiles_nothing_for_a_render(tmp_path):
     code = _COUNT + """
     import hashlib, warnings
     import jaxrt
-    from jaxrt import bvh_cpu, cache, scene
+    from jaxrt import cache, scene
+    from jaxrt.accel import traverse_cpu as bvh_cpu
     warnings.simplefilter("always")
     on = cache.enable_compilation_cache()
     sc = scene.load("spheres", overrides={"camera.width": 24, "camera.height": 16})
@@ -602,14 +606,17 @@ def test_second_process_compiles_nothing_for_a_render(tmp_path):
 
 @pytest.mark.parametrize("kernel", ["native", "pallas"])
 def test_cached_programs_with_the_native_kernel_and_pallas_load_in_a_fresh_process(tmp_path, kernel):
-    # The FFI target of the native kernel is registered while the program is traced (jaxrt.bvh
+    # The FFI target of the native kernel is registered while the program is traced (jaxrt.accel.bvh
     # calls bvh_cpu.available()), i.e. before JAX looks the compiled program up in the cache.
     # "pallas" is the Triton kernel on a GPU and the Pallas interpreter elsewhere.
     d = tmp_path / "cache"
     code = _COUNT + f"""
     import hashlib
     import numpy as np
-    from jaxrt import bvh, bvh_cpu, cache, shapes
+    from jaxrt import cache
+    from jaxrt.accel import bvh
+    from jaxrt.accel import traverse_cpu as bvh_cpu
+    from jaxrt.geometry import shapes
     gpu = jax.default_backend() == "gpu"
     if {kernel!r} == "native" and jax.default_backend() != "cpu":
         print(json.dumps(dict(skip="the native kernel runs on the CPU backend only")))
@@ -651,7 +658,7 @@ def test_compilation_cache_unwritable_or_off(tmp_path):
     """
     bad = _py(code, blocker / "cache")
     assert bad["on"] == [False, False] and bad["y"] == [1.0, 3.0, 5.0, 7.0] and bad["dir"] is None
-    assert bad["stderr"].count("CacheWarning") == 1 and "cannot write compiled programs" in bad["stderr"]
+    assert bad["stderr"].count("CacheWarning") == 1 and "without caching compiled programs" in bad["stderr"]
     off = _py(code, tmp_path / "off", JAXRT_CACHE="off")
     assert off["on"] == [False, False] and off["dir"] is None and "CacheWarning" not in off["stderr"]
     assert not (tmp_path / "off").exists()

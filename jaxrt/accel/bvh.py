@@ -14,7 +14,7 @@ origins/directions are (N,3) float32 (directions need not be unit; t is in units
 
 Both work on CPU and GPU unchanged, can be called inside another jitted function with `tree` as a
 traced argument, and are not differentiable: their inputs pass through `lax.stop_gradient`, and a
-renderer recomputes the differentiable hit point from `prim` (DESIGN.md: trace once, shade many).
+renderer recomputes the differentiable hit point from `prim` (trace once, shade many: docs/ARCHITECTURE.md).
 Triangle tests are watertight (see `jaxrt.accel.traverse_xla`): a ray aimed at an edge or vertex shared
 by two triangles of a closed mesh always hits one of them. Build and traversal details are in
 `jaxrt.accel.builder` and `jaxrt.accel.traverse_xla` (pure JAX, portable), `jaxrt.accel.traverse_pallas` (one Pallas
@@ -26,7 +26,6 @@ XLA FFI kernel compiled on first use, the default where the computation is lower
 from __future__ import annotations
 
 import dataclasses
-import os
 from typing import NamedTuple
 
 import equinox as eqx
@@ -39,6 +38,7 @@ from jaxtyping import Array, Bool, Float, Int
 from jaxrt.accel.builder import build_arrays
 from jaxrt.accel.sah import DEFAULT as SAH_DEFAULT
 from jaxrt.accel.sah import SahSettings
+from jaxrt import _config
 from jaxrt.accel import traverse_cpu
 from jaxrt.accel import traverse_pallas
 from jaxrt.accel import traverse_xla
@@ -172,11 +172,11 @@ def default_steps() -> int:
     return 2 if jax.default_backend() == "cpu" else 16
 
 
-IMPLS = ("auto", "xla", "cpu", "pallas", "pallas-interpret")
+IMPLS = _config.TRAVERSALS
 
 
 def _impl(impl: str | None) -> str:
-    impl = impl or os.environ.get("JAXRT_TRAVERSAL") or "auto"
+    impl = impl or _config.config().traversal
     if impl not in IMPLS:
         raise InputError(f"bvh: traversal impl (argument or JAXRT_TRAVERSAL) must be one of {IMPLS}; got {impl!r}")
     return impl

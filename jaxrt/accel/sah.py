@@ -15,7 +15,7 @@ The build runs in phases so that no level moves triangle data (`_sah_levels`):
    Centroid bounds, which place the bins, are not recomputed per node: a child's are its
    parent's cut at the split plane and clipped to twice the child's box (exact from the bins),
    so they are conservative; `exact_bounds` recomputes them (6 more scatter passes per level)
-   and then gives the tree of the first version of this module, node for node.
+   and then gives the tree of a textbook top-down binned-SAH build, node for node.
    Near the root (nodes above `run_nodes` triangles) the elements are clusters: the triangles of
    one cell of a Morton grid coarse enough for ~`run` triangles per cell, binned at their mean
    centroid with their box and count. A cluster whose centroids straddle its node's chosen split
@@ -31,7 +31,7 @@ link orders and both traversals are unchanged. Deterministic: no randomness, no 
 Measured (BENCHMARKS.md, "Tree quality"): SAH splits pay at every level, not only the top ones
 (full dragon SAH cost: LBVH 60.9, threshold 1024 → 60.0, 16 → 53.8, 0 → 52.3). The conservative
 bounds and the clusters cost +0.06 % (53.79 → 53.82, node visits unchanged); the topology takes
-~0.8–1 s for the full dragon (the first version: ~4–5 s).
+~0.8–1 s for the full dragon (with exact bounds: ~4–5 s).
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ def _sweep(nb: np.ndarray, blo: np.ndarray, bhi: np.ndarray, cnt: np.ndarray, ex
         np.minimum(left[i - 1], box[i], out=left[i])
         np.minimum(right[bins - 1 - i], box[bins - 1 - i], out=right[bins - 2 - i])
 
-    # float32 is plenty to rank the splits; exact (bounds) keeps the first version's float64
+    # float32 is plenty to rank the splits; exact bounds rank them in float64
     dtype = np.float64 if exact else np.float32
 
     def area(b):  # half surface area; 0 for an empty side

@@ -39,6 +39,7 @@ import jaxlib
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxrt import _config
 from jaxrt.accel.predicates import FAR_SCALE
 
 TARGET = "jaxrt_bvh_traverse"
@@ -60,8 +61,9 @@ def _source() -> bytes:
 
 
 def _cache_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "jaxrt"
+    # compiled kernels live beside the other caches but are not subject to their size bound or to
+    # JAXRT_CACHE=off: without them the CPU falls back to the much slower XLA loop
+    return _config.config().cache_dir / "native"
 
 
 def _compile(src: bytes, compiler: str) -> Path:

@@ -13,6 +13,7 @@ import importlib
 import os
 import sys
 
+from jaxrt import _config
 from jaxrt.errors import InputError
 
 __all__ = ["COMMANDS", "build_parser", "main"]
@@ -24,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "view": ("jaxrt.cli.view", "open an interactive window with sliders for materials, light and camera"),
     "fit": ("jaxrt.cli.fit", "recover a BRDF's parameters from target renders (--demo for a self-contained run)"),
     "fit-matrix": ("jaxrt.cli.fit_matrix", "fit every model to every other model's renders; table and heat map"),
+    "cache": ("jaxrt.cli.cache", "show or clear the on-disk caches (compiled programs, meshes, BVHs)"),
     "brdf-report": ("jaxrt.cli.brdf_report", "print each BRDF model's albedo table and write a lobe plot PNG"),
 }
 
@@ -48,10 +50,12 @@ def main(argv: list[str] | None = None) -> int:
     selected = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(selected if selected in COMMANDS else None)
     args = parser.parse_args(argv)
+    debug = False
     try:
+        debug = _config.config().debug
         return int(args._run(args) or 0)
     except (InputError, ValueError, FileNotFoundError) as e:
-        if os.environ.get("JAXRT_DEBUG"):
+        if debug:
             raise
         print(f"jaxrt {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -2,7 +2,7 @@
 
 `find(name)` looks the registry name up in, in this order,
 
-  1. the directory in the environment variable ``JAXRT_DATA`` (CI sets it to ``../shared/data/meshes``),
+  1. the directory in the environment variable ``JAXRT_DATA`` (``.ci/run`` sets it),
   2. the user cache: ``$XDG_CACHE_HOME/jaxrt`` if XDG_CACHE_HOME is set, else ``~/.cache/jaxrt``,
 
 and returns the first existing file whose sha256 matches the registry. A missing or corrupt file
@@ -21,6 +21,7 @@ import os
 from pathlib import Path
 from typing import NamedTuple
 
+from jaxrt import _config
 from jaxrt.errors import InputError
 
 
@@ -69,13 +70,8 @@ def names() -> tuple[str, ...]:
 
 def search_dirs() -> list[Path]:
     """Directories `find` searches, in order: $JAXRT_DATA (if set), then the user cache."""
-    dirs = []
-    env = os.environ.get("JAXRT_DATA")
-    if env:
-        dirs.append(Path(env).expanduser())
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    dirs.append((Path(xdg).expanduser() if xdg else Path.home() / ".cache") / "jaxrt")
-    return dirs
+    data = _config.config().data
+    return ([data] if data is not None else []) + [_config.default_cache_dir()]
 
 
 def sha256_of(path: str | os.PathLike) -> str:
@@ -112,7 +108,7 @@ def find(name: str) -> Path:
         _verified[key] = digest
         return path
     where = ", ".join(str(d) for d in dirs)
-    hint = "" if os.environ.get("JAXRT_DATA") else " (JAXRT_DATA is not set)"
+    hint = "" if _config.config().data is not None else " (JAXRT_DATA is not set)"
     raise InputError(
         f"data file {entry.filename!r} for {name!r} not found in {where}{hint}; get it from {entry.source} "
         f"and put it in a directory named by the environment variable JAXRT_DATA or in the user cache")

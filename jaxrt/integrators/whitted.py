@@ -1,6 +1,6 @@
 """The Whitted integrator, split into a non-differentiable trace and a differentiable shade.
 
-Radiance (the seed's equations 2, 3 and 23), for a hit on an opaque material with mirror
+Radiance (Größler & Zettwitz, "An interactive ray tracing system based on Nvidia OptiX", 2015, eqs. 2, 3 and 23), for a hit on an opaque material with mirror
 coefficient δ, and on glass with Fresnel reflectance R:
 
     L(x, wo) = δ·L(x, ω_r) + (1 − δ)·Σ_lights f_r(wi, wo)·I·cosθ_i / d² · V(x, light)
@@ -232,7 +232,7 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
         # Compaction: one scatter of candidate indices (dropped candidates go to distinct slots past
         # the end, so every index is unique: plain stores, not a serialised scatter), then gathers,
         # which XLA fuses into one kernel for all seven arrays rather than seven scatters
-        # (BENCHMARKS.md, fourth session).
+        # (measured: BENCHMARKS.md).
         slot = jnp.where(keep, jnp.cumsum(keep) - 1, B + jnp.arange(2 * B))
         src = jnp.full(B, 2 * B, jnp.int32).at[slot].set(jnp.arange(2 * B, dtype=jnp.int32), mode="drop",
                                                          unique_indices=True)

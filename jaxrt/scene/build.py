@@ -14,6 +14,7 @@ import numpy as np
 
 import brdfs
 from jaxrt import accel, envmap
+from jaxrt import cache as _cache
 from jaxrt.accel import two_level
 from jaxrt.camera import Camera
 from jaxrt.errors import InputError
@@ -37,7 +38,7 @@ def object_meshes(o: ObjectSpec, cache: dict):
         key = (str(o.mesh), o.flat)
         if key not in cache:
             try:
-                cache[key] = _mesh.load(o.mesh, flat=o.flat)
+                cache[key] = _cache.load_mesh(o.mesh, flat=o.flat)
             except InputError:
                 raise
             except (ValueError, OSError) as e:
@@ -130,7 +131,7 @@ def build(spec: SceneSpec) -> Scene:
         faces = np.asarray(whole.faces, np.int32)
         if not np.all(np.isfinite(verts)):
             raise InputError(f"{spec.source}: scene geometry contains non-finite vertices")
-        tree = accel.build(verts, faces, **accel.RENDER_TREE)
+        tree = _cache.build_bvh(verts, faces, **accel.RENDER_TREE)
         geometry = TriangleGeometry(
             vertices=jnp.asarray(verts),
             normals=jnp.asarray(np.asarray(whole.normals, np.float32)),

@@ -31,7 +31,7 @@ class Materials(eqx.Module):
             name to an array with one row per material of that model ((rows, 3) RGB, (rows,) scalar).
         model_id: (M,) index into `models` for each material.
         row: (M,) row of each material in its model's table.
-        delta: (M,) the seed's mirror reflection coefficient δ in [0, 1] (0 for glass).
+        delta: (M,) the mirror reflection coefficient δ in [0, 1] (`jaxrt.scene.DELTA`; 0 for glass).
         models: static tuple of `brdfs` model names used by the scene.
         names: static tuple of material names (scene-file keys), index = material id.
     """

@@ -37,7 +37,7 @@ def direct_terms(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Array,
     Returns:
         wi: (B, L, 3) local-frame directions to the lights; wo: (B, 1, 3) local direction to the
         viewer; light: (B, L, 3) cosθ_i·I/d²·V per light (0 behind the geometric surface or shadowed).
-        Σ_l f(wi, wo)·light is the (1 − δ)-less direct term of the seed's equation.
+        Σ_l f(wi, wo)·light is the direct term of the Whitted model above, without its (1 − δ).
     """
     ng, ns, _ = oriented(s, d)
     frame = local_frame(ns, s.tangent)

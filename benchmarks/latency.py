@@ -65,7 +65,7 @@ import json, time
 t0 = time.perf_counter()
 import jax
 from jaxrt import scene as S
-from jaxrt import api as R
+import jaxrt as R
 t1 = time.perf_counter()
 scn = S.load("dragon", overrides={{"camera.width": {size}, "camera.height": {size}}})
 t2 = time.perf_counter()

@@ -88,7 +88,8 @@ def check_invariants(v, f, leaf_size, builder, layout, sah_settings=bvh_sah.DEFA
         if layout == "dfs" and c == 0:
             assert seen == list(range(nn))  # depth-first numbering is class 0's visiting order
     # the same tree whatever the numbering: equal stats and leaf order
-    other = bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout="bfs" if layout == "dfs" else "dfs")
+    other = bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout="bfs" if layout == "dfs" else "dfs",
+                      sah_settings=sah_settings)
     a, b = dataclasses.asdict(other.stats), dataclasses.asdict(tree.stats)
     assert a.pop("sah_cost") == pytest.approx(b.pop("sah_cost"), rel=1e-12) and a == b
     np.testing.assert_array_equal(np.asarray(other.prim_ids), np.asarray(tree.prim_ids))

@@ -140,8 +140,8 @@ def prepare(
     for s, gb in zip(built, gbs):
         npix = s.camera.num_pixels
         first = integrators.sample_order(s.camera.height, s.camera.width, s.settings.spp)[1]
-        prim = gb.prim[0, first]
-        hit_mat = jnp.where(prim >= 0, s.geometry.face_material(prim), -1)
+        prim = np.asarray(gb.prim)[0, first]
+        hit_mat = np.where(prim >= 0, np.asarray(compact.face_material(s.geometry, prim)), -1)
         masks.append(np.asarray(hit_mat == mi, np.float32).reshape(s.camera.height, s.camera.width))
     mask = np.stack(masks)
     if not mask.any():

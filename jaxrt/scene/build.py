@@ -9,7 +9,7 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 
 import brdfs
@@ -27,6 +27,12 @@ from jaxrt.lights import AreaLights, PointLights
 from jaxrt.scene.parse import find_scene, parse
 from jaxrt.scene.spec import ObjectSpec, SceneSpec
 from jaxrt.scene.types import Materials, Scene, Settings
+
+
+def _put(x, dtype=None):
+    # a plain host-to-device transfer: jnp.asarray of host data compiles a small staging program
+    # for every new shape and dtype, a dozen compilations per scene
+    return jax.device_put(np.asarray(x, dtype))
 
 
 def object_meshes(o: ObjectSpec, cache: dict):
@@ -95,7 +101,7 @@ def build(spec: SceneSpec) -> Scene:
         rows[ms.model].append(ms.params)
         delta.append(ms.delta)
     tables = tuple(
-        {p: jnp.asarray(np.stack([r[p] for r in rows[mname]])) for p in brdfs.get(mname).param_names}
+        {p: _put(np.stack([r[p] for r in rows[mname]])) for p in brdfs.get(mname).param_names}
         for mname in models
     )
     texs, bindings = [], []
@@ -105,9 +111,9 @@ def build(spec: SceneSpec) -> Scene:
             texs.append(_tx.make(ts.texels, ts.kind, ts.wrap, ts.uv_scale, ts.uv_offset))
     materials = Materials(
         params=tables,
-        model_id=jnp.asarray(model_id, jnp.int32),
-        row=jnp.asarray(row, jnp.int32),
-        delta=jnp.asarray(delta, jnp.float32),
+        model_id=_put(model_id, np.int32),
+        row=_put(row, np.int32),
+        delta=_put(delta, np.float32),
         models=tuple(models),
         names=mat_names,
         textures=tuple(texs),
@@ -133,22 +139,22 @@ def build(spec: SceneSpec) -> Scene:
             raise InputError(f"{spec.source}: scene geometry contains non-finite vertices")
         tree = _cache.build_bvh(verts, faces, **accel.RENDER_TREE)
         geometry = TriangleGeometry(
-            vertices=jnp.asarray(verts),
-            normals=jnp.asarray(np.asarray(whole.normals, np.float32)),
-            tangents=jnp.asarray(np.asarray(whole.tangents, np.float32)),
-            faces=jnp.asarray(faces),
-            material=jnp.asarray(np.concatenate(face_mat)),
-            object_id=jnp.asarray(np.concatenate(face_obj)),
+            vertices=_put(verts),
+            normals=_put(np.asarray(whole.normals, np.float32)),
+            tangents=_put(np.asarray(whole.tangents, np.float32)),
+            faces=_put(faces),
+            material=_put(np.concatenate(face_mat)),
+            object_id=_put(np.concatenate(face_obj)),
             tree=tree,
             object_names=tuple(obj_names),
             # mesh.concatenate drops UVs unless every mesh has them: keep them, zeros where a mesh has none
-            uvs=jnp.asarray(np.concatenate([np.zeros((m.num_vertices, 2), np.float32) if m.uvs is None
+            uvs=_put(np.concatenate([np.zeros((m.num_vertices, 2), np.float32) if m.uvs is None
                                             else np.asarray(m.uvs, np.float32) for m in meshes])),
         )
 
     lights = PointLights(
-        position=jnp.asarray(np.reshape([l[0] for l in spec.lights], (-1, 3)), jnp.float32),
-        intensity=jnp.asarray(np.reshape([l[1] for l in spec.lights], (-1, 3)), jnp.float32),
+        position=_put(np.reshape([l[0] for l in spec.lights], (-1, 3)), np.float32),
+        intensity=_put(np.reshape([l[1] for l in spec.lights], (-1, 3)), np.float32),
     )
     emission = np.asarray([spec.materials[n].emission for n in mat_names], np.float32).reshape(-1, 3)
     if spec.instances:
@@ -160,8 +166,8 @@ def build(spec: SceneSpec) -> Scene:
     else:
         fmat = np.concatenate(face_mat)
     area_lights = AreaLights(
-        emission=jnp.asarray(emission),
-        prims=jnp.asarray(np.nonzero(emission.max(axis=1)[fmat] > 0)[0].astype(np.int32)),
+        emission=_put(emission),
+        prims=_put(np.nonzero(emission.max(axis=1)[fmat] > 0)[0].astype(np.int32)),
     )
     environment = None
     if spec.environment is not None:
@@ -172,16 +178,16 @@ def build(spec: SceneSpec) -> Scene:
             environment = envmap.load(e.file, scale=e.scale, rotate=e.rotate)
     c = spec.camera
     camera = Camera(
-        position=jnp.asarray(c.position, jnp.float32), look_at=jnp.asarray(c.look_at, jnp.float32),
-        up=jnp.asarray(c.up, jnp.float32), vfov=jnp.asarray(c.vfov, jnp.float32),
-        aperture=jnp.asarray(c.aperture, jnp.float32), focus_distance=jnp.asarray(c.focus_distance, jnp.float32),
+        position=_put(c.position, np.float32), look_at=_put(c.look_at, np.float32),
+        up=_put(c.up, np.float32), vfov=_put(c.vfov, np.float32),
+        aperture=_put(c.aperture, np.float32), focus_distance=_put(c.focus_distance, np.float32),
         width=c.width, height=c.height,
     )
     r = spec.render
     has_glass = any(brdfs.get(m).delta for m in models)
     settings = Settings(
-        background=jnp.asarray(r.background, jnp.float32),
-        seed=jnp.asarray(r.seed, jnp.int32),
+        background=_put(r.background, np.float32),
+        seed=_put(r.seed, np.int32),
         integrator=r.integrator,
         max_depth=r.max_depth,
         spp=r.spp,
@@ -266,15 +272,15 @@ def build_instanced(spec: SceneSpec, mat_names: tuple[str, ...], cache: dict) ->
     v_off = np.cumsum([0] + [len(p[0]) for p in protos])[:-1]
     f_off = np.cumsum([0] + [len(p[3]) for p in protos])[:-1]
     return InstancedGeometry(
-        vertices=jnp.asarray(np.concatenate([p[0] for p in protos])),
-        normals=jnp.asarray(np.concatenate([p[1] for p in protos])),
-        tangents=jnp.asarray(np.concatenate([p[2] for p in protos])),
-        uvs=jnp.asarray(np.concatenate([p[6] for p in protos])),
-        faces=jnp.asarray(np.concatenate([p[3] + o for p, o in zip(protos, v_off)]).astype(np.int32)),
-        proto_face_object=jnp.asarray(np.concatenate([p[4] for p in protos])),
-        proto_face_offset=jnp.asarray(f_off.astype(np.int32)),
-        inst_object_base=jnp.asarray(np.asarray(obj_base, np.int32)),
-        object_material=jnp.asarray(np.asarray(obj_mat, np.int32)),
+        vertices=_put(np.concatenate([p[0] for p in protos])),
+        normals=_put(np.concatenate([p[1] for p in protos])),
+        tangents=_put(np.concatenate([p[2] for p in protos])),
+        uvs=_put(np.concatenate([p[6] for p in protos])),
+        faces=_put(np.concatenate([p[3] + o for p, o in zip(protos, v_off)]).astype(np.int32)),
+        proto_face_object=_put(np.concatenate([p[4] for p in protos])),
+        proto_face_offset=_put(f_off.astype(np.int32)),
+        inst_object_base=_put(np.asarray(obj_base, np.int32)),
+        object_material=_put(np.asarray(obj_mat, np.int32)),
         tree=tree,
         object_names=tuple(names),
         num_faces=int(sum(len(protos[p][3]) for p in inst_proto)),

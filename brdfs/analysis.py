@@ -38,14 +38,17 @@ from brdfs.base import Model, Params
 
 
 def _expand(model: Model, p: Params, axis_count: int = 1) -> Params:
-    """Insert `axis_count` sample axes before each parameter's own trailing (rgb) axis."""
+    """Insert `axis_count` sample axes before each parameter's own trailing (rgb) axis; a measured
+    model's data entries (`extras["data_shapes"]`: name -> core shape) get them before their core axes."""
+    cores = {s.name: (1 if s.rgb else 0) for s in model.spec}
+    cores.update({k: len(v) for k, v in model.extras.get("data_shapes", {}).items()})
     out = {}
-    for spec in model.spec:
-        v = jnp.asarray(p[spec.name])
-        pos = v.ndim - 1 if spec.rgb else v.ndim
+    for name, core in cores.items():
+        v = jnp.asarray(p[name])
+        pos = v.ndim - core
         for _ in range(axis_count):
             v = jnp.expand_dims(v, pos)
-        out[spec.name] = v
+        out[name] = v
     return out
 
 

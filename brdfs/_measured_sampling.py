@@ -1,16 +1,18 @@
 """Importance sampling for measured (tabulated or neural) isotropic BRDFs.
 
-A one-sample mixture (brdfs._common.mixture) of cosine-weighted sampling and a *tabulated half-vector
-lobe*: the half vector h is drawn from a table over θh, conditioned on the view angle θo, φh uniform,
+A one-sample mixture (as in brdfs._common.mixture, with a view-dependent lobe probability) of
+cosine-weighted sampling and a *tabulated half-vector lobe*: the half vector h is drawn from a table over θh, conditioned on the view angle θo, φh uniform,
 and wi = reflect(wo, h). The table is built from the BRDF itself when a material is loaded
 (`build`), so it follows whatever lobe shape the measurement has (long tails, off-specular peaks,
-Fresnel growth at grazing views) rather than an analytic proxy's.
+Fresnel growth at grazing views) rather than an analytic proxy's. benchmarks/measured_sampling.py
+measures the variance against cosine sampling.
 
 Table. θh in [0, π/2] is cut into N_H = 64 bins with edges θ_k = (π/2)(k/N_H)² (the square-root
 spacing of the MERL tables, Matusik et al. 2003: fine near the normal, where sharp lobes live; the
 first edges are 0.02°, 0.09°, 0.2°, 0.35°, ...). Within a bin the density is uniform in solid angle
 (uniform in v = 1 - cos θh, which is stored and computed as (hx² + hy²)/(1 + hz) so that it keeps its
-relative precision in float32 for tiny θh). At K = 8 view angles θo_j the bin masses are
+relative precision in float32 for tiny θh). At K = 11 view angles θo_j (0°, 10°, ..., 70°, 78°, 84°,
+89°) the bin masses are
 
     P_jb ∝ ∫_bin  g(reflect(wo_j, h)) · 4 (wo_j·h) dω_h,     g(wi) = max(lum f(wi, wo_j) - floor, 0) cos θi
 
@@ -21,9 +23,12 @@ incidence for an isotropic BRDF). `floor` is a conservative diffuse level: the s
 BRDF value over θo <= 60°, 30° <= θh <= 75°, θi <= 75°. Between view angles the bin probabilities
 are interpolated linearly in θo (a convex blend of normalised tables, so still normalised).
 
-Lobe choice. The tabulated lobe is chosen with probability ps = A_s / (A_s + π floor), clipped to
-[0.1, 0.9], where A_s is the mean over the K view angles of ∫ g dω_i; the cosine lobe keeps at least
-10 % so that the density is positive wherever f > 0.
+Lobe choice. The tabulated lobe is chosen with a view-dependent probability ps(θo), interpolated
+linearly in θo between per-node values. At each node the value is the one among 0, 0.02, 0.04, ...,
+0.98 that minimises the relative variance of the one-sample albedo estimator f cos θi / pdf, its
+second moment ∫ (f cos θi)² / pdf dω_i computed by the same quadrature as the table (so a nearly
+Lambertian material gets ps = 0, plain cosine sampling, and a near-mirror one 0.98). The cosine lobe
+keeps at least 2 %, so the density is positive wherever f > 0.
 
 The densities are exact: `pdf` is the density `sample` draws from (tested by chi-square against the
 samples), and weights are f cos / pdf.
@@ -46,13 +51,14 @@ _TH_EDGES = (math.pi / 2) * (np.arange(N_H + 1, dtype=np.float64) / N_H) ** 2
 #: bin edges in v = 1 - cos θh (float64 -> float32 keeps their relative precision)
 V_EDGES = (2.0 * np.sin(0.5 * _TH_EDGES) ** 2).astype(np.float32)
 #: view angles [radians] at which the tables are built
-THETA_O = np.radians([0.0, 30.0, 45.0, 60.0, 70.0, 78.0, 84.0, 89.0]).astype(np.float32)
+THETA_O = np.radians([0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 78.0, 84.0, 89.0]).astype(np.float32)
 K = len(THETA_O)
-PS_RANGE = (0.1, 0.9)
+#: candidate lobe probabilities (0: cosine sampling only; the cosine lobe keeps at least 2 %)
+PS_CANDIDATES = np.concatenate([[0.0], np.linspace(0.02, 0.98, 49)]).astype(np.float32)
 _SUB_V, _SUB_PHI = 4, 16
 
 #: shapes of the sampler's entries in a measured model's parameter pytree (no batch dimensions)
-SHAPES = {"cdf": (K, N_H + 1), "ps": ()}
+SHAPES = {"cdf": (K, N_H + 1), "pmf": (K, N_H), "ps": (K,)}
 
 
 def _node_weights(wo: Float[Array, "... 3"]) -> Float[Array, "... K"]:
@@ -67,9 +73,10 @@ def _node_weights(wo: Float[Array, "... 3"]) -> Float[Array, "... K"]:
     return jnp.clip(jnp.minimum(up, down), 0.0, 1.0)
 
 
-def _blended_cdf(p, wo) -> Float[Array, "... N+1"]:
+def _blend(table, wo):
+    """Σ_j w_j(θo) table_j: (..., K, n) -> (..., n)."""
     w = _node_weights(wo)
-    return jnp.sum(w[..., :, None] * p["cdf"], axis=-2)
+    return jnp.sum(w[..., :, None] * table, axis=-2)
 
 
 def _v_of(h: Float[Array, "... 3"]) -> Float[Array, "..."]:
@@ -77,13 +84,14 @@ def _v_of(h: Float[Array, "... 3"]) -> Float[Array, "..."]:
     return (h[..., 0] ** 2 + h[..., 1] ** 2) / (1.0 + jnp.maximum(h[..., 2], 0.0))
 
 
-def lobe_prob(p) -> Float[Array, "..."]:
-    return p["ps"]
+def lobe_prob(p, wo: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """Probability of the tabulated lobe at view direction wo (interpolated in θo between the nodes)."""
+    return jnp.sum(_node_weights(wo) * p["ps"], axis=-1)
 
 
 def spec_sample(p, wo: Float[Array, "... 3"], u: Float[Array, "... 2"]) -> Float[Array, "... 3"]:
     """wi from the tabulated half-vector lobe; (0, 0, -1) (a failed sample) where wo·h <= 0."""
-    cdf = _blended_cdf(p, wo)  # (..., N+1)
+    cdf = _blend(p["cdf"], wo)  # (..., N+1)
     u0 = u[..., 0]
     cdf, u0 = jnp.broadcast_arrays(cdf, u0[..., None])
     u0 = u0[..., 0]
@@ -108,10 +116,12 @@ def spec_pdf(p, wo: Float[Array, "... 3"], wi: Float[Array, "... 3"]) -> Float[A
     v = _v_of(h)
     ve = jnp.asarray(V_EDGES)
     b = jnp.clip(jnp.searchsorted(ve, v, side="right") - 1, 0, N_H - 1)
-    cdf = _blended_cdf(p, wo)
-    cdf, b = jnp.broadcast_arrays(cdf, b[..., None])
+    # the bin probabilities from "pmf", not from differences of "cdf" (which lose relative precision
+    # for small bins); both tables hold the same distribution
+    pmf = _blend(p["pmf"], wo)
+    pmf, b = jnp.broadcast_arrays(pmf, b[..., None])
     b = b[..., :1]
-    prob = (jnp.take_along_axis(cdf, b + 1, axis=-1) - jnp.take_along_axis(cdf, b, axis=-1))[..., 0]
+    prob = jnp.take_along_axis(pmf, b, axis=-1)[..., 0]
     b = b[..., 0]
     p_h = prob / (2.0 * math.pi * (ve[b + 1] - ve[b]))
     p_h = jnp.where(h[..., 2] > 0, p_h, 0.0)
@@ -119,13 +129,38 @@ def spec_pdf(p, wo: Float[Array, "... 3"], wi: Float[Array, "... 3"]) -> Float[A
 
 
 def make(eval_fn):
-    """(sample, pdf) of the mixture for a measured model with BRDF `eval_fn(p, wi, wo)`."""
-    return C.mixture(lobe_prob, spec_sample, spec_pdf, eval_fn)
+    """(sample, pdf) of the mixture for a measured model with BRDF `eval_fn(p, wi, wo)`: the one-sample
+    mixture of brdfs._common.mixture (lobe chosen by u0 < ps, u0 rescaled), with a view-dependent ps."""
+
+    def pdf(p, wo, wi):
+        ps = lobe_prob(p, wo)
+        d = (1.0 - ps) * C.cosine_pdf(wi) + ps * spec_pdf(p, wo, wi)
+        return jnp.where(C.upper(wi, wo), d, 0.0)
+
+    def sample(p, wo, u):
+        ps = lobe_prob(p, wo)
+        u0, u1 = u[..., 0], u[..., 1]
+        pick = u0 < ps
+        us = jnp.clip(C.safe_div(u0, ps), 0.0, 1.0 - 1e-7)
+        ud = jnp.clip(C.safe_div(u0 - ps, 1.0 - ps), 0.0, 1.0 - 1e-7)
+        us, ud, u1 = jnp.broadcast_arrays(us, ud, u1)
+        wi_s = spec_sample(p, wo, jnp.stack([us, u1], axis=-1))
+        wi_d = C.cosine_sample(jnp.stack([ud, u1], axis=-1))
+        wi = jnp.where(pick[..., None], wi_s, wi_d)
+        pd = pdf(p, wo, wi)
+        f = eval_fn(p, wi, wo)
+        ok = pd > 0
+        weight = jnp.where(ok[..., None], f * C.safe_div(jnp.maximum(wi[..., 2], 0.0), pd)[..., None], 0.0)
+        return wi, weight, pd
+
+    return sample, pdf
 
 
 @functools.partial(jax.jit, static_argnums=0)
 def build(eval_fn, p) -> dict:
-    """The sampler's table {"cdf": (K, N_H + 1), "ps": ()} for one material (p without batch dims).
+    """The sampler's tables {"cdf": (K, N_H + 1), "pmf": (K, N_H), "ps": (K,)} for one material (p
+    without batch dimensions): per view-angle node the bin probabilities, their running sums and the
+    lobe probability.
 
     Built from `eval_fn(p, wi, wo)` as the module docstring describes; one compiled function serves
     every material of a model (p is traced).
@@ -157,7 +192,18 @@ def build(eval_fn, p) -> dict:
     prob = jnp.where(tot > 0, mass / jnp.where(tot > 0, tot, 1.0), dv / jnp.sum(dv))
     cdf = jnp.concatenate([jnp.zeros((K, 1)), jnp.cumsum(prob, axis=-1)], axis=-1)
     cdf = cdf / cdf[:, -1:]
-    a_s = jnp.mean(tot)
-    ps = C.lobe_prob(a_s, math.pi * floor)
-    ps = jnp.clip(ps, *PS_RANGE)
-    return {"cdf": cdf.astype(jnp.float32), "ps": ps.astype(jnp.float32)}
+    # lobe probability per node: the candidate minimising the relative variance of f cos / pdf,
+    # with the second moment ∫ (f cos)² / pdf dω_i by the same quadrature (dω_i = 4 (wo·h) dω_h)
+    valid = (ci > 0) & (oh > 0)
+    dw = 4.0 * oh * (2.0 * math.pi) * (dv[:, None, None] / (_SUB_V * _SUB_PHI))  # (K, N, S, M)
+    fc = jnp.where(valid, f * ci, 0.0)
+    a = jnp.sum(fc * dw, axis=(1, 2, 3))  # (K,) albedo (channel mean)
+    p_cos = jnp.maximum(ci, 0.0) / math.pi
+    p_spec = (prob / (2.0 * math.pi * dv))[:, :, None, None] * C.safe_div(1.0, 4.0 * oh)
+    cand = jnp.asarray(PS_CANDIDATES)[:, None, None, None, None]
+    den = (1.0 - cand) * p_cos + cand * p_spec
+    m2 = jnp.sum(jnp.where(valid, C.safe_div(fc * fc, den), 0.0) * dw, axis=(2, 3, 4))  # (C, K)
+    rel = C.safe_div(m2, a * a) - 1.0
+    ps = jnp.asarray(PS_CANDIDATES)[jnp.argmin(rel, axis=0)]
+    ps = jnp.where(a > 0, ps, PS_CANDIDATES[0])
+    return {"cdf": cdf.astype(jnp.float32), "pmf": prob.astype(jnp.float32), "ps": ps.astype(jnp.float32)}

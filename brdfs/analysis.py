@@ -91,7 +91,8 @@ def albedo(model: Model, p: Params, wo: Float[Array, "... 3"], n: int = 256) -> 
     if "lobes" in model.extras:  # a mixture of more than two lobes: ((prob_fn, sample_fn), ...)
         a = sum(prob(p)[..., None] * lobe_mean(samp(pe, woe, u)) for prob, samp in model.extras["lobes"])
         return jnp.where((wo[..., 2] > 0)[..., None], a, 0.0)
-    ps = model.extras["lobe_prob"](p)  # (...)
+    # (...); a measured model's lobe probability depends on the view direction too
+    ps = model.extras["lobe_prob"](p, wo) if model.extras.get("lobe_prob_wo") else model.extras["lobe_prob"](p)
     wi_d = jnp.broadcast_to(C.cosine_sample(u), woe.shape[:-2] + u.shape[:-1] + (3,))
     wi_s = model.extras["sample_specular"](pe, woe, u)
     a = (1.0 - ps)[..., None] * lobe_mean(wi_d) + ps[..., None] * lobe_mean(wi_s)

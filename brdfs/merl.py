@@ -23,9 +23,9 @@ takes the weighted mean of the others, and a point whose eight corners are all m
 is 0 unless both directions are above the horizon.
 
 Parameters. The pytree is {"table": (..., 90, 90, 180, 3) float32 [1/sr] (missing = -1),
-"cdf": (..., 8, 65), "ps": (...)} (the last two are the importance sampler's, brdfs._measured_sampling);
-`load(path)` builds it from a file, `from_table` from an array. Sampling mixes cosine sampling with a
-half-vector lobe tabulated from the data at load time.
+"cdf": (..., 11, 65), "pmf": (..., 11, 64), "ps": (..., 11)} (the last three are the importance
+sampler's tables, brdfs._measured_sampling); `load(path)` builds it from a file, `from_table` from an array.
+Sampling mixes cosine sampling with a half-vector lobe tabulated from the data at load time.
 
 `tabulate(model, p)` samples any model on the MERL grid and `write` stores a table as a `.binary`
 file (both used by the tests, and to convert analytic materials to the format).
@@ -92,10 +92,9 @@ def write(path: str | os.PathLike, table) -> None:
     if t.shape != RES + (3,):
         raise InputError(f"{path}: MERL table must have shape {RES + (3,)}, got {t.shape}")
     raw = np.where(t < 0, MISSING, t / SCALE)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(np.asarray(RES, "<i4").tobytes())
-            fh.write(np.ascontiguousarray(np.moveaxis(raw, -1, 0), "<f8").tobytes())
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(np.asarray(RES, "<i4").tobytes())
+        fh.write(np.ascontiguousarray(np.moveaxis(raw, -1, 0), "<f8").tobytes())
 
 
 def grid_angles() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -194,7 +193,7 @@ MODEL = Model(
     pdf=pdf,
     energy_conserving=False,
     reciprocal=True,
-    extras={"lobe_prob": S.lobe_prob, "sample_specular": S.spec_sample, "data_shapes": SHAPES,
+    extras={"lobe_prob": S.lobe_prob, "lobe_prob_wo": True, "sample_specular": S.spec_sample, "data_shapes": SHAPES,
             "lookup": lookup},
     doc=__doc__,
 )

@@ -20,11 +20,11 @@ are below 1 up to θo = 80°).
 Parameters. A measured material's parameters are its data, not sliders: the pytree is
 
     {"W1": (..., 6, 21), "b1": (..., 21), "W2": (..., 21, 21), "b2": (..., 21), "W3": (..., 21, 3),
-     "b3": (..., 3), "cdf": (..., 8, 65), "ps": (...)}
+     "b3": (..., 3), "cdf": (..., 11, 65), "pmf": (..., 11, 64), "ps": (..., 11)}
 
-(the last two are the importance sampler's table, brdfs._measured_sampling), leading batch dimensions
-broadcasting against the directions' as for every model, so one compiled function serves every
-material and `jax.vmap` runs over a stack of materials. `load("merl/alum-bronze")` or
+(the last three are the importance sampler's tables, brdfs._measured_sampling), leading batch
+dimensions broadcasting against the directions' as for every model, so one compiled function serves
+every material and `jax.vmap` runs over a stack of materials. `load("merl/alum-bronze")` or
 `load(path_to_h5)` builds it; `MODEL.spec` is empty (nothing to tune).
 
 Weights come from the `.h5` files (HDF5, read with h5py): exactly the six datasets
@@ -154,7 +154,7 @@ MODEL = Model(
     pdf=pdf,
     energy_conserving=False,
     reciprocal=False,
-    extras={"lobe_prob": S.lobe_prob, "sample_specular": S.spec_sample, "data_shapes": SHAPES,
+    extras={"lobe_prob": S.lobe_prob, "lobe_prob_wo": True, "sample_specular": S.spec_sample, "data_shapes": SHAPES,
             "network": network, "encode": encode},
     doc=__doc__,
 )

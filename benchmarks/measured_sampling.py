@@ -1,6 +1,6 @@
 """Variance of the measured models' importance sampler against cosine-weighted sampling.
 
-    JAXRT_DATA=../shared/data .venv/bin/python benchmarks/measured_sampling.py [--n 262144] [--angles 0 30 60 80]
+    JAXRT_DATA=../shared/data .venv/bin/python benchmarks/measured_sampling.py [--n 262144] [--angles 5 25 45 65 85]
         [--materials all|merl|rgl|nielsen] [--json out.json]
 
 For each neural material (brdfs.nbrdf, Sztrajman et al. 2021) and view angle θo, the per-sample
@@ -73,7 +73,8 @@ def _time_per_sample(p, wo, n, cosine: bool) -> float:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n", type=int, default=1 << 18)
-    ap.add_argument("--angles", type=float, nargs="+", default=[0.0, 30.0, 60.0, 80.0])
+    # (between the sampler's view-angle nodes, where its tables are interpolated)
+    ap.add_argument("--angles", type=float, nargs="+", default=[5.0, 25.0, 45.0, 65.0, 85.0])
     ap.add_argument("--materials", default="all", choices=["all", "merl", "rgl", "nielsen"])
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)

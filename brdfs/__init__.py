@@ -23,7 +23,7 @@ MODELS: dict[str, Model] = {m.MODEL.name: m.MODEL for m in _MODULES}
 
 
 def names() -> tuple[str, ...]:
-    """The registered model names, in the seed's order."""
+    """The registered model names, in the order of Größler & Zettwitz, "An interactive ray tracing system based on Nvidia OptiX", 2015."""
     return tuple(MODELS)
 
 
@@ -32,7 +32,7 @@ def get(name: str) -> Model:
     try:
         return MODELS[name]
     except (KeyError, TypeError):
-        from jaxrt.errors import InputError
+        from brdfs.errors import InputError
 
         raise InputError(f"unknown BRDF model {name!r}; allowed: {', '.join(MODELS)}") from None
 

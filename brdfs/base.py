@@ -18,7 +18,7 @@ from typing import Literal
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt.errors import InputError
+from brdfs.errors import InputError
 
 Params = dict  # dict[str, jax.Array]; see module docstring
 

@@ -7,7 +7,7 @@ every other surface's contribution are constant during a fit. The image is there
 
 over the tree nodes (any depth: seen directly or in mirrors/glass) whose surface has the fitted
 material, with w_node = path throughput · (1 − δ) / spp. `build` gathers those nodes once (local
-directions and light weights, from the same `jaxrt.integrators` functions the renderer shades
+directions and light weights, from the same `jaxrt.shading` functions the renderer shades
 with); `shade` is then one BRDF evaluation per node and light plus a segment sum — about as
 little work as a fit iteration can do. `tests/test_fit_compact.py` checks it against the full
 renderer's `shade` for random parameters.
@@ -24,7 +24,9 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 import brdfs
-from jaxrt import instancing, integrators, render
+from jaxrt import integrators
+from jaxrt.scene import edit
+from jaxrt.shading.direct import direct_terms
 
 
 class FitBuffer(eqx.Module):
@@ -47,14 +49,14 @@ def _nodes(gb, scene, material: int):
     """Per-view node data (numpy) for the nodes whose hit has `material`."""
     st = scene.settings
     keep = np.asarray(gb.active & (gb.prim >= 0))
-    mat = np.asarray(instancing.face_material(scene.geometry, gb.prim))
+    mat = np.asarray(scene.geometry.face_material(gb.prim))
     sel = keep & (mat == material)
     d_idx, b_idx = np.nonzero(sel)
     prim, u, v = (jnp.asarray(np.asarray(x)[d_idx, b_idx]) for x in (gb.prim, gb.u, gb.v))
     d = jnp.asarray(np.asarray(gb.direction)[d_idx, b_idx])
     vis = jnp.asarray(np.asarray(gb.visible)[d_idx, b_idx])
-    s = integrators.surface(scene.geometry, prim, u, v)
-    wi, wo, light = integrators.direct_terms(scene, s, d, vis)
+    s = scene.geometry.surface(prim, u, v)
+    wi, wo, light = direct_terms(scene, s, d, vis)
     delta = np.asarray(scene.materials.delta)[material]
     weight = np.asarray(gb.weight)[d_idx, b_idx] * (1.0 - delta) / st.spp
     pixel = np.asarray(gb.pixel)[d_idx, b_idx]
@@ -67,13 +69,12 @@ def build(gbuffers, scenes, model_index: int, row: int, material: int, params0) 
     `params0` is the parameter set the scenes currently hold for the material; the constant image
     is each view's full render minus that material's contribution at `params0`.
     """
-    from fitting.scene_fit import inject
 
     parts, consts = [], []
     for k, (gb, sc) in enumerate(zip(gbuffers, scenes)):
         pixel, weight, wi, wo, light = _nodes(gb, sc, material)
         parts.append((pixel + k * sc.camera.num_pixels, weight, wi, wo, light))
-        consts.append(render.shade(gb, inject(sc, model_index, row, params0)))
+        consts.append(integrators.shade(gb, edit.set_material_row(sc, model_index, row, params0)))
     # Views may have different numbers of lights: pad with unlit, straight-up dummy lights.
     L = max(p[2].shape[1] for p in parts)
     up = np.array([0.0, 0.0, 1.0], np.float32)

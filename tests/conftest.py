@@ -1,11 +1,20 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures, and a fresh cache folder for the whole run.
+
+The suite must pass with empty caches and never depend on warm ones: unless JAXRT_CACHE_DIR is
+set (CI sets a fresh one), the run gets a new temporary folder, shared by the xdist workers (they
+inherit the environment), so compiled programs and built scenes are reused within the run only.
+"""
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+
+if not os.environ.get("JAXRT_CACHE_DIR"):
+    os.environ["JAXRT_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxrt-test-cache-")
 
 
 @pytest.fixture(scope="session")

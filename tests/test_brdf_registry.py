@@ -23,7 +23,7 @@ PARAMS = {
     "glass": ("n_t",),
     "disney": DISNEY,
 }
-# The seed's swept ranges: each model's bounds must contain them.
+# The ranges the 2015 system's sliders swept (Größler & Zettwitz 2015): each model's bounds must contain them.
 SEED_RANGES = {"rho_d": (0, 1), "rho_s": (0, 1), "s": (1, 1000), "m": (0.01, 1), "eta": (1, 10),
                "alpha_x": (0.01, 1), "alpha_y": (0.01, 1), "n_u": (1, 10000), "n_v": (1, 10000), "n_t": (1, 2),
                **{k: (0, 1) for k in DISNEY}}  # Burley 2012: every Disney parameter spans [0, 1]

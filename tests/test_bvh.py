@@ -22,7 +22,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxrt import bvh, data, mesh
+from jaxrt.accel import bvh
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh
 from jaxrt.errors import InputError
 
 RTOL = 1e-5

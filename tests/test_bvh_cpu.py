@@ -1,7 +1,7 @@
-"""The native CPU traversal kernel (`jaxrt.bvh_cpu`) against independent references.
+"""The native CPU traversal kernel (`jaxrt.accel.traverse_cpu`) against independent references.
 
 Brute force (float64, tests/test_bvh.py's checker) for leaf sizes the default tree does not use;
-the XLA loop (`jaxrt.bvh_traverse`) for the same tree and rays (same results up to ties between
+the XLA loop (`jaxrt.accel.traverse_xla`) for the same tree and rays (same results up to ties between
 triangles at the same distance); closed-form hits at exactly tmin / tmax; N = 0; jit and vmap; the
 fallback to the XLA loop where no compiler exists. tests/test_bvh.py runs its brute-force,
 watertightness and jit checks on both implementations.
@@ -18,7 +18,11 @@ import pytest
 import trimesh
 from test_bvh import RTOL, brute_force, check_against_reference, ray_mix
 
-from jaxrt import bvh, bvh_cpu, bvh_traverse, data, mesh
+from jaxrt.accel import bvh
+from jaxrt.accel import traverse_cpu as bvh_cpu
+from jaxrt.accel import traverse_xla as bvh_traverse
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh
 
 
 def test_kernel_builds_here():

@@ -1,4 +1,4 @@
-"""The Pallas traversal kernel (jaxrt.bvh_pallas), run in the Pallas interpreter on this CPU, gives the
+"""The Pallas traversal kernel (jaxrt.accel.traverse_pallas), run in the Pallas interpreter on this CPU, gives the
 XLA loop's hits and agrees with float64 brute force; the traversal switch (impl / JAXRT_TRAVERSAL).
 
 On a GPU the same kernel is compiled by Triton; benchmarks/gpu.py checks there that both traversals
@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 from test_bvh import check_against_reference, icosphere_mesh, ray_mix
 
-from jaxrt import bvh, data, mesh
+from jaxrt.accel import bvh
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh
 from jaxrt.errors import InputError
 
 
@@ -93,7 +95,7 @@ def test_traversal_switch(monkeypatch):
     with pytest.raises(InputError, match="'fast'"):
         bvh.occluded(tree, o, d)
     monkeypatch.delenv("JAXRT_TRAVERSAL")
-    # "auto" on a CPU lowers the native kernel only (jaxrt.bvh_cpu: no Triton call, no XLA loop);
+    # "auto" on a CPU lowers the native kernel only (jaxrt.accel.traverse_cpu: no Triton call, no XLA loop);
     # "xla" the portable loop.
     text = jax.jit(bvh.intersect).lower(tree, o, d).as_text()
     assert "triton" not in text.lower()
@@ -117,7 +119,7 @@ def test_pallas_layout_variants_agree():
     """The kernel's speed options (node-row layouts, exact signs always on, the triangle test in every
     warp) give the default's hits, on rays aimed at vertices and edges (where the exact signs
     matter), with and without the tree's packed rows."""
-    from jaxrt import bvh_pallas
+    from jaxrt.accel import traverse_pallas as bvh_pallas
 
     m = icosphere_mesh(1)
     tree = bvh.build(m.vertices, m.faces)
@@ -157,7 +159,8 @@ def test_pallas_layout_variants_agree():
 def test_node_depth_and_skip_table():
     """The kernel's node depths (pointer jumping) against a breadth-first walk in numpy, and its skip
     table decodes to the tree's miss links and their targets' depths."""
-    from jaxrt import bvh_build, bvh_pallas
+    from jaxrt.accel import builder as bvh_build
+    from jaxrt.accel import traverse_pallas as bvh_pallas
 
     m = icosphere_mesh(2)
     rng = np.random.default_rng(2)

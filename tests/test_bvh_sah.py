@@ -10,7 +10,11 @@ import pytest
 import trimesh
 from test_bvh import check_against_reference, ray_mix
 
-from jaxrt import bvh, bvh_build, bvh_sah, data, mesh
+from jaxrt.accel import bvh
+from jaxrt.accel import builder as bvh_build
+from jaxrt.accel import sah as bvh_sah
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh
 
 
 def soup(n=600, seed=3):
@@ -53,8 +57,8 @@ def test_sah_build_invariants(leaf_size, builder, layout):
     check_invariants(v, f, leaf_size, builder, layout)
 
 
-def check_invariants(v, f, leaf_size, builder, layout):
-    tree = bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout=layout)
+def check_invariants(v, f, leaf_size, builder, layout, sah_settings=bvh_sah.DEFAULT):
+    tree = bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout=layout, sah_settings=sah_settings)
     box = np.asarray(tree.node_box)
     leaf = np.asarray(tree.node_leaf)
     links = np.asarray(tree.links)
@@ -84,7 +88,8 @@ def check_invariants(v, f, leaf_size, builder, layout):
         if layout == "dfs" and c == 0:
             assert seen == list(range(nn))  # depth-first numbering is class 0's visiting order
     # the same tree whatever the numbering: equal stats and leaf order
-    other = bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout="bfs" if layout == "dfs" else "dfs")
+    other = bvh.build(v, f, leaf_size=leaf_size, builder=builder, layout="bfs" if layout == "dfs" else "dfs",
+                      sah_settings=sah_settings)
     a, b = dataclasses.asdict(other.stats), dataclasses.asdict(tree.stats)
     assert a.pop("sah_cost") == pytest.approx(b.pop("sah_cost"), rel=1e-12) and a == b
     np.testing.assert_array_equal(np.asarray(other.prim_ids), np.asarray(tree.prim_ids))
@@ -125,14 +130,14 @@ def test_sah_root_split_is_the_best_binned_split():
     c = (lo + hi) / 2
     axis = int(np.argmax(c.max(0) - c.min(0)))
     x = (c[:, axis] - c[:, axis].min()) / np.ptp(c[:, axis])
-    b = np.minimum((x * bvh_sah.BINS).astype(int), bvh_sah.BINS - 1)
+    b = np.minimum((x * bvh_sah.DEFAULT.bins).astype(int), bvh_sah.DEFAULT.bins - 1)
 
     def half_area(mask):
         e = hi[mask].max(0) - lo[mask].min(0)
         return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
 
     best = min((half_area(b <= j) * np.sum(b <= j) + half_area(b > j) * np.sum(b > j), j)
-               for j in range(bvh_sah.BINS - 1) if 0 < np.sum(b <= j) < len(f))
+               for j in range(bvh_sah.DEFAULT.bins - 1) if 0 < np.sum(b <= j) < len(f))
     left = np.zeros(len(f), bool)
     left[prim[subtree_tris(tree, first, second, is_leaf, first[0])]] = True
     got = half_area(left) * left.sum() + half_area(~left) * (~left).sum()
@@ -147,7 +152,7 @@ def reference_topology(v, f, leaf_size, exact):
     centroid extent; smaller nodes, and nodes with no bin split, take the Morton split. exact:
     centroid bounds recomputed per node; else the parent's cut at the split plane and clipped to
     twice the child's box. Returns nested (left, right) tuples with leaves as tuples of face ids."""
-    bins, big_min = bvh_sah.BINS, max(bvh_sah.SAH_MIN, leaf_size)
+    bins, big_min = bvh_sah.DEFAULT.bins, max(bvh_sah.DEFAULT.sah_min, leaf_size)
     tri = v.astype(np.float32)[f]
     tmin, tmax = tri.min(1), tri.max(1)
     cent = tmin + tmax
@@ -206,15 +211,14 @@ def reference_topology(v, f, leaf_size, exact):
 
 @pytest.mark.parametrize("exact", [False, True])
 @pytest.mark.parametrize("leaf_size", [1, 3])
-def test_sah_topology_matches_recursive_reference(exact, leaf_size, monkeypatch):
-    monkeypatch.setattr(bvh_sah, "EXACT_BOUNDS", exact)
+def test_sah_topology_matches_recursive_reference(exact, leaf_size):
     v, f = soup()
     f = np.concatenate([f, np.repeat(f[:1], 40, axis=0)])  # 41 equal centroids: no bin split
     tri = v.astype(np.float32)[f]
     tmin, tmax = tri.min(1), tri.max(1)
     codes = bvh_build.morton_codes(tmin + tmax)
-    order, left, start, count, _ = bvh_sah.topology(tmin, tmax, tmin + tmax, codes,
-                                                    np.argsort(codes, kind="stable"), leaf_size)
+    order, left, start, count, _ = bvh_sah.topology(tmin, tmax, tmin + tmax, codes, np.argsort(codes, kind="stable"),
+                                                    leaf_size, bvh_sah.SahSettings(exact_bounds=exact))
 
     def nest(i):
         return tuple(order[start[i]:start[i] + count[i]]) if left[i] < 0 else (nest(left[i]), nest(left[i] + 1))
@@ -222,18 +226,18 @@ def test_sah_topology_matches_recursive_reference(exact, leaf_size, monkeypatch)
     assert nest(0) == reference_topology(v, f, leaf_size, exact)
 
 
-def test_sah_clusters(monkeypatch):
+def test_sah_clusters():
     """Clusters near the root (forced on small meshes): a valid tree, as good as without them."""
     v, f = soup()
     f = np.concatenate([f, np.repeat(f[:1], 40, axis=0)])
-    monkeypatch.setattr(bvh_sah, "RUN_NODES", 48)
     for leaf_size in (1, 3):
-        check_invariants(v, f, leaf_size, "sah", "bfs")
+        check_invariants(v, f, leaf_size, "sah", "bfs", bvh_sah.SahSettings(run_nodes=48))
     s = trimesh.creation.icosphere(subdivisions=4)  # 5120 triangles, a surface like the models
-    monkeypatch.setattr(bvh_sah, "RUN_NODES", 512)  # clusters binned in nodes of >= 64 of them
-    with_clusters = bvh.build(s.vertices, s.faces, builder="sah").stats.sah_cost
-    monkeypatch.setattr(bvh_sah, "RUN_NODES", 10**9)
-    without = bvh.build(s.vertices, s.faces, builder="sah").stats.sah_cost
+    # clusters binned in nodes of >= 64 of them
+    with_clusters = bvh.build(s.vertices, s.faces, builder="sah",
+                              sah_settings=bvh_sah.SahSettings(run_nodes=512)).stats.sah_cost
+    without = bvh.build(s.vertices, s.faces, builder="sah",
+                        sah_settings=bvh_sah.SahSettings(run_nodes=10**9)).stats.sah_cost
     assert with_clusters == pytest.approx(without, rel=0.01)
 
 

@@ -6,7 +6,7 @@ import hashlib
 
 import pytest
 
-from jaxrt import data
+from jaxrt.geometry import data
 from jaxrt.errors import InputError
 
 

@@ -249,7 +249,7 @@ def test_albedo_grid_and_documented_maximum():
 def test_scene_with_disney_material_renders_and_matches_reference():
     """`model = "disney"` in a scene: a lit plane seen from above, every pixel equal to
     f(wi, wo)·I·cosθ/d² from the numpy reference (isotropic, so the tangent's direction does not matter)."""
-    from jaxrt import render as R
+    import jaxrt as R
     from jaxrt import scene as S
 
     q = _full(base_color=[0.7, 0.4, 0.2], metallic=0.2, roughness=0.4, sheen=0.5, clearcoat=0.7, subsurface=0.3)

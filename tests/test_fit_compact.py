@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 import brdfs
-from fitting import compact, scene_fit
-from fitting.cli import hidden_params
+from fitting import compact
+from fitting import setup as fit_setup
+from jaxrt.cli.fit import hidden_params
 
 OVERRIDES = {"camera.width": 64, "camera.height": 48, "render.max_depth": 3}
 
@@ -18,11 +19,11 @@ OVERRIDES = {"camera.width": 64, "camera.height": 48, "render.max_depth": 3}
 @pytest.mark.parametrize("name", ["ward"])
 def test_compact_shading_equals_full_renderer(name):
     model = brdfs.get(name)
-    setup = scene_fit.prepare("spheres", model, object="ward", overrides=[OVERRIDES])
+    setup = fit_setup.prepare("spheres", model, object="ward", overrides=[OVERRIDES])
     # the sphere shows up in more pixels than its own (mirror sphere): the tree is really used
     fb = setup.fitbuffer
     assert np.unique(np.asarray(fb.pixel)).size > setup.mask.sum()
-    full = scene_fit.shader(setup.model_index, setup.row)
+    full = fit_setup.shader(setup.model_index, setup.row)
     fast = compact.shader(name)
     for seed in range(3):
         p = model.params(**hidden_params(model, seed))

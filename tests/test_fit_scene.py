@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import brdfs
-from fitting import scene_fit
-from fitting.cli import hidden_params
+from fitting import setup as fit_setup
+from jaxrt.cli.fit import hidden_params
 from jaxrt.cli import main as cli
 
 BAR_MODELS = ("phong", "cook_torrance", "ward")
@@ -36,12 +36,12 @@ def bunny_views(width, height):
     from a backlight separate them, as they would in a real acquisition.
     """
     camera = {"width": width, "height": height}
-    return [scene_fit.variant("bunny", camera=camera), scene_fit.variant("bunny", lights=RIM, camera=camera)]
+    return [fit_setup.variant("bunny", camera=camera), fit_setup.variant("bunny", lights=RIM, camera=camera)]
 
 
 @pytest.fixture(scope="module")
 def bunny_setups(data_dir):
-    return {m: scene_fit.prepare(bunny_views(48, 48), m) for m in BAR_MODELS}
+    return {m: fit_setup.prepare(bunny_views(48, 48), m) for m in BAR_MODELS}
 
 
 @pytest.mark.data
@@ -51,8 +51,8 @@ def test_noise_free_recovery_from_default_start(bunny_setups, name):
     model = brdfs.get(name)
     for seed in range(2):
         truth = model.params(**hidden_params(model, seed))
-        target = scene_fit.render_with(setup, truth)
-        r, _ = scene_fit.fit(None, target, model, setup=setup, starts=1, progress=False)
+        target = fit_setup.render_with(setup, truth)
+        r, _ = fit_setup.fit(None, target, model, setup=setup, starts=1, progress=False)
         assert _rel_err(model, r.params, truth) < 1e-3, (name, seed, r.params, truth)
 
 
@@ -61,15 +61,15 @@ def test_noise_free_recovery_from_default_start(bunny_setups, name):
 @pytest.mark.parametrize("name", BAR_MODELS)
 def test_issue_bar_bunny_256(data_dir, name):
     """Issue 5's bar: 20 random draws at 256²; ≥95% from the default start, 100% with multi-start."""
-    setup = scene_fit.prepare(bunny_views(256, 256), name)
+    setup = fit_setup.prepare(bunny_views(256, 256), name)
     model = brdfs.get(name)
     single, multi = 0, 0
     for seed in range(20):
         truth = model.params(**hidden_params(model, 1000 + seed))
-        target = scene_fit.render_with(setup, truth)
-        r1, _ = scene_fit.fit(None, target, model, setup=setup, starts=1, progress=False)
+        target = fit_setup.render_with(setup, truth)
+        r1, _ = fit_setup.fit(None, target, model, setup=setup, starts=1, progress=False)
         single += _rel_err(model, r1.params, truth) < 1e-3
-        r8, _ = scene_fit.fit(None, target, model, setup=setup, starts=8, progress=False)
+        r8, _ = fit_setup.fit(None, target, model, setup=setup, starts=8, progress=False)
         multi += _rel_err(model, r8.params, truth) < 1e-3
     assert single >= 19 and multi == 20, (single, multi)
 
@@ -80,13 +80,13 @@ def test_noisy_recovery_and_standard_errors(bunny_setups):
     setup = bunny_setups["phong"]
     model = brdfs.get("phong")
     truth = model.params(rho_d=0.45, rho_s=0.4, s=60.0)
-    clean = np.asarray(scene_fit.render_with(setup, truth))
+    clean = np.asarray(fit_setup.render_with(setup, truth))
     rng = np.random.default_rng(11)
     sigma = 0.01 * float(clean[setup.mask > 0].mean())
     zs = []
     for _ in range(4):
         noisy = clean + rng.normal(0.0, sigma, clean.shape).astype(np.float32)
-        r, _ = scene_fit.fit(None, noisy, model, setup=setup, rgb=False, starts=1, progress=False)
+        r, _ = fit_setup.fit(None, noisy, model, setup=setup, rgb=False, starts=1, progress=False)
         for p in model.spec:
             est, tru = float(np.mean(r.params[p.name])), float(np.mean(truth[p.name]))
             assert abs(est - tru) / tru < 0.02, (p.name, est, tru)
@@ -102,9 +102,9 @@ def test_fit_loss_gradient_matches_float64_finite_differences(bunny_setups):
     setup = bunny_setups["cook_torrance"]
     model = brdfs.get("cook_torrance")
     assert float(setup.scenes[0].materials.delta[setup.material]) > 0  # the bounce is really there
-    target = np.asarray(scene_fit.render_with(setup, model.params(rho_d=0.3, rho_s=0.5, m=0.2, eta=2.0)))
+    target = np.asarray(fit_setup.render_with(setup, model.params(rho_d=0.3, rho_s=0.5, m=0.2, eta=2.0)))
     p0 = {k: np.asarray(v, np.float64) for k, v in model.params(rho_d=0.25, rho_s=0.6, m=0.25, eta=1.7).items()}
-    shade = scene_fit.shader(setup.model_index, setup.row)
+    shade = fit_setup.shader(setup.model_index, setup.row)
     with jax.enable_x64(True):
         f64 = lambda x: x.astype(jnp.float64) if jnp.issubdtype(x.dtype, jnp.floating) else x
         data = jax.tree.map(f64, (setup.gbuffers, setup.scenes))
@@ -186,8 +186,8 @@ def demo_target(tmp_path_factory):
     d = tmp_path_factory.mktemp("fit")
     scene = d / "ball.toml"
     scene.write_text(SPHERE_SCENE)
-    setup = scene_fit.prepare(scene, "ward", object="ball")
-    img = np.asarray(scene_fit.render_with(setup, brdfs.get("ward").params(**WARD_TRUTH)))[0]
+    setup = fit_setup.prepare(scene, "ward", object="ball")
+    img = np.asarray(fit_setup.render_with(setup, brdfs.get("ward").params(**WARD_TRUTH)))[0]
     path = d / "target.exr"
     image.write_exr(path, img)
     return d, path, scene, img

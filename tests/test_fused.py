@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 from jaxrt import envmap, integrators
-from jaxrt import render as R
+import jaxrt as R
 from jaxrt import scene as S
+from jaxrt.shading import material
 
 W, H = 24, 16
 BG = [0.05, 0.06, 0.09]
@@ -99,8 +100,8 @@ def test_scenes_exercise_the_branches(case):
     deep = active[1:]
     assert deep.any(), "no secondary rays"
     if case["name"] != "instances":
-        assert np.any(deep & (branch[1:] == integrators.GLASS_T)), "no glass transmission"
-        assert np.any(deep & (branch[1:] == integrators.MIRROR)), "no mirror bounce"
+        assert np.any(deep & (branch[1:] == integrators.whitted.GLASS_T)), "no glass transmission"
+        assert np.any(deep & (branch[1:] == integrators.whitted.MIRROR)), "no mirror bounce"
     if case["name"] == "built":
         assert int(gb.dropped) > 0, "ray_budget=1 dropped no branch"
         assert sc.lights.count == 2
@@ -112,7 +113,7 @@ def test_escaped_rays_see_the_background_when_face_0_is_glass():
     """Pixels whose primary ray misses everything are exactly the background (the built scene's face
     0 is glass; a miss reads face 0's material)."""
     sc = S.load(_built_dict())
-    assert bool(integrators._is_glass(sc.materials, sc.geometry.material[:1])[0])
+    assert bool(material.is_glass(sc.materials, sc.geometry.material[:1])[0])
     img, aovs = R.frame(sc, aovs=True)
     miss = np.asarray(aovs["object_id"]) < 0
     assert miss.sum() > 10
@@ -138,7 +139,7 @@ def test_primal_pass_records_no_gbuffer():
     sc = S.load(_built_dict())
     D, B = sc.settings.max_depth, sc.settings.ray_budget * sc.camera.num_pixels * sc.settings.spp
     lead = lambda shapes: [s for s in shapes if s[:2] == (D, B)]
-    fused = _while_carry_shapes(jax.make_jaxpr(lambda s: integrators.whitted(s, aovs=True))(sc).jaxpr)
+    fused = _while_carry_shapes(jax.make_jaxpr(lambda s: integrators.whitted.whitted(s, aovs=True))(sc).jaxpr)
     traced = _while_carry_shapes(jax.make_jaxpr(integrators.trace)(sc).jaxpr)
     assert fused and not lead(fused), lead(fused)
     assert len(lead(traced)) >= 10  # the check can see a recorded GBuffer

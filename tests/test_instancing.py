@@ -1,4 +1,4 @@
-"""Object groups and instancing (jaxrt.bvh_instanced, jaxrt.instancing).
+"""Object groups and instancing (jaxrt.accel.two_level, jaxrt.geometry.instanced).
 
 References are independent of the two-level code: every instance's triangles are copied and
 transformed explicitly in float64 numpy and intersected by brute force (test_bvh's Moller-Trumbore
@@ -16,9 +16,13 @@ import jax
 import numpy as np
 import pytest
 
-from jaxrt import bvh_instanced as bi
-from jaxrt import cli, image, instancing, mesh, shapes
-from jaxrt import render as R
+from jaxrt.accel import two_level as bi
+from jaxrt import cli, image
+from jaxrt.geometry import TriangleGeometry
+from jaxrt.geometry import instanced as instancing
+from jaxrt.geometry import mesh
+from jaxrt.geometry import shapes
+import jaxrt as R
 from jaxrt import scene as S
 from jaxrt.errors import InputError
 from test_bvh import brute_force, check_against_reference, ray_mix
@@ -193,9 +197,9 @@ def _close(a, b):
 
 def test_instanced_render_equals_copied_objects(shipped):
     inst, copy = shipped["inst"], shipped["copy"]
-    assert isinstance(inst.geometry, instancing.InstancedGeometry) and isinstance(copy.geometry, S.Geometry)
+    assert isinstance(inst.geometry, instancing.InstancedGeometry) and isinstance(copy.geometry, TriangleGeometry)
     assert inst.geometry.object_names == copy.geometry.object_names  # floor, then pair.K/base, pair.K/ball
-    assert instancing.triangle_count(inst.geometry) == copy.geometry.faces.shape[0]
+    assert inst.geometry.triangle_count == copy.geometry.faces.shape[0]
     img_i, img_c, aov_i, aov_c = (shipped[k] for k in ("img_i", "img_c", "aov_i", "aov_c"))
     assert np.all(np.isfinite(img_i)) and img_i.max() > 0.1
     assert _close(img_i, img_c)
@@ -220,7 +224,7 @@ def test_group_material_override_changes_exactly_its_pixels(shipped):
     geo = inst.geometry
     gold = inst.materials.index("gold")
     for k in ids:
-        geo = instancing.set_object_material(geo, k, gold)
+        geo = geo.with_object_material(k, gold)
     inst2 = eqx_replace_geometry(inst, geo)
     img2 = np.asarray(R.frame(inst2, aovs=True)[0])  # a value change: no recompile
     # reference: the copied scene with the same objects' materials changed in the file
@@ -252,7 +256,7 @@ def test_cli_renders_instanced_scene(shipped, tmp_path, capsys):
                    "--height", str(SMALL["camera.height"]), "--aovs"])
     assert rc == 0, capsys.readouterr().err
     out = capsys.readouterr().out
-    assert f"{instancing.triangle_count(shipped['inst'].geometry)} triangles" in out
+    assert f"{shipped['inst'].geometry.triangle_count} triangles" in out
     ch = image.read_exr(exr, channels=True)
     assert np.all(np.isfinite(ch["RGB"])) and np.array_equal(ch["RGB"], shipped["img_i"])
 
@@ -303,7 +307,7 @@ def test_instances_parse_names_and_override():
     # a scene without groups keeps the plain single-level geometry
     plain = _doc(objects=[{"primitive": "box", "material": "a"}])
     del plain["groups"], plain["instances"]
-    assert isinstance(S.load(plain).geometry, S.Geometry)
+    assert isinstance(S.load(plain).geometry, TriangleGeometry)
 
 
 # --------------------------------------------------------------------------- 1000 bunnies
@@ -321,9 +325,9 @@ def test_thousand_bunnies_memory_and_rays(data_dir, fns, monkeypatch):
              for g, a, s in zip(grid, rng.uniform(0, 360, 1000), rng.uniform(0.8, 1.3, 1000))]
     many = S.load(dict(base, groups=[{"name": "b", "objects": [{"mesh": "bunny", "material": "m"}]}],
                        instances=insts))
-    b1, bn = instancing.device_bytes(one), instancing.device_bytes(many)
+    b1, bn = S.device_bytes(one), S.device_bytes(many)
     assert bn < 1.2 * b1 + 1000 * 400, (b1, bn)
-    assert instancing.triangle_count(many.geometry) == 1000 * one.geometry.faces.shape[0]
+    assert many.geometry.triangle_count == 1000 * one.geometry.faces.shape[0]
 
     # rays aimed at a few instances from outside the grid, against brute force over every instance
     # whose world box (float64, from the explicitly transformed vertices) the ray crosses
@@ -371,7 +375,7 @@ def test_thousand_bunnies_memory_and_rays(data_dir, fns, monkeypatch):
 def test_bunny_field_scene_is_finite(data_dir, monkeypatch):
     monkeypatch.setenv("JAXRT_DATA", str(data_dir))
     sc = S.load("bunnies", overrides={"camera.width": 32, "camera.height": 24})
-    assert instancing.triangle_count(sc.geometry) == 100 * 69451 + 2  # + the table
+    assert sc.geometry.triangle_count == 100 * 69451 + 2  # + the table
     img, aovs = R.frame(sc, aovs=True)
     img, oid = np.asarray(img), np.asarray(aovs["object_id"])
     assert np.all(np.isfinite(img)) and img.max() > 0.05

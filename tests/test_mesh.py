@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxrt import data, mesh
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh
 from jaxrt.errors import InputError
 
 

@@ -50,7 +50,7 @@ def _mitsuba_top(spp=64):
 
 
 def test_diffuse_shadow_scene_agrees_with_mitsuba():
-    from jaxrt import render as R
+    import jaxrt as R
     from jaxrt import scene as S
 
     ours = np.asarray(R.frame(S.load(lab_dict("top")), aovs=True)[0], np.float64)

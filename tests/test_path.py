@@ -1,4 +1,4 @@
-"""The path tracer (`jaxrt.path`), environment maps (`jaxrt.envmap`) and emissive surfaces.
+"""The path tracer (`jaxrt.integrators.path`), environment maps (`jaxrt.envmap`) and emissive surfaces.
 
 References are independent of the code under test: exact values (white furnace), the Whitted
 integrator (a different algorithm on the same scene), closed-form form factors, numerical
@@ -22,8 +22,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrt import envmap, path, scene
+from jaxrt import envmap, scene
+from jaxrt.integrators import path
 from jaxrt.errors import InputError
+from jaxrt.shading import direct
 
 K = 4.5  # standard errors allowed per compared value (see module docstring)
 
@@ -101,7 +103,7 @@ def test_progressive_accumulation_matches_passes(furnace):
 @pytest.mark.slow  # a reverse-mode compile of the path tracer (~30 s) plus 72 renders
 def test_gradient_unbiased_vs_finite_differences(furnace):
     """d(mean image)/d(m) of a Cook-Torrance sphere in the furnace: m moves the sampling density
-    too, which the estimator must not differentiate (see jaxrt.path). Mean of per-pass gradient
+    too, which the estimator must not differentiate (see jaxrt.integrators.path). Mean of per-pass gradient
     estimates vs central differences of many-sample renders (common random numbers within each
     difference, other passes than the gradients), within their combined standard error."""
     sc = _with_material(furnace, "glossy")
@@ -159,7 +161,7 @@ def test_gradient_multibounce_cornell_vs_finite_differences(data_dir):
 def test_point_lights_depth_one_equals_whitted():
     from test_render_util import lab_dict
 
-    from jaxrt import render
+    import jaxrt as render
 
     # the lab scene: Lambert and Phong under a point light with hard shadows, a δ = 1 mirror and a
     # glass slab (both contribute nothing at depth 1 in either integrator), background 0
@@ -528,10 +530,10 @@ def test_whitted_escaping_rays_see_the_environment(tmp_path):
     theta, phi = np.array([0.3, 1.2, 2.5]), np.array([0.4, 2.0, 5.5])
     dirs = _dirs(theta, phi) @ _rot_y(30.0).T
     want = _sky()[(theta / np.pi * 16).astype(int), (phi / (2 * np.pi) * 32).astype(int)]
-    got = np.asarray(integrators.escaped_radiance(sc, jnp.asarray(dirs, jnp.float32)))
+    got = np.asarray(direct.escaped_radiance(sc, jnp.asarray(dirs, jnp.float32)))
     np.testing.assert_allclose(got, want, rtol=1e-5)
     no_env = scene.load(_base(lights=[{"position": [0, 3, 0], "intensity": 1.0}], render={"background": 0.5}))
-    np.testing.assert_allclose(np.asarray(integrators.escaped_radiance(no_env, jnp.asarray(dirs, jnp.float32))), 0.5)
+    np.testing.assert_allclose(np.asarray(direct.escaped_radiance(no_env, jnp.asarray(dirs, jnp.float32))), 0.5)
 
 
 def _write_rgbe(path, rgb):

@@ -18,7 +18,7 @@ from test_render_util import (
     view_rays,
 )
 
-from jaxrt import render as R
+import jaxrt as R
 from jaxrt import scene as S
 
 W, H = RES

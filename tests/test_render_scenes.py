@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxrt import cli, image
-from jaxrt import render as R
+import jaxrt as R
 from jaxrt import scene as S
 
 SMALL = {"camera.width": 24, "camera.height": 24}

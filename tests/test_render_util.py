@@ -1,7 +1,7 @@
 """Independent helpers for the renderer tests (no tests here).
 
 `BruteForce` intersects every ray with every triangle (Möller–Trumbore) in float64 numpy; it shares
-no code with `jaxrt.bvh` and serves as the reference for the renderer's geometric checks.
+no code with `jaxrt.accel.bvh` and serves as the reference for the renderer's geometric checks.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ import pytest
 from test_render_util import lab_dict
 
 from jaxrt import scene as S
-from jaxrt import shapes
+from jaxrt.geometry import shapes
 from jaxrt.errors import InputError
 
 

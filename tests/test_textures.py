@@ -12,9 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrt import render as R
+import jaxrt as R
 from jaxrt import scene as S
-from jaxrt import textures as T
+from jaxrt.shading import textures as T
 from jaxrt.errors import InputError
 from test_render_util import pinhole_rays, ray_plane_y0
 
@@ -256,7 +256,7 @@ def test_textured_example_scene_renders(tmp_path):
 
 
 def test_box_faces_map_to_unit_square():
-    from jaxrt import shapes
+    from jaxrt.geometry import shapes
 
     size = np.array([1.0, 2.0, 3.0])
     b = shapes.box(size=tuple(size))
@@ -268,7 +268,7 @@ def test_box_faces_map_to_unit_square():
 
 
 def test_sphere_uv_is_latitude_longitude_without_a_seam_sweep():
-    from jaxrt import shapes
+    from jaxrt.geometry import shapes
 
     s = shapes.sphere(radius=1.0, subdivisions=3)
     v, uv, f = (np.asarray(x, np.float64) for x in (s.vertices, s.uvs, s.faces))
@@ -287,10 +287,10 @@ def test_sphere_uv_is_latitude_longitude_without_a_seam_sweep():
 
 
 def test_gather_params_textured_scalar_parameter_and_float64_gradient(tmp_path):
-    """_gather_params(..., uv) returns the texture value only for the textured material's slots, and
+    """gather_params(..., uv) returns the texture value only for the textured material's slots, and
     the Disney BRDF's gradient with respect to a roughness texel matches float64 central differences."""
     import brdfs
-    from jaxrt.integrators import _gather_params
+    from jaxrt.shading.material import gather_params
 
     _write_png(tmp_path / "rough.png", np.array([[40, 200], [120, 90]], np.uint8))
     doc = _plane_doc(0.5)
@@ -304,12 +304,12 @@ def test_gather_params_textured_scalar_parameter_and_float64_gradient(tmp_path):
     uv = rng.uniform(0, 1, (B, 2))
     mat = np.arange(B) % 2  # alternate materials a (textured) and b (constant)
     tex = mats.textures[0]
-    p = _gather_params(mats, jnp.asarray(mat), 0, jnp.asarray(uv, jnp.float32))
+    p = gather_params(mats, jnp.asarray(mat), 0, jnp.asarray(uv, jnp.float32))
     ref = bilinear_ref(np.asarray(tex.texels), uv, "clamp")[:, 0]
     np.testing.assert_allclose(np.asarray(p["roughness"]), np.where(mat == 0, ref, 0.3), atol=1e-6)
     assert p["roughness"].shape == (B,) and p["base_color"].shape == (B, 3)
     # uv=None keeps the old call form: constants (a textured parameter's constant is its texture mean)
-    p0 = _gather_params(mats, jnp.asarray(mat), 0)
+    p0 = gather_params(mats, jnp.asarray(mat), 0)
     np.testing.assert_allclose(np.asarray(p0["roughness"]), np.where(mat == 0, np.mean(np.asarray(tex.texels)), 0.3),
                                rtol=1e-6)
 
@@ -324,7 +324,7 @@ def test_gather_params_textured_scalar_parameter_and_float64_gradient(tmp_path):
 
         def total(t):
             mm = eqx.tree_at(lambda q: q.textures[0].texels, mats64, t)
-            pp = _gather_params(mm, jnp.asarray(mat), 0, jnp.asarray(uv))
+            pp = gather_params(mm, jnp.asarray(mat), 0, jnp.asarray(uv))
             return jnp.sum(m.eval(pp, jnp.asarray(wi), jnp.asarray(wo)))
 
         t0 = mats64.textures[0].texels

@@ -32,8 +32,8 @@ import jax.numpy as jnp
 
 from brdfs import merl, nbrdf
 from brdfs.base import Model, Params
+from brdfs.errors import InputError
 from brdfs.measured_data import material_names
-from jaxrt.errors import InputError
 
 MODELS: dict[str, Model] = {m.name: m for m in (nbrdf.MODEL, merl.MODEL)}
 SUFFIXES = {".binary": merl, ".h5": nbrdf}

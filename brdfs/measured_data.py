@@ -22,7 +22,9 @@ this order,
 
 and checks each archive's sha256 against `ARCHIVES` before the first use. jaxrt never downloads
 anything: a missing or corrupt archive is a one-line `InputError` saying where it was looked for and
-where to get it.
+where to get it. The lookups take `dirs=` to search other folders instead. (The BRDF library
+depends on nothing else of the project, so it reads the two variables itself, with the meaning
+jaxrt's configuration gives them: unset or empty means not given.)
 """
 
 from __future__ import annotations
@@ -31,10 +33,11 @@ import difflib
 import hashlib
 import os
 import zipfile
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
-from jaxrt.errors import InputError
+from brdfs.errors import InputError
 
 
 class Archive(NamedTuple):
@@ -108,15 +111,16 @@ def _key(path: Path) -> tuple[str, int, int]:
     return (str(path.resolve()), st.st_size, st.st_mtime_ns)
 
 
-def find_archive(collection: str) -> Path:
-    """Path of the checked archive of `collection` ("merl", "rgl" or "nielsen").
+def find_archive(collection: str, dirs: Sequence[Path] | None = None) -> Path:
+    """Path of the checked archive of `collection` ("merl", "rgl" or "nielsen"), searched in `dirs`
+    (default `search_dirs()`).
 
     Raises InputError for an unknown collection, an archive found nowhere, or one whose sha256 differs.
     """
     if collection not in ARCHIVES:
         raise InputError(f"unknown measured-material collection {collection!r}; known: {', '.join(ARCHIVES)}")
     a = ARCHIVES[collection]
-    dirs = search_dirs()
+    dirs = search_dirs() if dirs is None else [Path(d) for d in dirs]
     for d in dirs:
         path = d / a.filename
         if not path.is_file():
@@ -133,9 +137,9 @@ def find_archive(collection: str) -> Path:
                      f"get it from {_SOURCE} and put it in $JAXRT_DATA/brdfs or the user cache")
 
 
-def _listing(collection: str) -> tuple[Path, tuple[str, ...]]:
+def _listing(collection: str, dirs=None) -> tuple[Path, tuple[str, ...]]:
     """(archive path, sorted material stems) of a collection; the count is checked against `ARCHIVES`."""
-    path = find_archive(collection)
+    path = find_archive(collection, dirs)
     key = _key(path)
     if key not in _listings:
         a = ARCHIVES[collection]
@@ -149,14 +153,14 @@ def _listing(collection: str) -> tuple[Path, tuple[str, ...]]:
     return path, _listings[key]
 
 
-def material_names(collection: str | None = None) -> tuple[str, ...]:
+def material_names(collection: str | None = None, dirs: Sequence[Path] | None = None) -> tuple[str, ...]:
     """Every measured material's name ("merl/alum-bronze", ...), collection by collection (all 159 when
     `collection` is None); needs the archives (InputError naming what is missing otherwise)."""
     cols = ARCHIVES if collection is None else [collection]
-    return tuple(f"{c}/{s}" for c in cols for s in _listing(c)[1])
+    return tuple(f"{c}/{s}" for c in cols for s in _listing(c, dirs)[1])
 
 
-def find_material(name: str) -> Material:
+def find_material(name: str, dirs: Sequence[Path] | None = None) -> Material:
     """ "COLLECTION/NAME" -> the located, checked `Material`.
 
     Raises InputError for a malformed name, an unknown collection or material (listing close matches),
@@ -166,7 +170,7 @@ def find_material(name: str) -> Material:
         raise InputError(f"measured material {name!r}: expected 'COLLECTION/NAME' with COLLECTION one of "
                          f"{', '.join(ARCHIVES)} (e.g. 'merl/alum-bronze')")
     collection, stem = name.split("/")
-    path, stems = _listing(collection)
+    path, stems = _listing(collection, dirs)
     if stem not in stems:
         close = difflib.get_close_matches(stem, stems, n=5, cutoff=0.5)
         hint = (f"; close matches: {', '.join(f'{collection}/{c}' for c in close)}" if close

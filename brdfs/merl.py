@@ -44,8 +44,8 @@ from jaxtyping import Array, Float
 from brdfs import _common as C
 from brdfs import _measured_sampling as S
 from brdfs.base import Model, Params
+from brdfs.errors import InputError
 from brdfs.halfdiff import angles, directions
-from jaxrt.errors import InputError
 
 RES = (90, 90, 180)
 SCALE = np.array([1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0])
@@ -85,16 +85,21 @@ def read(path: str | os.PathLike) -> np.ndarray:
 
 
 def write(path: str | os.PathLike, table) -> None:
-    """Write a (90, 90, 180, 3) table [1/sr] (negative = missing) as a MERL `.binary` file, atomically."""
-    from jaxrt.fsutil import atomic_path
-
+    """Write a (90, 90, 180, 3) table [1/sr] (negative = missing) as a MERL `.binary` file, atomically
+    (written beside the target and renamed, so no half-written file is left)."""
+    path = Path(path)
     t = np.asarray(table, np.float64)
     if t.shape != RES + (3,):
         raise InputError(f"{path}: MERL table must have shape {RES + (3,)}, got {t.shape}")
     raw = np.where(t < 0, MISSING, t / SCALE)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        fh.write(np.asarray(RES, "<i4").tobytes())
-        fh.write(np.ascontiguousarray(np.moveaxis(raw, -1, 0), "<f8").tobytes())
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(np.asarray(RES, "<i4").tobytes())
+            fh.write(np.ascontiguousarray(np.moveaxis(raw, -1, 0), "<f8").tobytes())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def grid_angles() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -51,8 +51,8 @@ from jaxtyping import Array, Float
 from brdfs import _common as C
 from brdfs import _measured_sampling as S
 from brdfs.base import Model, Params
+from brdfs.errors import InputError
 from brdfs.halfdiff import half_diff
-from jaxrt.errors import InputError
 
 #: (parameter name, dataset in the .h5 file, shape)
 LAYOUT = (

@@ -38,14 +38,17 @@ from brdfs.base import Model, Params
 
 
 def _expand(model: Model, p: Params, axis_count: int = 1) -> Params:
-    """Insert `axis_count` sample axes before each parameter's own trailing (rgb) axis."""
+    """Insert `axis_count` sample axes before each parameter's own trailing (rgb) axis; a measured
+    model's data entries (`extras["data_shapes"]`: name -> core shape) get them before their core axes."""
+    cores = {s.name: (1 if s.rgb else 0) for s in model.spec}
+    cores.update({k: len(v) for k, v in model.extras.get("data_shapes", {}).items()})
     out = {}
-    for spec in model.spec:
-        v = jnp.asarray(p[spec.name])
-        pos = v.ndim - 1 if spec.rgb else v.ndim
+    for name, core in cores.items():
+        v = jnp.asarray(p[name])
+        pos = v.ndim - core
         for _ in range(axis_count):
             v = jnp.expand_dims(v, pos)
-        out[spec.name] = v
+        out[name] = v
     return out
 
 
@@ -88,7 +91,8 @@ def albedo(model: Model, p: Params, wo: Float[Array, "... 3"], n: int = 256) -> 
     if "lobes" in model.extras:  # a mixture of more than two lobes: ((prob_fn, sample_fn), ...)
         a = sum(prob(p)[..., None] * lobe_mean(samp(pe, woe, u)) for prob, samp in model.extras["lobes"])
         return jnp.where((wo[..., 2] > 0)[..., None], a, 0.0)
-    ps = model.extras["lobe_prob"](p)  # (...)
+    # (...); a measured model's lobe probability depends on the view direction too
+    ps = model.extras["lobe_prob"](p, wo) if model.extras.get("lobe_prob_wo") else model.extras["lobe_prob"](p)
     wi_d = jnp.broadcast_to(C.cosine_sample(u), woe.shape[:-2] + u.shape[:-1] + (3,))
     wi_s = model.extras["sample_specular"](pe, woe, u)
     a = (1.0 - ps)[..., None] * lobe_mean(wi_d) + ps[..., None] * lobe_mean(wi_s)

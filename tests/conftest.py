@@ -26,3 +26,21 @@ def data_dir() -> Path:
     path = Path(d)
     assert path.is_dir(), f"JAXRT_DATA={d} is set but is not a directory"
     return path
+
+
+@pytest.fixture(scope="session")
+def brdf_data() -> Path:
+    """The folder of the measured-BRDF archives, found through $JAXRT_DATA (the data root, its meshes/
+    folder or the brdfs/ folder itself). Skips only when JAXRT_DATA is unset; when it is set, missing
+    or corrupt archives fail the test with the lookup's message."""
+    d = os.environ.get("JAXRT_DATA")
+    if not d:
+        pytest.skip("JAXRT_DATA is not set: the measured BRDFs are not configured (CI sets it)")
+    from brdfs import measured_data
+    from jaxrt.errors import InputError
+
+    try:
+        paths = [measured_data.find_archive(c) for c in measured_data.ARCHIVES]
+    except InputError as e:
+        pytest.fail(f"JAXRT_DATA={d} is set but the measured BRDFs are not usable: {e}")
+    return paths[0].parent

@@ -16,13 +16,6 @@ REPO = Path(__file__).resolve().parents[1]
 if not os.environ.get("JAXRT_CACHE_DIR"):
     os.environ["JAXRT_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxrt-test-cache-")
 
-import jax  # noqa: E402
-
-# Strict dtype promotion: an implicit int/float or float32/float64 mix in the renderer is an error
-# in the tests rather than a silent upcast. (Rank promotion stays allowed: shading broadcasts
-# per-ray values against per-channel ones throughout.)
-jax.config.update("jax_numpy_dtype_promotion", "strict")
-
 
 @pytest.fixture(scope="session")
 def data_dir() -> Path:

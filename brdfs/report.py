@@ -50,7 +50,7 @@ def albedo_table(angles_deg, samples: int = 256) -> dict[str, np.ndarray]:
 
 
 def write_lobe_grid(path, lobe_angles_deg) -> None:
-    """A 2 x 4 grid of polar lobe slices (plane of incidence), one panel per model."""
+    """A grid of polar lobe slices (plane of incidence), one panel per model, five per row."""
     from matplotlib.figure import Figure
 
     import brdfs
@@ -59,9 +59,11 @@ def write_lobe_grid(path, lobe_angles_deg) -> None:
 
     th = [math.radians(a) for a in lobe_angles_deg]
     names = brdfs.names()
-    fig = Figure(figsize=(16, 7.5))
+    cols = 5
+    rows = -(-len(names) // cols)
+    fig = Figure(figsize=(4 * cols, 3.75 * rows))
     for k, name in enumerate(names):
-        ax = fig.add_subplot(2, 4, k + 1, projection="polar")
+        ax = fig.add_subplot(rows, cols, k + 1, projection="polar")
         m = brdfs.get(name)
         draw_lobe(ax, m, m.params(), th)
         ax.set_title(name, pad=12)

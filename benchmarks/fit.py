@@ -19,8 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import brdfs
-from fitting import compact, scene_fit
-from fitting.cli import hidden_params
+from fitting import compact
+from fitting import setup as fit_setup
+from jaxrt.cli.fit import hidden_params
 from fitting.solve import _params_from_z, free_params
 from fitting.transforms import normalise, to_unconstrained
 
@@ -45,16 +46,16 @@ def main():
     rim = [{"position": [0.0, 2.5, -4.0], "intensity": [40.0, 40.0, 40.0]}]
     # Two views (the shipped lights + a rim light): under front lighting alone ρs and η are only
     # determined as ρs·F0 (see tests/test_fit_scene.py: bunny_views).
-    views = [scene_fit.variant("bunny", camera=cam), scene_fit.variant("bunny", lights=rim, camera=cam)]
+    views = [fit_setup.variant("bunny", camera=cam), fit_setup.variant("bunny", lights=rim, camera=cam)]
     t = time.perf_counter()
-    setup = scene_fit.prepare(views, model)
+    setup = fit_setup.prepare(views, model)
     print(f"prepare (build + trace): {time.perf_counter() - t:.2f} s; {int(setup.mask.sum())} pixels of the bunny")
 
     def one(seed):
         truth = model.params(**{k: (np.mean(v) if isinstance(v, list) else v) for k, v in hidden_params(model, seed).items()})
-        target = scene_fit.render_with(setup, truth)
+        target = fit_setup.render_with(setup, truth)
         t0 = time.perf_counter()
-        r, _ = scene_fit.fit(None, target, model, setup=setup, rgb=False, starts=1, progress=False)
+        r, _ = fit_setup.fit(None, target, model, setup=setup, rgb=False, starts=1, progress=False)
         return time.perf_counter() - t0, r, truth, target
 
     t = time.perf_counter()

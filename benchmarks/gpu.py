@@ -7,8 +7,8 @@
 Rays (bunny, full dragon; camera framing the model, rays in 16x16 tile order): BVH build s, compile s
 (lower + compile of the jitted intersect), primary (closest hit) and shadow (any hit from the primary
 hits to a point light) Mrays/s for each traversal implementation (`bvh.intersect(..., impl=...)`:
-"xla" = the pure-JAX loop, "pallas" = the Triton kernel of jaxrt.bvh_pallas, "cpu" = the C++ kernel of
-jaxrt.bvh_cpu; default xla pallas on GPU, cpu xla on CPU), the fraction of rays on
+"xla" = the pure-JAX loop, "pallas" = the Triton kernel of jaxrt.accel.traverse_pallas, "cpu" = the C++ kernel of
+jaxrt.accel.traverse_cpu; default xla pallas on GPU, cpu xla on CPU), the fraction of rays on
 which the implementations agree, and on CPU Embree's Mrays/s on the same rays in the same run; the
 shadow rays are timed twice, from the surface and from the light end (`bvh.occluded(from_end=True)`),
 and again from the hits of a --shadow-res² camera (default 2x res on GPU: ~1M shadow rays for the
@@ -40,7 +40,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from jaxrt import bvh, data, integrators, mesh  # noqa: E402
+from jaxrt import integrators
+from jaxrt.accel import bvh
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh  # noqa: E402
 from jaxrt import scene as S  # noqa: E402
 from rays import camera_rays, embree_scene, median_time  # noqa: E402
 
@@ -149,7 +152,7 @@ def bench_frame(name, res, impl, repeats, dev):
     t_build = time.perf_counter() - t
     # A new function object per implementation: jax.jit(integrators.whitted) would share jax's trace
     # cache with the previous implementation's and not re-read JAXRT_TRAVERSAL.
-    frame = jax.jit(lambda s: integrators.whitted(s))
+    frame = jax.jit(lambda s: integrators.whitted.whitted(s))
     t = time.perf_counter()
     img = jax.block_until_ready(frame(scn))
     t_compile = time.perf_counter() - t
@@ -171,7 +174,7 @@ def bench_frame(name, res, impl, repeats, dev):
 
 def check_images(names, size):
     """Default device (auto traversal) vs the CPU backend, same process."""
-    from jaxrt import render as R
+    import jaxrt as R
 
     dev, cpu = jax.devices()[0], jax.devices("cpu")[0]
     rows = []

@@ -15,7 +15,7 @@ import argparse
 import jax
 import numpy as np
 
-from jaxrt import render as R
+import jaxrt as R
 from jaxrt import scene as S
 
 SCENES = ("spheres", "bunny", "dragon", "cornell", "showcase")

@@ -4,7 +4,7 @@ model at one resolution, primary rays; prints Mrays/s per variant (median of --r
     JAXRT_DATA=... python benchmarks/gpu_sweep.py --model dragon --res 1024
     JAXRT_DATA=... python benchmarks/gpu_sweep.py --pallas      # the Pallas kernel's knobs, primary + shadow
 
-The first form sweeps the XLA loop (impl="xla"); --pallas sweeps jaxrt.bvh_pallas.traverse (rays per
+The first form sweeps the XLA loop (impl="xla"); --pallas sweeps jaxrt.accel.traverse_pallas.traverse (rays per
 program, Triton warps, steps per predicate check, node-row layout) on primary rays and on shadow rays
 between their hits and a point light, traced from the hits and from the light (kernel time only;
 bvh.intersect adds the t refinement); --builder picks the tree.
@@ -25,7 +25,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxrt import bvh, bvh_pallas, data, mesh  # noqa: E402
+from jaxrt.accel import bvh
+from jaxrt.accel import traverse_pallas as bvh_pallas
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh  # noqa: E402
 from rays import camera_rays, median_time  # noqa: E402
 
 
@@ -66,7 +69,7 @@ def main():
 
 PALLAS_VARIANTS = [  # bvh_pallas.traverse keyword arguments; BENCHMARKS.md has the earlier variants' numbers
     dict(steps_per_iter=2, layout="inline", skip_tri=False),  # the kernel before child-box rows
-    dict(layout="childbox", trail=0),  # child-box rows without the bit trail (third session's default)
+    dict(layout="childbox", trail=0),  # child-box rows without the bit trail (the default before the bit trail)
     dict(layout="childbox"),
     dict(layout="childbox", steps_per_iter=2),
 ]

@@ -3,7 +3,7 @@
     JAXRT_DATA=../shared/data/meshes python benchmarks/instancing.py [--counts 1 100 1000] [--res 128] [--repeats 3]
 
 For each N, N bunnies (random Y rotation, scale 0.8-1.3) on a cubic grid are placed with
-[[groups]]/[[instances]] (two-level BVH, `jaxrt.bvh_instanced`); the first row is the plain
+[[groups]]/[[instances]] (two-level BVH, `jaxrt.accel.two_level`); the first row is the plain
 single-level bunny scene for reference, and N = 1 is one instance with the identity transform (the
 same rays and hits as the plain row: the two-level overhead per ray). Prints scene build time (mesh load excluded: cached after the
 first row), bytes of the Scene's device arrays, compile time, and primary-ray Mrays/s (camera rays
@@ -24,7 +24,9 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 import jax  # noqa: E402
 
-from jaxrt import bvh, bvh_instanced, instancing  # noqa: E402
+from jaxrt.accel import bvh
+from jaxrt.accel import two_level as bvh_instanced
+from jaxrt.geometry import instanced as instancing  # noqa: E402
 from jaxrt import scene as S  # noqa: E402
 from rays import camera_rays, median_time  # noqa: E402
 
@@ -63,7 +65,7 @@ def main() -> None:
         jax.block_until_ready(jax.tree.leaves(sc))
         build = time.perf_counter() - t0
         geo = sc.geometry
-        if instancing.is_instanced(geo):
+        if isinstance(geo, instancing.InstancedGeometry):
             tree = geo.tree
             xf = np.asarray(tree.object_to_world, np.float64)
             v = np.asarray(geo.vertices, np.float64)
@@ -78,8 +80,8 @@ def main() -> None:
         hit = jax.block_until_ready(fn(tree, o, d))
         comp = time.perf_counter() - t0
         sec = median_time(lambda: jax.block_until_ready(fn(tree, o, d)), args.repeats)
-        print(f"| {n if n else 'plain bunny'} | {instancing.triangle_count(geo):,} | {build:.2f} | "
-              f"{instancing.device_bytes(sc) / 1e6:.1f} | {comp:.1f} | {len(o) / sec / 1e6:.3f} | "
+        print(f"| {n if n else 'plain bunny'} | {geo.triangle_count:,} | {build:.2f} | "
+              f"{S.device_bytes(sc) / 1e6:.1f} | {comp:.1f} | {len(o) / sec / 1e6:.3f} | "
               f"{100 * np.mean(np.asarray(hit.prim) >= 0):.0f} |", flush=True)
 
 

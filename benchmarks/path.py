@@ -10,7 +10,7 @@ Scenes (Stanford meshes need $JAXRT_DATA):
            lat-long environment map synthesised here (a sky gradient with a sun blob, 64x128, written
            to a temporary EXR; nothing binary is committed).
 
-jaxrt: compile time of one pass (`jaxrt.path.samples_jit`), then the median wall time of `passes`
+jaxrt: compile time of one pass (`jaxrt.integrators.path.samples_jit`), then the median wall time of `passes`
 passes (different random streams, block_until_ready); samples/s = width·height·spp / time.
 Mitsuba 3 renders the same triangles, camera, resolution, spp and depth (its max_depth = ours + 1)
 with its `path` integrator, after a warm-up render (LLVM kernel compilation), timed the same way.
@@ -38,7 +38,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jaxrt import image  # noqa: E402
-from jaxrt import path as P  # noqa: E402
+from jaxrt.integrators import path as P# noqa: E402
 from jaxrt import scene as S  # noqa: E402
 
 

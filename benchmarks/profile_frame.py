@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 
 import jax  # noqa: E402
 
-from jaxrt import render  # noqa: E402
+import jaxrt as render  # noqa: E402
 from jaxrt import scene as S  # noqa: E402
 
 

@@ -26,7 +26,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from jaxrt import bvh, data, mesh  # noqa: E402
+from jaxrt.accel import bvh
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh  # noqa: E402
 
 
 def camera_rays(vertices: np.ndarray, res: int, tile: int = 16):

@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jaxrt import render as R  # noqa: E402
+import jaxrt as R  # noqa: E402
 from jaxrt import scene as S  # noqa: E402
 
 SCENES = ("spheres", "bunny", "dragon", "cornell", "showcase")

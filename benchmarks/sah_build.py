@@ -9,7 +9,7 @@ Prints, for one model (default the full dragon):
   loop) for `rays.py`'s camera at --res², shadow rays from its primary hits to its light, and the
   same shadow segments traced from the light end: mean / mean over groups of 32 consecutive rays
   of the group's maximum (a GPU warp's cost).
-Trees: "lbvh", "sah" (this builder's defaults) and "sah-exact" (`bvh_sah.EXACT_BOUNDS`, which
+Trees: "lbvh", "sah" (this builder's defaults) and "sah-exact" (`SahSettings(exact_bounds=True)`, which
 also turns the clusters off: the tree of the first, slower SAH builder).
 --baseline DIR also times the builders of another checkout (DIR/jaxrt/bvh_build.py and bvh_sah.py,
 e.g. an older main) in the same rounds, as "base lbvh" / "base sah".
@@ -33,7 +33,11 @@ import jax
 import jax.numpy as jnp
 from rays import camera_rays
 
-from jaxrt import bvh, bvh_build, bvh_sah, data, mesh
+from jaxrt.accel import bvh
+from jaxrt.accel import builder as bvh_build
+from jaxrt.accel import sah as bvh_sah
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh
 
 
 def baseline_build(root):
@@ -45,13 +49,13 @@ def baseline_build(root):
     for name in ("bvh_build", "bvh_sah"):
         with open(os.path.join(root, "jaxrt", f"{name}.py")) as fh:
             src = fh.read()
-        src = src.replace("from jaxrt.bvh_build import", "from baseline_jaxrt.bvh_build import")
+        src = src.replace("from jaxrt.accel.builder import", "from baseline_jaxrt.bvh_build import")
         src = src.replace("from jaxrt import bvh_sah", "from baseline_jaxrt import bvh_sah")
         m = types.ModuleType(f"baseline_jaxrt.{name}")
         sys.modules[m.__name__] = m
         setattr(pkg, name, m)
         mods[name] = m
-        # its imports of jaxrt.bvh_build / bvh_sah rewritten to the baseline's own
+        # its imports of jaxrt.accel.builder / bvh_sah rewritten to the baseline's own
         exec(compile(src, f"{root}/jaxrt/{name}.py", "exec"), m.__dict__)  # noqa: S102
     return mods["bvh_build"].build_arrays
 
@@ -123,14 +127,13 @@ def main(argv=None):
     print("\n| tree | SAH cost | depth | build s (this call) | primary visits | shadow | shadow from light |")
     print("|---|---|---|---|---|---|---|")
     for name in ["lbvh", "sah", "sah-exact"]:
-        bvh_sah.EXACT_BOUNDS = name == "sah-exact"
         t = time.perf_counter()
-        tree = bvh.build(v, f, builder=name[:4].rstrip("-"))
+        tree = bvh.build(v, f, builder=name[:4].rstrip("-"),
+                         sah_settings=bvh_sah.SahSettings(exact_bounds=name == "sah-exact"))
         tb = time.perf_counter() - t
         st = tree.stats
         vis = ("", "", "") if args.no_visits else visits(tree, f_vis, o, d, light)
         print(f"| {name} | {st.sah_cost:.2f} | {st.depth} | {tb:.2f} | {vis[0]} | {vis[1]} | {vis[2]} |", flush=True)
-    bvh_sah.EXACT_BOUNDS = False
 
 
 if __name__ == "__main__":

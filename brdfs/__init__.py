@@ -30,7 +30,7 @@ MODELS: dict[str, Model] = {m.MODEL.name: m.MODEL for m in _MODULES}
 
 
 def names() -> tuple[str, ...]:
-    """The registered model names (the order of `_MODULES`)."""
+    """The registered model names, in registry order (see `_MODULES`)."""
     return tuple(MODELS)
 
 
@@ -39,7 +39,7 @@ def get(name: str) -> Model:
     try:
         return MODELS[name]
     except (KeyError, TypeError):
-        from jaxrt.errors import InputError
+        from brdfs.errors import InputError
 
         raise InputError(f"unknown BRDF model {name!r}; allowed: {', '.join(MODELS)}") from None
 

@@ -240,5 +240,5 @@ def mixture(
         weight = jnp.where(ok[..., None], f * safe_div(jnp.maximum(wi[..., 2], 0.0), pd)[..., None], 0.0)
         return wi, weight, pd
 
-    components = (Component(lambda p: 1.0 - ps_fn(p), diffuse_component), Component(ps_fn, spec_sample))
+    components = (Component(lambda p, wo: 1.0 - ps_fn(p), diffuse_component), Component(lambda p, wo: ps_fn(p), spec_sample))
     return sample, pdf, components

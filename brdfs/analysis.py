@@ -62,14 +62,17 @@ from brdfs.base import Model, Params
 
 
 def _expand(model: Model, p: Params, axis_count: int = 1) -> Params:
-    """Insert `axis_count` sample axes before each parameter's own trailing (rgb) axis."""
+    """Insert `axis_count` sample axes before each parameter's own trailing (rgb) axis; a measured
+    model's data entries (`Model.data_shapes`: name -> core shape) get them before their core axes."""
+    cores = {s.name: (1 if s.rgb else 0) for s in model.spec}
+    cores.update({k: len(v) for k, v in model.data_shapes.items()})
     out = {}
-    for spec in model.spec:
-        v = jnp.asarray(p[spec.name])
-        pos = v.ndim - 1 if spec.rgb else v.ndim
+    for name, core in cores.items():
+        v = jnp.asarray(p[name])
+        pos = v.ndim - core
         for _ in range(axis_count):
             v = jnp.expand_dims(v, pos)
-        out[spec.name] = v
+        out[name] = v
     return out
 
 
@@ -206,7 +209,7 @@ def albedo(model: Model, p: Params, wo: Float[Array, "... 3"], n: int = 256) -> 
     # of one long sum of n*n terms would be ~1e-5, comparable to the quadrature error.
     w = w.reshape(w.shape[:-2] + (k, n, n, w.shape[-1]))
     means = jnp.mean(jnp.mean(w, axis=-2), axis=-2)  # (..., k, 3)
-    probs = jnp.stack([jnp.broadcast_to(comp.prob(p), lead) for comp in model.mixture], axis=-1)  # (..., k)
+    probs = jnp.stack([jnp.broadcast_to(comp.prob(p, wo), lead) for comp in model.mixture], axis=-1)  # (..., k)
     a = jnp.sum(probs[..., None] * means, axis=-2)
     # band: sum over phi, then over cos theta_i with the partition weight
     g = jnp.sum(f_band.reshape(f_band.shape[:-2] + (nc, nphi, 3)) * wphi[:, None], axis=-2)

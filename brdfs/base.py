@@ -19,13 +19,13 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Literal, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt.errors import InputError
+from brdfs.errors import InputError
 
 Params = dict  # dict[str, jax.Array]; see module docstring
 
@@ -109,10 +109,11 @@ class Lobe(enum.Flag):
 
 class Component(NamedTuple):
     """One lobe of a model's one-sample mixture: `sample` picks component k with probability
-    `prob(p)` (...,) and then draws wi = `sample(p, wo, u)` (..., 3) from u in [0,1)^2 (wi may be
-    below the horizon: a failed sample). The probabilities of a model's components sum to 1 and
-    `Model.pdf` is the matching mixture density. `brdfs.albedo` integrates each component on its own
-    grid with the lobe choice integrated out exactly."""
+    `prob(p, wo)` (...,) (the analytic models' probabilities ignore wo; a measured model's depend on
+    it) and then draws wi = `sample(p, wo, u)` (..., 3) from u in [0,1)^2 (wi may be below the
+    horizon: a failed sample). The probabilities of a model's components sum to 1 and `Model.pdf` is
+    the matching mixture density. `brdfs.albedo` integrates each component on its own grid with the
+    lobe choice integrated out exactly."""
 
     prob: Callable
     sample: Callable
@@ -166,6 +167,8 @@ class Model:
         mixture: the `Component`s `sample` chooses among (empty for delta models and for models
             without a sampler); `brdfs.albedo` needs them.
         dielectric: the `Dielectric` record of a delta model (glass); None otherwise.
+        data_shapes: name -> core shape of the parameter pytree's entries that are not `Param`s
+            (a measured model's data, whose `spec` is empty); leading dims of those are batch dims.
 
     Delta models (Lobe.DELTA) have `eval = None`; their `sample` returns the discrete branch
     probability as `pdf` (see brdfs/glass.py).
@@ -182,6 +185,7 @@ class Model:
     diffuse: Callable | None = dataclasses.field(default=None, compare=False)
     mixture: tuple[Component, ...] = dataclasses.field(default=(), compare=False)
     dielectric: Dielectric | None = dataclasses.field(default=None, compare=False)
+    data_shapes: Mapping[str, tuple[int, ...]] = dataclasses.field(default_factory=dict, compare=False)
     doc: str = ""
 
     def __post_init__(self):
@@ -222,8 +226,11 @@ class Model:
 
     def batch_shape(self, p: Params) -> tuple[int, ...]:
         """The leading (per-pixel) shape of a parameter pytree: its parameters' shapes without the RGB
-        axis, broadcast together."""
+        axis (and its data entries' without their core axes), broadcast together."""
         shapes = [jnp.shape(p[s.name])[:-1] if s.rgb else jnp.shape(p[s.name]) for s in self.spec]
+        for k, core in self.data_shapes.items():
+            shape = jnp.shape(p[k])
+            shapes.append(shape[: len(shape) - len(core)])
         return jnp.broadcast_shapes(*shapes) if shapes else ()
 
     def diffuse_albedo(self, p: Params):
@@ -237,7 +244,7 @@ class Model:
         if self.delta:
             return jnp.ones(shape, jnp.result_type(*(p[s.name] for s in self.spec), jnp.float32))
         if self.diffuse is None:
-            return jnp.zeros(shape, jnp.result_type(*(p[s.name] for s in self.spec), jnp.float32))
+            return jnp.zeros(shape, jnp.float32)
         return jnp.broadcast_to(self.diffuse(p), shape)
 
     def params(self, **values) -> Params:

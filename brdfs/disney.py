@@ -297,9 +297,9 @@ MODEL = Model(
     reciprocal=True,
     diffuse=lambda p: p["base_color"],
     mixture=(
-        Component(lambda p: _lobe_probs(p)[0], _sample_diffuse),
-        Component(lambda p: _lobe_probs(p)[1], _sample_specular),
-        Component(lambda p: _lobe_probs(p)[2], _sample_clearcoat),
+        Component(lambda p, wo: _lobe_probs(p)[0], _sample_diffuse),
+        Component(lambda p, wo: _lobe_probs(p)[1], _sample_specular),
+        Component(lambda p, wo: _lobe_probs(p)[2], _sample_clearcoat),
     ),
     doc=__doc__,
 )

@@ -7,7 +7,7 @@ every other surface's contribution are constant during a fit. The image is there
 
 over the tree nodes (any depth: seen directly or in mirrors/glass) whose surface has the fitted
 material, with w_node = path throughput · (1 − δ) / spp. `build` gathers those nodes once (local
-directions and light weights, from the same `jaxrt.integrators` functions the renderer shades
+directions and light weights, from the same `jaxrt.shading` functions the renderer shades
 with); `shade` is then one BRDF evaluation per node and light plus a segment sum — about as
 little work as a fit iteration can do. `tests/test_fit_compact.py` checks it against the full
 renderer's `shade` for random parameters.
@@ -24,7 +24,9 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 import brdfs
-from jaxrt import instancing, integrators, render
+from jaxrt import integrators
+from jaxrt.scene import edit
+from jaxrt.shading.direct import direct_terms
 
 
 class FitBuffer(eqx.Module):
@@ -43,18 +45,27 @@ class FitBuffer(eqx.Module):
     constant: Float[Array, "K H W 3"]
 
 
+@jax.jit
+def face_material(geometry, prim):
+    """Material id of faces `prim` (one compiled call; eager, it would compile every op)."""
+    return geometry.face_material(prim)
+
+
+@jax.jit
+def _node_terms(scene, prim, u, v, d, vis):
+    return direct_terms(scene, scene.geometry.surface(prim, u, v), d, vis)
+
+
 def _nodes(gb, scene, material: int):
     """Per-view node data (numpy) for the nodes whose hit has `material`."""
     st = scene.settings
-    keep = np.asarray(gb.active & (gb.prim >= 0))
-    mat = np.asarray(instancing.face_material(scene.geometry, gb.prim))
+    keep = np.asarray(gb.active) & (np.asarray(gb.prim) >= 0)
+    mat = np.asarray(face_material(scene.geometry, gb.prim))
     sel = keep & (mat == material)
     d_idx, b_idx = np.nonzero(sel)
-    prim, u, v = (jnp.asarray(np.asarray(x)[d_idx, b_idx]) for x in (gb.prim, gb.u, gb.v))
-    d = jnp.asarray(np.asarray(gb.direction)[d_idx, b_idx])
-    vis = jnp.asarray(np.asarray(gb.visible)[d_idx, b_idx])
-    s = integrators.surface(scene.geometry, prim, u, v)
-    wi, wo, light = integrators.direct_terms(scene, s, d, vis)
+    prim, u, v, d, vis = (jax.device_put(np.asarray(x)[d_idx, b_idx])
+                          for x in (gb.prim, gb.u, gb.v, gb.direction, gb.visible))
+    wi, wo, light = _node_terms(scene, prim, u, v, d, vis)
     delta = np.asarray(scene.materials.delta)[material]
     weight = np.asarray(gb.weight)[d_idx, b_idx] * (1.0 - delta) / st.spp
     pixel = np.asarray(gb.pixel)[d_idx, b_idx]
@@ -67,13 +78,12 @@ def build(gbuffers, scenes, model_index: int, row: int, material: int, params0) 
     `params0` is the parameter set the scenes currently hold for the material; the constant image
     is each view's full render minus that material's contribution at `params0`.
     """
-    from fitting.scene_fit import inject
 
     parts, consts = [], []
     for k, (gb, sc) in enumerate(zip(gbuffers, scenes)):
         pixel, weight, wi, wo, light = _nodes(gb, sc, material)
         parts.append((pixel + k * sc.camera.num_pixels, weight, wi, wo, light))
-        consts.append(render.shade(gb, inject(sc, model_index, row, params0)))
+        consts.append(integrators.shade(gb, edit.set_material_row(sc, model_index, row, params0)))
     # Views may have different numbers of lights: pad with unlit, straight-up dummy lights.
     L = max(p[2].shape[1] for p in parts)
     up = np.array([0.0, 0.0, 1.0], np.float32)
@@ -83,14 +93,17 @@ def build(gbuffers, scenes, model_index: int, row: int, material: int, params0) 
         for px, w, wi, wo, li in parts
     ]
     cat = lambda i: np.concatenate([p[i] for p in parts])
-    fb = FitBuffer(
-        pixel=jnp.asarray(cat(0), jnp.int32), weight=jnp.asarray(cat(1), jnp.float32),
-        wi=jnp.asarray(cat(2)), wo=jnp.asarray(cat(3)), light=jnp.asarray(cat(4)),
-        constant=jnp.stack(consts),
-    )
+    put = lambda x, dtype=None: jax.device_put(np.asarray(x, dtype))  # noqa: E731
+    fb = FitBuffer(pixel=put(cat(0), np.int32), weight=put(cat(1), np.float32), wi=put(cat(2)), wo=put(cat(3)),
+                   light=put(cat(4)), constant=jnp.zeros((len(consts),) + consts[0].shape, consts[0].dtype))
     model = brdfs.get(scenes[0].materials.models[model_index])
-    own = contribution(model, params0, fb)
-    return eqx.tree_at(lambda f: f.constant, fb, fb.constant - own)
+    return _with_constant(model, params0, fb, tuple(consts))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _with_constant(model, params0, fb: FitBuffer, consts) -> FitBuffer:
+    # the constant image: each view's full render minus the fitted material's share at params0
+    return eqx.tree_at(lambda f: f.constant, fb, jnp.stack(consts) - contribution(model, params0, fb))
 
 
 def contribution(model, params, fb: FitBuffer) -> Float[Array, "K H W 3"]:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import colour
 import numpy as np
 
 # Renders are linear radiance with no natural white, so ΔE needs a reference: both images are divided
@@ -20,6 +19,8 @@ def rmse(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
 
 
 def _lab(rgb: np.ndarray, white: float) -> np.ndarray:
+    import colour  # loaded where first used: it takes ~1.5 s to import (scipy, matplotlib)
+
     rgb = np.asarray(rgb, np.float64) / white
     xyz = colour.RGB_to_XYZ(rgb, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_decoding=False)
     return colour.XYZ_to_Lab(xyz, colour.RGB_COLOURSPACES["sRGB"].whitepoint)
@@ -36,4 +37,6 @@ def delta_e_2000(fit: np.ndarray, target: np.ndarray, mask: np.ndarray | None = 
         return np.zeros(0)
     lum = target @ np.array([0.2126, 0.7152, 0.0722])
     white = max(float(np.percentile(lum, WHITE_PERCENTILE)), 1e-12)
+    import colour
+
     return np.asarray(colour.delta_E(_lab(fit, white), _lab(target, white), method="CIE 2000"))

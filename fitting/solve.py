@@ -183,19 +183,16 @@ def fit_images(
     fixed = {k: v for k, v in model.params(**{**fix, **init}).items() if k in fix}
     start_vals = model.params(**{k: v for k, v in init.items()})
 
-    targets = jnp.asarray(targets, jnp.float32)
+    targets = np.asarray(targets, np.float32)
     if mask is None:
-        mask = jnp.ones(targets.shape[:-1], jnp.float32)
+        mask = np.ones(targets.shape[:-1], np.float32)
     pixels = _pixels(targets, mask)
+    z_of, z_of_unit, finish, normalised = _compiled_helpers(shade, free)
 
     # Start points: init/defaults first, then Halton points on the natural scale.
-    z_starts = [{fp.param.name: to_unconstrained(fp.param, _shaped(start_vals[fp.param.name], fp)) for fp in free}]
+    z_starts = [z_of({fp.param.name: start_vals[fp.param.name] for fp in free})]
     if starts > 1:
-        pts = halton(starts - 1, len(free))
-        for row in pts:
-            z_starts.append(
-                {fp.param.name: to_unconstrained(fp.param, _shaped(denormalise(fp.param, t), fp)) for fp, t in zip(free, row)}
-            )
+        z_starts += [z_of_unit(row) for row in halton(starts - 1, len(free)).astype(np.float32)]
 
     solve = _compiled_solver(shade, free, solver, float(rtol), float(atol), int(max_steps))
     best = None
@@ -216,20 +213,12 @@ def fit_images(
     wall = time.perf_counter() - t0
 
     loss, z, steps, ok = best
-    params = _params_from_z(free, z, fixed)
-    vals_best = np.concatenate([np.ravel(normalise(fp.param, _shaped(params[fp.param.name], fp))) for fp in free])
-    at_best = sum(
-        1
-        for l, zz in finals
-        if l <= loss * (1 + 1e-3) + 1e-12
-        and np.allclose(
-            np.concatenate([np.ravel(normalise(fp.param, from_unconstrained(fp.param, zz[fp.param.name]))) for fp in free]),
-            vals_best,
-            atol=1e-3,
-        )
-    )
+    params, fitted = finish(z, fixed, gbuffer)
+    vals_best = np.asarray(normalised(z))
+    at_best = sum(1 for l, zz in finals
+                  if l <= loss * (1 + 1e-3) + 1e-12 and np.allclose(np.asarray(normalised(zz)), vals_best, atol=1e-3))
 
-    fitted = np.asarray(shade(params, gbuffer))
+    fitted = np.asarray(fitted)
     tgt = np.asarray(targets)
     m = np.asarray(mask) > 0
     de = metrics.delta_e_2000(fitted, tgt, m)
@@ -267,12 +256,47 @@ def _pixels(targets, mask):
     if idx.size == 0:
         raise ValueError("the mask selects no pixels; nothing to fit")
     t = np.asarray(targets, np.float32).reshape(-1, 3)[idx]
-    return jnp.asarray(idx, jnp.int32), jnp.asarray(t), jnp.sqrt(jnp.asarray(m[idx]))[:, None]
+    return tuple(jax.device_put(x) for x in (idx.astype(np.int32), t, np.sqrt(m[idx])[:, None]))
 
 
 def _residuals(images, pixels):
     idx, target, sqrt_w = pixels
     return ((images.reshape(-1, 3)[idx] - target) * sqrt_w).reshape(-1)
+
+
+def _shaped_host(v, fp: FreeParam) -> np.ndarray:
+    """`_shaped` on the host (numpy)."""
+    v = np.asarray(v, np.float32)
+    if fp.size == 1:
+        return np.float32(v.mean()) if v.ndim else v
+    return np.broadcast_to(v, (3,))
+
+
+@functools.lru_cache(maxsize=32)
+def _compiled_helpers(shade: Callable, free: tuple[FreeParam, ...]):
+    """Jitted conversions around the solve (start points, the final parameters and image, normalised
+    values for comparing starts): run eagerly they would compile every small op of every call."""
+
+    @jax.jit
+    def z_of(values):
+        return {fp.param.name: to_unconstrained(fp.param, _shaped(values[fp.param.name], fp)) for fp in free}
+
+    @jax.jit
+    def z_of_unit(row):
+        return {fp.param.name: to_unconstrained(fp.param, _shaped(denormalise(fp.param, t), fp))
+                for fp, t in zip(free, row)}
+
+    @jax.jit
+    def finish(z, fixed, gbuffer):
+        params = _params_from_z(free, z, fixed)
+        return params, shade(params, gbuffer)
+
+    @jax.jit
+    def normalised(z):
+        return jnp.concatenate([jnp.ravel(normalise(fp.param, from_unconstrained(fp.param, z[fp.param.name])))
+                                for fp in free])
+
+    return z_of, z_of_unit, finish, normalised
 
 
 def _shaped(v, fp: FreeParam):
@@ -312,7 +336,7 @@ def _standard_errors(shade, gbuffer, pixels, free, params):
     column-scaled JᵀJ so it reflects parameter trade-offs, not units.
     """
     sizes = [fp.size for fp in free]
-    theta0 = jnp.concatenate([jnp.ravel(_shaped(params[fp.param.name], fp)) for fp in free])
+    theta0 = jax.device_put(np.concatenate([np.ravel(_shaped_host(params[fp.param.name], fp)) for fp in free]))
     r, J = _compiled_jacobian(shade, free)(theta0, params, gbuffer, pixels)
     r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
     n = r.size

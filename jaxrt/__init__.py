@@ -1,31 +1,34 @@
 """jaxrt: a JAX array ray tracer for analysing and fitting BRDFs.
 
-Submodules (imported on demand so `import jaxrt` stays cheap and does not import JAX):
-  mesh, data, bvh        geometry: mesh loading, the data registry, BVH build and traversal
-  instancing, bvh_instanced  object groups placed as instances; the two-level BVH
-  scene, camera, lights  scene description
-  integrators, image     rendering and image I/O
-  render                 `jaxrt.render(scene)` -> (H, W, 3) linear image
+    import jaxrt
+    img = jaxrt.render("spheres")                       # (H, W, 3) linear radiance
+    sc = jaxrt.load_scene("bunny", overrides={"camera.width": 128})
+    img, aovs = jaxrt.frame(sc, aovs=True)              # the compiled frame of a built Scene
 
-`jaxrt.render(scene, aovs=False)` and `jaxrt.load_scene(path)` are available at the top level.
+Packages (docs/ARCHITECTURE.md has the layout and data flow):
+  scene        scene files -> validated spec -> `Scene` pytree; the one place that edits materials
+  geometry     the abstract geometry interface; triangle and instanced geometry; meshes, primitives
+  accel        BVH builders and traversal back ends (XLA loop, Pallas GPU kernel, native CPU kernel)
+  shading      surfaces and frames, material gathering (textures), direct lighting, AOVs
+  integrators  Whitted and path tracing behind one registry; the compiled `frame`
+  cli          the `jaxrt` command, one module per subcommand
+Modules: camera, lights, envmap, image (EXR/PNG), sweep (parameter sweeps), viewer, fsutil, errors.
 """
 
-import importlib
+from jaxrt import accel, cache, geometry, integrators, scene, shading
+from jaxrt.api import gbuffer, render, reshade
+from jaxrt.errors import InputError
+from jaxrt.integrators import frame, shade, trace
+from jaxrt.scene import Scene
+from jaxrt.scene import load as load_scene
 
 __version__ = "0.1.0"
 
-_SUBMODULES = frozenset(
-    {"mesh", "data", "bvh", "scene", "camera", "lights", "integrators", "image", "shapes", "cli", "errors", "fsutil",
-     "instancing", "bvh_instanced"}
-)
+# Compiled programs are kept across processes (JAX's persistent compilation cache) unless
+# JAXRT_CACHE=off; `jaxrt.cache` says where and how to clear it.
+cache.enable_compilation_cache()
 
-
-def __getattr__(name: str):
-    # `render` is the function, not the module, at the top level
-    if name == "render":
-        return importlib.import_module("jaxrt.render").render
-    if name == "load_scene":
-        return importlib.import_module("jaxrt.scene").load
-    if name in _SUBMODULES:
-        return importlib.import_module(f"jaxrt.{name}")
-    raise AttributeError(f"module 'jaxrt' has no attribute {name!r}")
+__all__ = [
+    "InputError", "Scene", "accel", "cache", "frame", "gbuffer", "geometry", "integrators", "load_scene", "render",
+    "reshade", "scene", "shade", "shading", "trace",
+]

@@ -1,10 +1,7 @@
-"""User-facing errors.
+"""User-facing errors: `InputError` (one line naming the file or field and what is allowed; the CLI
+prints it with exit code 2). Defined in the dependency-free `brdfs.errors`, which every layer of the
+project can import without importing the renderer."""
 
-`InputError` is raised for bad input (a malformed scene file, a missing mesh, a parameter out of
-bounds, a target image of the wrong size). Its message names the file/field and what is allowed,
-and the CLI prints it as one line instead of a traceback.
-"""
+from brdfs.errors import InputError
 
-
-class InputError(ValueError):
-    """Bad user input; the message is complete and meant to be shown as is."""
+__all__ = ["InputError"]

@@ -1,7 +1,7 @@
 """Point lights.
 
 A point light of radiant intensity I [W/sr] at position x_l gives a surface point p the
-irradiance E = I·cosθ/d² (the seed's equation 3), with d = |x_l − p| and θ the angle between the
+irradiance E = I·cosθ/d² (Größler & Zettwitz, "An interactive ray tracing system based on Nvidia OptiX", 2015, eq. 3), with d = |x_l − p| and θ the angle between the
 surface normal and wi = (x_l − p)/d. Positions and intensities are traced arrays: moving or
 dimming a light never recompiles; the number of lights is static.
 """
@@ -55,7 +55,7 @@ class AreaLights(eqx.Module):
             emits on the side its winding's normal points to (one-sided, as in pbrt and Mitsuba).
         prims: (E,) int32 faces whose material emits at build time; E is static. The sampling
             table (areas and the CDF by area·luminance(emission)) is derived from the current
-            vertices and emission values inside the integrator (`jaxrt.path.emitter_table`), so it
+            vertices and emission values inside the integrator (`jaxrt.integrators.path.emitter_table`), so it
             never goes stale when a value changes.
     """
 

@@ -7,7 +7,7 @@
 
 `sweep` gives the chosen object of a scene (by default the first sphere of the shipped `spheres`
 scene, shown alone on the floor) its own material of MODEL, frames the camera on
-that object and renders each value with `Scene.with_material` through `jaxrt.render.frame`. The
+that object and renders each value with `Scene.with_material` through `jaxrt.frame`. The
 prepared scene holds one material per registered model (`substitute`), so its structure does not
 depend on MODEL: every model, parameter and value of a sweep at one size shares ONE compiled frame
 (about 15-20 s of compilation on a 2-core CPU), and the viewer switches models the same way. Besides every
@@ -29,9 +29,10 @@ from jaxtyping import Float
 import brdfs
 from brdfs.base import Model, Param, log_or_linear_grid
 from jaxrt.errors import InputError
+from jaxrt import scene as _scene
+from jaxrt.scene import DELTA, edit
 
 SWEEP_MATERIAL = "sweep"  # materials "sweep:<model>", one per registered model
-DELTA = Param("delta", 0.0, 0.0, 1.0, doc="mirror reflection coefficient δ: L = δ·L(ω_r) + (1 − δ)·direct")
 
 
 def _model(model: str | Model) -> Model:
@@ -104,26 +105,14 @@ def material_name(model: str | Model) -> str:
     return f"{SWEEP_MATERIAL}:{_model(model).name}"
 
 
-def _material_params(model: Model, values: Mapping[str, Any], where: str) -> tuple[dict, float]:
-    """Validated parameter arrays for `model` (defaults where `values` has no entry) and δ."""
-    values = dict(values)
-    delta = float(values.pop("delta", 0.0))
-    for k in values:
-        param_spec(model, k)  # unknown name -> InputError naming the allowed ones
-    if model.delta and delta:
-        raise InputError(f"{where}: delta is not a parameter of the delta BSDF {model.name}")
-    params = {p.name: np.asarray(p.check(values.get(p.name, p.default), model.name)) for p in model.spec}
-    return params, (0.0 if model.delta else float(DELTA.check(delta, model.name)))
-
-
 def substitute(spec, model: str | Model | None, obj: str | None, base_params: Mapping[str, Any] | None = None,
                isolate: bool = False, inherit: bool = False):
     """A scene spec in which object `obj` can wear any registered model without recompiling.
 
     One material `material_name(m)` is added per registered model m (their stacked tables make every
     model part of the compiled frame's structure); the object wears `model`'s (default: its own
-    material's model). Which material a face wears is a traced value (`Geometry.material`), so
-    `use_model` switches models without recompiling.
+    material's model). Which material a face wears is a traced value, so `use_model` switches
+    models without recompiling.
 
     Args:
         spec: a validated `jaxrt.scene.SceneSpec`.
@@ -135,19 +124,12 @@ def substitute(spec, model: str | Model | None, obj: str | None, base_params: Ma
     Returns:
         (new spec, object name, model name).
     """
-    from jaxrt import scene as _scene
-
-    names = [o.name for o in spec.objects]
-    if not names:  # objects placed by [[instances]] are not addressable here (see jaxrt.instancing)
-        raise InputError(f"{spec.source}: sweeps and fits address [[objects]] only; this scene has none")
-    if obj is None:  # the same default for every model keeps one compiled structure for all
-        obj = next((o.name for o in spec.objects if o.primitive != "plane"), names[0])
-    if obj not in names:
-        raise InputError(f"{spec.source}: no object named {obj!r}; objects: {', '.join(names)}")
-    target = spec.objects[names.index(obj)]
+    # the same default object for every model keeps one compiled structure for all
+    target = edit.find_object(spec, obj, skip_planes=True)
+    obj = target.name
     own = spec.materials[target.material]
     m = _model(model) if model is not None else brdfs.get(own.model)
-    materials = dict(spec.materials)
+    materials = {}
     for name in brdfs.names():
         mm = brdfs.get(name)
         start: dict = {}
@@ -161,42 +143,27 @@ def substitute(spec, model: str | Model | None, obj: str | None, base_params: Ma
                         pass
         if mm.name == m.name:
             start.update(base_params or {})
-        params, delta = _material_params(mm, start, f"{spec.source}: object {obj!r}")
-        materials[material_name(mm)] = _scene.MaterialSpec(material_name(mm), mm.name, params, delta)
-    objects = tuple(dataclasses.replace(o, material=material_name(m)) if o.name == obj else o for o in spec.objects)
+        materials[material_name(mm)] = edit.material_spec(material_name(mm), mm, start,
+                                                          where=f"{spec.source}: object {obj!r}")
+    spec = edit.wear(spec, obj, materials[material_name(m)], extra=materials)
     if isolate:
-        objects = tuple(o for o in objects if o.name == obj or o.primitive == "plane")
+        objects = tuple(o for o in spec.objects if o.name == obj or o.primitive == "plane")
         keep = {o.material for o in objects} | {v for o in objects for v in o.part_materials.values()}
-        materials = {k: v for k, v in materials.items() if k in keep or k.startswith(f"{SWEEP_MATERIAL}:")}
-    return dataclasses.replace(spec, materials=materials, objects=objects), obj, m.name
+        kept = {k: v for k, v in spec.materials.items() if k in keep or k.startswith(f"{SWEEP_MATERIAL}:")}
+        spec = dataclasses.replace(spec, materials=kept, objects=objects)
+    return spec, obj, m.name
 
 
 def use_model(scene, obj: str, model: str | Model):
     """A copy of a `substitute`d scene in which object `obj` wears `model`'s material (a value change)."""
-    import equinox as eqx
-
-    from jaxrt import instancing
-
-    g = scene.geometry
-    if obj not in g.object_names:
-        raise InputError(f"no object named {obj!r}; objects: {', '.join(g.object_names)}")
-    mi = scene.materials.index(material_name(model))
-    geometry = instancing.set_object_material(g, g.object_names.index(obj), mi)
-    return eqx.tree_at(lambda s: s.geometry, scene, geometry)
+    return edit.wear_material(scene, obj, material_name(model))
 
 
 def frame_object(scene, obj: str, margin: float = 1.15):
     """A copy of `scene` whose camera looks at object `obj`'s bounding sphere from the same position,
     with the vertical field of view just wide enough to hold it (times `margin`)."""
-    from jaxrt import instancing
-
     g = scene.geometry
-    k = g.object_names.index(obj)
-    if instancing.is_instanced(g):
-        v = instancing.object_triangles(g, k).reshape(-1, 3)
-    else:
-        faces = np.asarray(g.faces)[np.asarray(g.object_id) == k]
-        v = np.asarray(g.vertices)[np.unique(faces)]
+    v = g.object_triangles(g.object_index(obj)).reshape(-1, 3)
     lo, hi = v.min(0), v.max(0)
     centre = 0.5 * (lo + hi)
     radius = float(np.max(np.linalg.norm(v - centre, axis=-1)))  # bounding sphere about the box centre
@@ -227,11 +194,9 @@ def prepare(
 
     See `substitute` for object/base_params/isolate/inherit; `frame` points the camera at the object
     (`frame_object`). Every call with the same scene, object, size and flags builds the same
-    structure, so all models and parameter values share one compiled `jaxrt.render.frame`.
+    structure, so all models and parameter values share one compiled `jaxrt.frame`.
     Returns (Scene, object name, model name).
     """
-    from jaxrt import scene as _scene
-
     for k, n in (("width", width), ("height", height)):
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= _scene.MAX_RESOLUTION:
             raise InputError(f"{k}: expected an integer in [1, {_scene.MAX_RESOLUTION}], got {n!r}")
@@ -273,13 +238,13 @@ def sweep(
     """
     m = _model(model)
     values = default_values(m, param) if values is None else check_values(m, param, values)
-    from jaxrt import render as _render
+    from jaxrt import integrators
 
     sc, _, _ = prepare(m, scene=scene, object=object, width=width, height=height, base_params=base_params,
                        max_depth=max_depth, isolate=isolate)
     out = []
     for v in values:
-        img = np.asarray(_render.frame(sc.with_material(material_name(m), **{param: float(v)})))
+        img = np.asarray(integrators.frame(sc.with_material(material_name(m), **{param: float(v)})))
         if not np.all(np.isfinite(img)):
             raise RuntimeError(f"{m.name}.{param} = {v:g}: the render contains NaN/Inf pixels")
         out.append(img)

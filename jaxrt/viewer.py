@@ -9,19 +9,18 @@
 The selected object gets one material per registered model (`jaxrt.sweep.substitute`), each starting
 from the object's own material where parameter names agree, so a model switch is a value change
 (which material the object's faces wear) just like a parameter, light or camera change: the scene
-structure never changes and every update re-runs the one compiled `jaxrt.render.frame`. Slider
+structure never changes and every update re-runs the one compiled `jaxrt.frame`. Slider
 ranges and log/linear scales come from each model's `Param` declarations; a log-scale parameter's
 slider moves over log10(value) and its label shows the value itself. RGB parameters are set grey.
 
 Path-traced scenes (`[render] integrator = "path"`, or `integrator="path"` / `jaxrt view --integrator
-path`) render progressively: every change starts a new `jaxrt.path.Accumulation` with pass 0, each
+path`) render progressively: every change starts a new `jaxrt.integrators.path.Accumulation` with pass 0, each
 `refine()` (called by the window's idle timer) adds the next pass through the one compiled
-`jaxrt.path.samples_jit`, and `image` is the running mean, sum/count. The title shows the count.
+`jaxrt.integrators.path.samples_jit`, and `image` is the running mean, sum/count. The title shows the count.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import time
@@ -81,7 +80,7 @@ class Viewer:
         image: (H, W, 3) float32 linear RGB of the current state; frame_time: seconds of the last
             render (of the last pass when progressive).
         model: current model name; values: {param: value} of the current model (RGB shown as channel mean).
-        progressive: True for a path-traced scene; accumulation: its `jaxrt.path.Accumulation`
+        progressive: True for a path-traced scene; accumulation: its `jaxrt.integrators.path.Accumulation`
             (None otherwise); samples: samples per pixel in `image` (settings.spp for Whitted).
     """
 
@@ -128,9 +127,9 @@ class Viewer:
     @property
     def compiles(self) -> int:
         """Number of compiled variants (process-wide) of the function this viewer renders with:
-        `jaxrt.render.frame`, or the pass `jaxrt.path.samples_jit` when progressive."""
-        from jaxrt import path as _path
-        from jaxrt import render as _render
+        `jaxrt.frame`, or the pass `jaxrt.integrators.path.samples_jit` when progressive."""
+        from jaxrt.integrators import path as _path
+        from jaxrt import integrators as _render
 
         return (_path.samples_jit if self.progressive else _render.frame)._cache_size()
 
@@ -143,7 +142,7 @@ class Viewer:
     def render(self) -> Float[np.ndarray, "H W 3"]:
         """Re-render the current state with the compiled frame; sets `image` and `frame_time`.
         Progressive: drop the accumulation and start again from pass 0 (one pass)."""
-        from jaxrt import render as _render
+        from jaxrt import integrators as _render
 
         if self.progressive:
             self.accumulation = None
@@ -159,7 +158,7 @@ class Viewer:
         """Add the next pass (settings.spp samples per pixel, pass index = passes so far) to the
         accumulation and show the running mean; a Whitted viewer's image is final, so it returns
         it unchanged. The pass index is traced: no pass recompiles."""
-        from jaxrt import path as _path
+        from jaxrt.integrators import path as _path
 
         if not self.progressive:
             return self.image
@@ -409,45 +408,3 @@ def notebook_controls(viewer: Viewer, scale: int = 2):
                     if k in sliders])
     box = w.HBox([w.VBox([image, status]), w.VBox([sliders["model"], params, fixed])])
     return box, sliders
-
-
-def configure(parser: argparse.ArgumentParser) -> None:
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.epilog = """\
-Sliders: the selected object's material parameters (log sliders for exponents and roughnesses show
-the value, not its log), δ, the model (radio buttons), light 0's position and intensity, and a
-camera orbit about the look-at point. Every change re-runs the compiled frame; the first frame
-compiles (tens of seconds on a CPU for big scenes). Use a small --width/--height on a CPU.
-Path-traced scenes (or --integrator path) refine progressively while idle: each timer tick adds
-one pass of --spp samples per pixel; the title shows the count; any change starts again.
-
-Examples:
-  jaxrt view spheres --object phong --width 256 --height 192
-  jaxrt view scenes/dragon.toml
-  jaxrt view furnace --width 64 --height 64 --spp 1
-"""
-    parser.add_argument("scene", metavar="SCENE", help="scene file (.toml) or shipped scene name")
-    parser.add_argument("--object", help="object whose material the sliders edit (default: the first non-plane object)")
-    parser.add_argument("--width", type=int, help="render width in pixels (default: the scene's)")
-    parser.add_argument("--height", type=int, help="render height in pixels (default: the scene's)")
-    parser.add_argument("--exposure", type=float, default=0.0, help="display exposure in stops")
-    parser.add_argument("--frame", action="store_true", help="zoom the camera onto the selected object")
-    parser.add_argument("--integrator", help="whitted or path (default: the scene's; path refines progressively)")
-    parser.add_argument("--spp", type=int, help="samples per pixel of one (progressive) pass (default: the scene's)")
-
-
-def run(args: argparse.Namespace) -> int:
-    import matplotlib
-    import matplotlib.pyplot as plt
-
-    if not math.isfinite(args.exposure):
-        raise InputError(f"--exposure: expected a finite number of stops, got {args.exposure}")
-    v = Viewer(args.scene, object=args.object, width=args.width, height=args.height, exposure=args.exposure,
-               frame=args.frame, integrator=args.integrator, spp=args.spp)
-    v.figure()
-    if matplotlib.get_backend().lower() == "agg":
-        print("jaxrt view: no interactive matplotlib backend (is a display available?); "
-              f"rendered one frame in {v.frame_time * 1e3:.1f} ms", flush=True)
-        return 0
-    plt.show()
-    return 0

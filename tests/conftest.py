@@ -1,11 +1,27 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures, and a fresh cache folder for the whole run.
+
+The suite must pass with empty caches and never depend on warm ones: unless JAXRT_CACHE_DIR is
+set (CI sets a fresh one), the run gets a new temporary folder, shared by the xdist workers (they
+inherit the environment), so compiled programs and built scenes are reused within the run only.
+"""
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+
+if not os.environ.get("JAXRT_CACHE_DIR"):
+    os.environ["JAXRT_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxrt-test-cache-")
+
+import jax  # noqa: E402
+
+# Strict dtype promotion: an implicit int/float or float32/float64 mix in the renderer is an error
+# in the tests rather than a silent upcast. (Rank promotion stays allowed: shading broadcasts
+# per-ray values against per-channel ones throughout.)
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 
 @pytest.fixture(scope="session")
@@ -17,3 +33,21 @@ def data_dir() -> Path:
     path = Path(d)
     assert path.is_dir(), f"JAXRT_DATA={d} is set but is not a directory"
     return path
+
+
+@pytest.fixture(scope="session")
+def brdf_data() -> Path:
+    """The folder of the measured-BRDF archives, found through $JAXRT_DATA (the data root, its meshes/
+    folder or the brdfs/ folder itself). Skips only when JAXRT_DATA is unset; when it is set, missing
+    or corrupt archives fail the test with the lookup's message."""
+    d = os.environ.get("JAXRT_DATA")
+    if not d:
+        pytest.skip("JAXRT_DATA is not set: the measured BRDFs are not configured (CI sets it)")
+    from brdfs import measured_data
+    from jaxrt.errors import InputError
+
+    try:
+        paths = [measured_data.find_archive(c) for c in measured_data.ARCHIVES]
+    except InputError as e:
+        pytest.fail(f"JAXRT_DATA={d} is set but the measured BRDFs are not usable: {e}")
+    return paths[0].parent

@@ -10,7 +10,8 @@ import pytest
 from PIL import Image
 
 import brdfs
-from jaxrt import render, sweep
+from jaxrt import sweep
+import jaxrt as render
 from jaxrt.cli import main
 from jaxrt.errors import InputError
 

@@ -2,8 +2,8 @@
 
 Expectations are independent of the renderer's numbers: more diffuse albedo never darkens a pixel,
 a specular highlight follows the light, a log slider's position is log10 of the value declared in
-the model's `Param`, and `jaxrt.render.frame`'s compile cache does not grow after the first frame.
-A path-traced scene refines progressively: k refine() passes equal `jaxrt.path.accumulate` called k
+the model's `Param`, and `jaxrt.frame`'s compile cache does not grow after the first frame.
+A path-traced scene refines progressively: k refine() passes equal `jaxrt.integrators.path.accumulate` called k
 times, the mean over the sphere matches the closed-form furnace radiance, and any change restarts.
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import brdfs
-from jaxrt import path
+from jaxrt.integrators import path
 from jaxrt.cli import main
 from jaxrt.errors import InputError
 from jaxrt.viewer import Viewer, from_slider, orbit_angles, orbit_position, slider_spec
@@ -135,7 +135,7 @@ def furnace():
 
 
 def _direct(scene, k):
-    """k passes through jaxrt.path itself, outside the viewer."""
+    """k passes through jaxrt.integrators.path itself, outside the viewer."""
     acc = None
     for _ in range(k):
         acc = path.accumulate(scene, acc)

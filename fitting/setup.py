@@ -1,0 +1,253 @@
+"""Fitting a material of a scene to target renders: trace once, re-shade per solver iteration.
+
+`fit(scene, targets, model, object=...)` replaces the chosen object's material by `model` (with
+its defaults), traces every view once into a G-buffer (`jaxrt.integrators.trace`: hits, ray
+trees, shadow visibility — nothing that depends on BRDF values), and hands a `shade(params,
+gbuffer)` closure to the renderer-independent solver in `fitting.solve`. By default only the pixels
+whose camera ray hits that material are compared; `mask` narrows it further.
+
+Several targets fit jointly: pass one scene per target (e.g. the same scene file with different
+light positions or cameras through `overrides`), all with the same structure and resolution.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+import brdfs
+from brdfs.base import Model
+from fitting import compact
+from fitting.solve import FitResult, fit_images
+from jaxrt import integrators
+from jaxrt import scene as _scene
+from jaxrt.scene import edit
+from jaxrt.errors import InputError
+
+FIT_MATERIAL = "fit"  # name given to the substituted material when the object's own name is shared
+
+
+@dataclasses.dataclass(frozen=True)
+class Setup:
+    """A scene prepared for fitting one material with one model.
+
+    scenes: one built Scene per target (identical structure); gbuffers: their traces;
+    material: index of the fitted material; model_index/row: where its parameters live in
+    `Scene.materials.params`; mask: (K, H, W) float32 pixels that see the material; fitbuffer:
+    the nodes that see the material (`fitting.compact`), which is what the solver re-shades.
+    """
+
+    scenes: tuple
+    gbuffers: tuple
+    material: int
+    model_index: int
+    row: int
+    mask: np.ndarray
+    model: Model
+    object: str
+    fitbuffer: "compact.FitBuffer"
+
+
+def variant(source, *, lights: Sequence[Mapping[str, Any]] | None = None, **tables) -> dict:
+    """A scene file or shipped name as a parsed dict with some tables replaced, for extra views.
+
+    `lights` replaces the [[lights]] array (e.g. a rim light behind the object); keyword tables
+    update tables key by key, e.g. `camera={"width": 64, "height": 64}`. The result is accepted
+    wherever a scene source is (validated when prepared).
+    """
+    import copy
+    import tomllib
+
+    path = _scene.find_scene(source)
+    doc = tomllib.loads(path.read_text())
+    doc = copy.deepcopy(doc)
+    if lights is not None:
+        doc["lights"] = [dict(l) for l in lights]
+    for table, values in tables.items():
+        doc.setdefault(table, {}).update(values)
+    return doc
+
+
+def _spec(source, overrides=None) -> _scene.SceneSpec:
+    if isinstance(source, _scene.SceneSpec):
+        return source
+    if not isinstance(source, Mapping):
+        source = _scene.find_scene(source)
+    return _scene.parse(source, overrides=overrides)
+
+
+def _substitute(spec: _scene.SceneSpec, model: Model, obj: str | None) -> tuple[_scene.SceneSpec, str, str]:
+    """Give the object `obj` (default: the first object) its own material of `model` (defaults; δ
+    kept from its own material unless that was glass)."""
+    target = edit.find_object(spec, obj)
+    if model.delta:
+        raise InputError(f"{model.name} is a delta BSDF; fitting supports the models with an eval: "
+                         f"{', '.join(n for n in brdfs.names() if not brdfs.get(n).delta)}")
+    old = spec.materials[target.material]
+    delta = 0.0 if brdfs.get(old.model).delta else old.delta
+    mat = edit.material_spec(FIT_MATERIAL, model, {"delta": delta}, where=f"{spec.source}: object {target.name!r}")
+    return edit.wear(spec, target.name, mat), FIT_MATERIAL, target.name
+
+
+def prepare(
+    scenes: Any | Sequence[Any],
+    model: str | Model,
+    *,
+    object: str | None = None,
+    overrides: Sequence[Mapping[str, Any] | None] | None = None,
+) -> Setup:
+    """Build and trace the scene(s) for fitting `model` on `object`'s material.
+
+    Args:
+        scenes: a scene file path / shipped name / parsed SceneSpec, or a sequence of them (one per
+            target).
+        model: the model to fit (name or `brdfs` Model).
+        object: name of the object whose material is fitted (default: the scene's first object).
+        overrides: per-scene override dicts ({"camera.position": [...]}), same length as scenes.
+    """
+    model = brdfs.get(model) if isinstance(model, str) else model
+    if isinstance(scenes, (str, os.PathLike, Mapping, _scene.SceneSpec)):
+        scenes = [scenes]
+    overrides = list(overrides) if overrides is not None else [None] * len(scenes)
+    if len(overrides) != len(scenes):
+        raise InputError(f"got {len(scenes)} scenes but {len(overrides)} override sets")
+    built, gbs, masks = [], [], []
+    obj_name = None
+    for src, ov in zip(scenes, overrides):
+        original = _spec(src, ov)
+        spec, mat_name, obj_name = _substitute(original, model, object)
+        sc = _scene.build(spec)
+        # The ray tree depends on geometry, δ and which materials are glass, not on the opaque
+        # model: trace the scene as given (one compilation per scene, whatever model is fitted)
+        # unless the object was glass, whose branches the substituted model no longer has.
+        was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
+        gb = integrators.trace(sc if was_glass else _scene.build(original))
+        built.append(sc)
+        gbs.append(gb)
+    shapes = {(s.camera.height, s.camera.width, s.settings.spp) for s in built}
+    if len(shapes) != 1:
+        raise InputError(f"all fitting scenes need the same resolution and spp, got {sorted(shapes)}")
+    sc = built[0]
+    mi = sc.materials.index(mat_name)
+    for s, gb in zip(built, gbs):
+        npix = s.camera.num_pixels
+        first = integrators.sample_order(s.camera.height, s.camera.width, s.settings.spp)[1]
+        prim = np.asarray(gb.prim)[0, first]
+        hit_mat = np.where(prim >= 0, np.asarray(compact.face_material(s.geometry, prim)), -1)
+        masks.append(np.asarray(hit_mat == mi, np.float32).reshape(s.camera.height, s.camera.width))
+    mask = np.stack(masks)
+    if not mask.any():
+        raise InputError(f"object {obj_name!r} is not visible in any view; nothing to fit")
+    model_index, row = int(sc.materials.model_id[mi]), int(sc.materials.row[mi])
+    fb = compact.build(gbs, built, model_index, row, mi, model.params())
+    return Setup(
+        scenes=tuple(built),
+        gbuffers=tuple(gbs),
+        material=mi,
+        model_index=model_index,
+        row=row,
+        mask=mask,
+        model=model,
+        object=obj_name,
+        fitbuffer=fb,
+    )
+
+
+@functools.lru_cache(maxsize=None)
+def shader(model_index: int, row: int):
+    """The `shade(params, (gbuffers, scenes)) -> (K, H, W, 3)` function for one material slot.
+
+    Cached so the same Python object is handed to the solver each time (its compiled code is reused).
+    """
+
+    def shade(params, data):
+        gbuffers, scenes = data
+        return jnp.stack([
+            integrators.shade(gb, edit.set_material_row(sc, model_index, row, params)) for gb, sc in zip(gbuffers, scenes)
+        ])
+
+    return shade
+
+
+def render_with(setup: Setup, params: Mapping[str, Array]) -> Float[Array, "K H W 3"]:
+    """Images of every view with the fitted material set to `params` (validated pytree)."""
+    return _jitted_shader(setup.model_index, setup.row)(params, (setup.gbuffers, setup.scenes))
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted_shader(model_index: int, row: int):
+    return jax.jit(shader(model_index, row))
+
+
+def fit(
+    scenes: Any | Sequence[Any],
+    targets: Float[Array, "K H W 3"] | Sequence[Float[Array, "H W 3"]],
+    model: str | Model,
+    *,
+    object: str | None = None,
+    overrides: Sequence[Mapping[str, Any] | None] | None = None,
+    mask: Float[Array, "K H W"] | None = None,
+    setup: Setup | None = None,
+    **solver_options,
+) -> tuple[FitResult, Setup]:
+    """Recover `model`'s parameters for `object`'s material from target images.
+
+    Args:
+        scenes, model, object, overrides: as for `prepare` (ignored when `setup` is given).
+        targets: (K, H, W, 3) linear RGB, one per scene, at the scene's resolution.
+        mask: optional (K, H, W) weights multiplied into the default mask (the material's pixels).
+        setup: a `prepare` result to reuse (skips building and tracing).
+        **solver_options: fix, init, rgb, solver, starts, max_steps, rtol, atol, progress
+            (see `fitting.solve.fit_images`).
+
+    Returns:
+        (FitResult, Setup); `render_with(setup, params)` re-renders any parameter set.
+    """
+    setup = setup or prepare(scenes, model, object=object, overrides=overrides)
+    targets = np.asarray(targets, np.float32)
+    if targets.ndim == 3:
+        targets = targets[None]
+    expect = setup.mask.shape + (3,)
+    if targets.shape != expect:
+        raise InputError(f"targets have shape {targets.shape}; the scene renders {expect} (K, H, W, RGB)")
+    if not np.all(np.isfinite(targets)):
+        raise InputError("targets contain NaN or Inf pixels")
+    m = setup.mask if mask is None else setup.mask * np.asarray(mask, np.float32)
+    result = fit_images(compact.shader(setup.model.name), setup.fitbuffer, targets, setup.model, mask=m,
+                        **solver_options)
+    return result, setup
+
+
+def cross_model_matrix(
+    setups: Mapping[str, Setup], targets_params: Mapping[str, Mapping[str, Any]], **solver_options
+) -> np.ndarray:
+    """Fit every model to targets rendered by every model (Ngan, Durand & Matusik 2005 style).
+
+    Args:
+        setups: model name -> `prepare` result, all of the same scene and object.
+        targets_params: model name -> the parameters its target is rendered with (same keys/order as
+            `setups`).
+        **solver_options: passed to `fit` (starts, max_steps, rgb, solver, progress).
+
+    Returns:
+        (n, n) RMSE of the best fit relative to the target's RMS over the object's pixels; row i is the
+        target model, column j the fitted model.
+    """
+    names = list(setups)
+    out = np.zeros((len(names), len(names)))
+    for i, src in enumerate(names):
+        s = setups[src]
+        target = np.asarray(render_with(s, s.model.params(**targets_params[src])))
+        scale = float(np.sqrt(np.mean(target[s.mask > 0] ** 2))) or 1.0
+        for j, dst in enumerate(names):
+            r, _ = fit(None, target, dst, setup=setups[dst], **solver_options)
+            out[i, j] = r.rmse / scale
+    return out

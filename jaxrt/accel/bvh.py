@@ -1,0 +1,324 @@
+"""Bounding volume hierarchy: build (numpy, host) and stackless traversal (JAX, jit-able).
+
+    tree = bvh.build(mesh.vertices, mesh.faces)          # BVH pytree of jnp arrays
+    hit = bvh.intersect(tree, origins, directions, tmin=0.0, tmax=jnp.inf)
+    hit.t (N,), hit.prim (N,) int32, hit.u (N,), hit.v (N,)
+    blocked = bvh.occluded(tree, origins, directions, tmax)   # (N,) bool
+    bvh.stats(tree)  (or tree.stats)                     # node count, depth, SAH cost, leaf sizes
+
+`intersect` returns the closest hit with t in [tmin, tmax]: `prim` indexes the ORIGINAL face order
+(the `faces` given to `build`), a miss has prim -1, t = inf and u = v = 0. Barycentrics: the hit
+point is (1-u-v)*v0 + u*v1 + v*v2 for face (v0, v1, v2). `occluded` is any-hit with early exit:
+True where some triangle is hit with t in [tmin, tmax]. tmin/tmax are scalars or (N,) arrays;
+origins/directions are (N,3) float32 (directions need not be unit; t is in units of |direction|).
+
+Both work on CPU and GPU unchanged, can be called inside another jitted function with `tree` as a
+traced argument, and are not differentiable: their inputs pass through `lax.stop_gradient`, and a
+renderer recomputes the differentiable hit point from `prim` (trace once, shade many: docs/ARCHITECTURE.md).
+Triangle tests are watertight (see `jaxrt.accel.traverse_xla`): a ray aimed at an edge or vertex shared
+by two triangles of a closed mesh always hits one of them. Build and traversal details are in
+`jaxrt.accel.builder` and `jaxrt.accel.traverse_xla` (pure JAX, portable), `jaxrt.accel.traverse_pallas` (one Pallas
+kernel, the default where the computation is lowered for an NVIDIA GPU) and `jaxrt.accel.traverse_cpu` (a C++
+XLA FFI kernel compiled on first use, the default where the computation is lowered for the CPU);
+`impl=` / JAXRT_TRAVERSAL choose one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, Bool, Float, Int
+
+from jaxrt.accel.builder import build_arrays
+from jaxrt.accel.sah import DEFAULT as SAH_DEFAULT
+from jaxrt.accel.sah import SahSettings
+from jaxrt import _config
+from jaxrt.accel import traverse_cpu
+from jaxrt.accel import traverse_pallas
+from jaxrt.accel import traverse_xla
+from jaxrt.errors import InputError
+
+
+class BVH(eqx.Module):
+    """Flat BVH arrays (nn nodes, F triangles), ready for jit.
+
+    node_box  (nn, 6) float32   [lo_x, lo_y, lo_z, hi_x, hi_y, hi_z], padded outward by a few ulps
+    node_leaf (nn, 2) int32     [first triangle (leaf order), count]; count 0 for interior nodes
+    links     (6*nn, 2) int32   per ray class c (dominant axis*2 + negative): row c*nn + node holds
+                                (next node if the box is hit, next node if missed); -1 ends
+    triangles (F, 9) float32    v0, v1, v2 of each triangle in leaf order
+    prim_ids  (F,) int32        original face index of each leaf-order triangle
+    rows      (nn, 16) float32  the GPU kernel's node table (`traverse_pallas.pack_rows`: children's boxes
+                                in each interior row, the triangle in each leaf row), or None: packed
+                                once by `build` when the default backend is a GPU and leaf_size is 1
+                                (111 MB for the full dragon), else per call by the kernel.
+    skips     (6*nn,) int32     the same kernel's links: per class and node, miss link << 5 | depth of
+                                its node (`traverse_pallas.pack_skips`); None when rows is None
+    leaf_size: static, the largest leaf
+    """
+
+    node_box: Float[Array, "nn 6"]
+    node_leaf: Int[Array, "nn 2"]
+    links: Int[Array, "nn6 2"]
+    triangles: Float[Array, "F 9"]
+    prim_ids: Int[Array, " F"]
+    rows: Float[Array, "nn 16"] | None
+    skips: Int[Array, " nn6"] | None
+    leaf_size: int = eqx.field(static=True)
+
+    @property
+    def stats(self) -> "BVHStats":
+        return stats(self)
+
+
+class Hit(NamedTuple):
+    """Closest-hit result per ray: t (N,) float32 (inf on a miss), prim (N,) int32 (original face
+    index, -1 on a miss), u, v (N,) float32 barycentrics of v1 and v2 (0 on a miss)."""
+
+    t: Float[Array, " N"]
+    prim: Int[Array, " N"]
+    u: Float[Array, " N"]
+    v: Float[Array, " N"]
+
+
+@dataclasses.dataclass(frozen=True)
+class BVHStats:
+    """Build statistics. sah_cost uses C_trav = C_isect = 1 and surface areas relative to the root."""
+
+    nodes: int
+    leaves: int
+    depth: int
+    sah_cost: float
+    leaf_size_min: int
+    leaf_size_max: int
+    leaf_size_mean: float
+    triangles: int
+
+
+# Scenes are built once and traced for every frame (and fit iteration), so they take the tree that
+# traces fastest: the SAH tree in depth-first order gave the GPU's best shadow rays traced from the
+# light (BENCHMARKS.md), at ~1.2-1.4x the LBVH's build time.
+RENDER_TREE = {"builder": "sah", "layout": "dfs"}
+
+
+def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, leaf_size: int = 1,
+          builder: str = "lbvh", layout: str = "bfs", sah_settings: SahSettings = SAH_DEFAULT) -> BVH:
+    """Build a BVH over triangles `vertices[faces]` (host numpy, vectorised; see `jaxrt.accel.builder`).
+
+    builder: "lbvh" (default: Morton-code splits, `jaxrt.accel.builder`; the full dragon in ~1–1.9 s
+    on a 2-core CPU) or "sah" (binned SAH splits down to 16 triangles, Morton splits below,
+    `jaxrt.accel.sah`: ~10 % fewer node visits per ray, ~1.2–1.4x the LBVH's build time). layout:
+    node numbering, "bfs" (default: breadth-first) or "dfs" (depth-first: every subtree contiguous
+    in memory). sah_settings: the SAH builder's `jaxrt.accel.sah.SahSettings`. All give the same
+    array layout, so every traversal takes any of them.
+    `RENDER_TREE` is what scenes use: built once, traced every frame. BENCHMARKS.md ("Tree
+    quality") has the measurements.
+
+    vertices (V,3) float, faces (F,3) int in [0, V). Raises InputError on NaN/Inf vertices,
+    out-of-range indices or no faces. Zero-area faces are kept (they are never hit).
+    """
+    a = build_arrays(vertices, faces, leaf_size=leaf_size, builder=builder, layout=layout,
+                     sah_settings=sah_settings)
+    put = jax.device_put
+    arrays = {k: put(a[k]) for k in ("node_box", "node_leaf", "links", "triangles")}
+    rows = skips = None
+    if leaf_size == 1 and jax.default_backend() == "gpu":
+        rows, skips = _pack_tables(**arrays)
+    return BVH(**arrays, prim_ids=put(a["prim_ids"]), rows=rows, skips=skips, leaf_size=leaf_size)
+
+
+_pack_tables = jax.jit(traverse_pallas.pack_tables)
+
+
+def stats(tree: BVH) -> BVHStats:
+    """Node count, depth, SAH cost and leaf sizes of a built tree (host-side)."""
+    box = np.asarray(tree.node_box, np.float64)
+    leaf = np.asarray(tree.node_leaf)
+    links = np.asarray(tree.links)
+    nn = box.shape[0]
+    is_leaf = leaf[:, 1] > 0
+    first = links[:nn, 0]  # class 0: first child (interior)
+    second = links[np.where(is_leaf, 0, first), 1]  # the first child's miss link is its sibling
+    depth = np.zeros(nn, np.int64)
+    frontier = np.array([0])
+    d = 0
+    while len(frontier):
+        depth[frontier] = d
+        inner = frontier[~is_leaf[frontier]]
+        frontier = np.concatenate([first[inner], second[inner]])
+        d += 1
+    ext = box[:, 3:] - box[:, :3]
+    area = ext[:, 0] * ext[:, 1] + ext[:, 1] * ext[:, 2] + ext[:, 2] * ext[:, 0]
+    rel = area / max(area[0], 1e-300)
+    counts = leaf[is_leaf, 1]
+    sah = float(np.sum(rel[~is_leaf]) + np.sum(rel[is_leaf] * leaf[is_leaf, 1]))
+    return BVHStats(nodes=nn, leaves=int(is_leaf.sum()), depth=int(depth.max()), sah_cost=sah,
+                    leaf_size_min=int(counts.min()), leaf_size_max=int(counts.max()),
+                    leaf_size_mean=float(counts.mean()), triangles=int(tree.prim_ids.shape[0]))
+
+
+def default_lanes() -> int:
+    # CPU: a lane pool whose state stays in cache; GPU: enough lanes to fill the device.
+    return 1024 if jax.default_backend() == "cpu" else 1 << 17
+
+
+def default_steps() -> int:
+    return 2 if jax.default_backend() == "cpu" else 16
+
+
+IMPLS = _config.TRAVERSALS
+
+
+def _impl(impl: str | None) -> str:
+    impl = impl or _config.config().traversal
+    if impl not in IMPLS:
+        raise InputError(f"bvh: traversal impl (argument or JAXRT_TRAVERSAL) must be one of {IMPLS}; got {impl!r}")
+    return impl
+
+
+def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_iter, count_steps=False, impl=None,
+         refine=False):
+    origins = lax.stop_gradient(jnp.asarray(origins, jnp.float32))
+    directions = lax.stop_gradient(jnp.asarray(directions, jnp.float32))
+    if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
+        raise InputError(f"bvh: origins and directions must both be (N,3); got {origins.shape} and {directions.shape}")
+    n = origins.shape[0]
+    tmin = jnp.broadcast_to(lax.stop_gradient(jnp.asarray(tmin, jnp.float32)), (n,))
+    tmax = jnp.broadcast_to(lax.stop_gradient(jnp.asarray(tmax, jnp.float32)), (n,))
+    if n == 0:
+        z = jnp.zeros(0, jnp.float32)
+        return jnp.zeros(0, bool), z, jnp.zeros(0, jnp.int32), z, z, jnp.zeros(0, jnp.int32)
+    arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
+    if tree.rows is not None:
+        arrays["rows"], arrays["skips"] = tree.rows, tree.skips
+
+    def refined(out, o, d):
+        # Once per ray: t of the chosen triangle in double-float, so grazing hits keep ~1e-7
+        # relative accuracy (the float32 test's t degrades as eps / cos(angle)).
+        found, t, best, u, v, steps = out
+        if refine:
+            t = traverse_xla.refine_t(tree.triangles[jnp.maximum(best, 0)], o, d, t)
+        return found, t, best, u, v, steps
+
+    def xla(o, d, lo, hi):
+        return refined(traverse_xla.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
+                                             steps_per_iter=steps_per_iter or default_steps(),
+                                             lanes=lanes or default_lanes(), count_steps=count_steps), o, d)
+
+    def pallas(o, d, lo, hi, interpret=False):
+        # The interpreter runs program instances one after another: few, wide blocks are fastest.
+        kw = dict(block=1024) if interpret else {}
+        out = traverse_pallas.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
+                                  interpret=interpret, **kw)
+        return refined((*out, jnp.zeros(n, jnp.int32)), o, d)
+
+    def native(o, d, lo, hi):
+        # the kernel refines t itself, in double, for hits only
+        out = traverse_cpu.traverse(arrays, o, d, lo, hi, any_hit=any_hit, refine=refine)
+        return (*out, jnp.zeros(n, jnp.int32))
+
+    impl = _impl(impl)
+    args = (origins, directions, tmin, tmax)
+    if impl == "xla" or count_steps:
+        return xla(*args)
+    if impl == "pallas":
+        return pallas(*args)
+    if impl == "pallas-interpret":
+        return pallas(*args, interpret=True)
+    # available() compiles the C++ kernel on first use; where it cannot, it warns once and "cpu"
+    # and "auto" use the XLA loop. A GPU process does not build it for "auto" (its functions are
+    # lowered for the GPU).
+    has_native = (impl == "cpu" or (impl == "auto" and jax.default_backend() == "cpu")) and traverse_cpu.available()
+    if impl == "cpu":
+        return native(*args) if has_native else xla(*args)
+    cpu = native if has_native else xla
+    if jax.default_backend() == "cpu":
+        # a process without an accelerator lowers everything for the CPU: trace only that branch
+        # (tracing the Pallas kernel and the XLA loop too took 1-2.5 s of every first frame)
+        return cpu(*args)
+    # auto: the Pallas (Triton) kernel where the computation is lowered for an NVIDIA GPU, the
+    # native kernel for the CPU, the portable XLA loop elsewhere (decided at lowering, so one
+    # jitted function serves all).
+    return lax.platform_dependent(*args, cuda=pallas, cpu=cpu, default=xla)
+
+
+def intersect(
+    tree: BVH,
+    origins: Float[Array, "N 3"],
+    directions: Float[Array, "N 3"],
+    tmin: Float[Array, " N"] | float = 0.0,
+    tmax: Float[Array, " N"] | float = jnp.inf,
+    *,
+    lanes: int | None = None,
+    steps_per_iter: int | None = None,
+    impl: str | None = None,
+) -> Hit:
+    """Closest hit of each ray with t in [tmin, tmax] (see the module docstring).
+
+    lanes: rays in flight at once (default 1024 on CPU, 2**17 on GPU; finished lanes refill from
+    the queue); steps_per_iter: traversal steps per loop iteration (default 2 on CPU, 16 on GPU).
+    Both only affect speed, never results, and apply to the XLA loop only. impl: "auto" (default;
+    the Pallas kernel of `jaxrt.accel.traverse_pallas` when lowered for an NVIDIA GPU, the C++ kernel of
+    `jaxrt.accel.traverse_cpu` when lowered for the CPU, else the XLA loop), "xla" (the pure-JAX loop of
+    `jaxrt.accel.traverse_xla`), "cpu" (the C++ kernel; CPU only), "pallas" (GPU only) or
+    "pallas-interpret" (the kernel in the Pallas interpreter, any backend, slow: for tests); the
+    env var JAXRT_TRAVERSAL sets it when the argument is None. Where the C++ kernel cannot be
+    compiled, "auto" and "cpu" warn once and use the XLA loop.
+    All give the same hits up to ties between triangles at the same distance to within an ulp.
+    """
+    # t comes refined (each traversal's t of the chosen triangle in double(-float) precision) and is
+    # clamped to the valid interval.
+    found, t, best, u, v, _ = _run(tree, origins, directions, tmin, tmax, any_hit=False, lanes=lanes,
+                                   steps_per_iter=steps_per_iter, impl=impl, refine=True)
+    prim = jnp.where(found, tree.prim_ids[jnp.maximum(best, 0)], -1)
+    t = jnp.clip(t, jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32))
+    return Hit(t=jnp.where(found, t, jnp.inf), prim=prim, u=jnp.where(found, u, 0.0), v=jnp.where(found, v, 0.0))
+
+
+def occluded(
+    tree: BVH,
+    origins: Float[Array, "N 3"],
+    directions: Float[Array, "N 3"],
+    tmax: Float[Array, " N"] | float = jnp.inf,
+    tmin: Float[Array, " N"] | float = 0.0,
+    *,
+    lanes: int | None = None,
+    steps_per_iter: int | None = None,
+    impl: str | None = None,
+    from_end: bool = False,
+) -> Bool[Array, " N"]:
+    """True where any triangle is hit with t in [tmin, tmax] (any-hit, stops at the first hit).
+
+    For a shadow ray from p towards a light at distance L along unit d, pass tmax = L*(1-eps)
+    and tmin (or an offset origin) to skip the surface the ray starts on. lanes, steps_per_iter,
+    impl: as for `intersect`. from_end: trace each ray with finite tmax backwards, from
+    o + tmax*d along -d over [0, tmax - tmin] (the same segment; its far end rounded to float32):
+    shadow rays towards one light then share their origin, which a GPU warp traverses more
+    coherently, and find occluders nearer the light first. Rays with infinite tmax go forwards.
+    """
+    if from_end:
+        o = jnp.asarray(origins, jnp.float32)
+        d = jnp.asarray(directions, jnp.float32)
+        lo = jnp.broadcast_to(jnp.asarray(tmin, jnp.float32), o.shape[:1])
+        hi = jnp.broadcast_to(jnp.asarray(tmax, jnp.float32), o.shape[:1])
+        fin = jnp.isfinite(hi)
+        origins = jnp.where(fin[:, None], o + jnp.where(fin, hi, 0.0)[:, None] * d, o)
+        directions = jnp.where(fin[:, None], -d, d)
+        tmin, tmax = jnp.where(fin, 0.0, lo), jnp.where(fin, hi - lo, hi)
+    found, *_ = _run(tree, origins, directions, tmin, tmax, any_hit=True, lanes=lanes,
+                     steps_per_iter=steps_per_iter, impl=impl)
+    return found
+
+
+def node_visits(tree: BVH, origins, directions, tmin=0.0, tmax=jnp.inf, *, any_hit: bool = False,
+                lanes: int | None = None, steps_per_iter: int | None = None) -> Int[Array, " N"]:
+    """Traversal steps (nodes visited) per ray; for benchmarks and diagnostics."""
+    *_, steps = _run(tree, origins, directions, tmin, tmax, any_hit=any_hit, lanes=lanes,
+                     steps_per_iter=steps_per_iter, count_steps=True)
+    return steps

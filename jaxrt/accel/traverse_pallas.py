@@ -1,0 +1,402 @@
+"""BVH traversal as one Pallas kernel (Triton backend on GPU; interpret mode anywhere, for tests).
+
+The pure-XLA traversal (`jaxrt.accel.traverse_xla.traverse`) keeps every lane's state in HBM arrays and
+pays a device->host round trip for the while-loop predicate every `steps_per_iter` steps. Here each
+program instance takes a block of `block` consecutive rays (image tiles: coherent), keeps their
+state in registers and loops on the GPU until all of the block's rays end; the GPU's block
+scheduler starts the next block on a free multiprocessor, which is the lane refill of the XLA path
+done by hardware.
+
+Results are the XLA path's: the same stackless links and node order, box test (same slab formula
+and far-distance widening) and watertight triangle test with exact edge signs (as there, the exact
+path runs only where some tested pair's rounded products tie: here a branch per program of 32
+rays). The default node table (`pack_rows`, stored once per tree as `BVH.rows`) puts each interior
+node's two children's boxes in its row and each leaf's triangle in the leaf's row: a step loads one
+row, tests both children and moves straight to the nearer child that is hit, so children whose
+boxes miss are never loaded (27 % fewer steps than one box per row, measured with the dragon's camera
+and shadow rays); the miss links of the threaded tree still order the traversal. A miss link always
+leads to a node's farther child, whose box the ray tested when it visited the parent: a per-ray bit
+trail (one bit per depth, set when both children were hit) says whether it was hit, and where not the
+ray takes that node's miss link at once instead of stepping into it (`pack_skips`: a quarter of the
+dragon's steps, simulated). The kernel is bound by instruction issue more than by memory
+(BENCHMARKS.md): the triangle test runs only in warps where some ray is at a leaf, and u, v are
+divided once per ray at the end. The per-ray constants are `predicates.ray_constants`, computed
+in the kernel. The hit distance is float32 and may differ from the XLA path's in the last ulp where
+the compiler contracts a multiply-add differently, so two triangles at the same distance to within
+an ulp may be chosen differently (ties); `bvh.intersect` then refines t of the chosen triangle in
+double-float in XLA for both paths.
+
+Tables are read with vector gathers from flat row-major arrays (`ref[index_vector]`).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
+from jaxtyping import Array, Float
+
+from jaxrt.accel.predicates import FAR_SCALE, edge_products, edge_sign, opaque, opaque_zero, pick3, ray_constants
+from jaxrt.accel.builder import NUM_RAY_CLASSES as NUM_CLASSES
+
+_ROW = 12  # words per node row with inline leaves: 9 (box or triangle), first, count, pad
+_CB_ROW = 16  # words per node row with child boxes (see pack_rows)
+_SKIP_SHIFT = 5  # skip-table entries (`pack_skips`): miss link << 5 | depth of its node (31: deeper)
+_SKIP_DEPTH = 31
+
+
+def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *, any_hit: bool,
+            leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str, gate_exact: bool, skip_tri: bool,
+            trail: int, block: int):
+
+    def tri_test(ray, vs, valid, t_best):
+        ox, oy, oz, _, _, _, sx, sy, sz, kx, ky, kz, _, t_lo = ray
+        zero = opaque_zero(kz)
+        px, py, pz = [], [], []
+        for j in range(3):
+            qx, qy, qz = vs[3 * j] - ox, vs[3 * j + 1] - oy, vs[3 * j + 2] - oz
+            px.append(pick3(kx, qx, qy, qz))
+            py.append(pick3(ky, qx, qy, qz))
+            pz.append(pick3(kz, qx, qy, qz))
+        x = [px[j] - opaque(sx * pz[j], zero) for j in range(3)]
+        y = [py[j] - opaque(sy * pz[j], zero) for j in range(3)]
+        z = [sz * pz[j] for j in range(3)]
+        (ax, bx, cx), (ay, by, cy), (az, bz, cz) = x, y, z
+        edges = ((cx, cy, bx, by), (ax, ay, cx, cy), (bx, by, ax, ay))
+        prods = [edge_products(*e, zero) for e in edges]
+        if gate_exact:
+            # Tied rounded products are rare: the exact-sign arithmetic runs only for programs where
+            # some tested ray/triangle pair needs it (a warp-uniform branch), as the XLA path's cond.
+            tie = valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1]) | (prods[2][0] == prods[2][1]))
+            su, sv, sw = lax.cond(jnp.max(tie.astype(jnp.int32)) > 0,
+                                  lambda: tuple(edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)),
+                                  lambda: tuple(edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods)))
+        else:
+            su, sv, sw = (edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods))
+        U, V, W = (jnp.abs(p1 - p2) * sg for (p1, p2), sg in zip(prods, (su, sv, sw)))
+        inside = ((su >= 0) & (sv >= 0) & (sw >= 0)) | ((su <= 0) & (sv <= 0) & (sw <= 0))
+        det = U + V + W
+        ok = inside & (det != 0)
+        det_safe = jnp.where(ok, det, 1.0)
+        t = (U * az + V * bz + W * cz) / det_safe
+        hit = valid & ok & (t >= t_lo) & (t <= t_best)
+        # u = V/det and v = W/det are divided once per ray at the end (same values), not per test.
+        return hit, t, V, W, det_safe
+
+    def slab(ray, bb, t_best):
+        ox, oy, oz, ix, iy, iz = ray[:6]
+        t_lo = ray[13]
+        t0x = (bb[0] - ox) * ix
+        t0y = (bb[1] - oy) * iy
+        t0z = (bb[2] - oz) * iz
+        t1x = (bb[3] - ox) * ix
+        t1y = (bb[4] - oy) * iy
+        t1z = (bb[5] - oz) * iz
+        t_near = jnp.maximum(jnp.maximum(jnp.maximum(jnp.minimum(t0x, t1x), jnp.minimum(t0y, t1y)),
+                                         jnp.minimum(t0z, t1z)), t_lo)
+        t_far = jnp.minimum(jnp.minimum(jnp.maximum(t0x, t1x), jnp.maximum(t0y, t1y)), jnp.maximum(t0z, t1z))
+        return t_near <= jnp.minimum(t_far * FAR_SCALE, t_best)
+
+    def keep(h, t, bary, idx, hit):
+        # hit: (t, triangle, V, W, det) of the best so far; strict < keeps the earlier triangle on
+        # exact ties (the XLA path's argmin).
+        better = h & ((t < hit[0]) | (hit[1] < 0))
+        return tuple(jnp.where(better, x, y) for x, y in zip((t, idx) + bary, hit))
+
+    def test_leaf(ray, vs, valid, hit):
+        def test():
+            h, t, *bary = tri_test(ray, vs, valid, hit[0])
+            return h, t, tuple(bary)
+
+        if not skip_tri:
+            return test()
+        # The kernel is bound by instruction issue, and the triangle test is half a step's work:
+        # a warp none of whose rays is at a leaf skips it.
+        z = jnp.zeros_like(hit[0])
+        return lax.cond(jnp.max(valid.astype(jnp.int32)) > 0, test,
+                        lambda: (jnp.zeros_like(valid), z, (z, z, z + 1.0)))
+
+    def step_childbox(ray, node, hit, bits):
+        # A node's row holds its children's boxes: one load tests both, and the ray moves straight to
+        # the nearer child that is hit (or the farther, or the miss link), so children whose boxes
+        # miss are never loaded. The farther child, when the nearer was hit, is reached later by the
+        # nearer's miss link without its own box test: its row then tests its children instead.
+        # links_r here is the skip table (`pack_skips`): per class and node, the miss link and the
+        # depth of the node it leads to.
+        cls = ray[12]
+        active = node >= 0
+        n = jnp.maximum(node, 0)
+        r16 = n * _CB_ROW
+        w = [box_r[r16 + k] for k in range(_CB_ROW)]
+        code = lax.bitcast_convert_type(w[15], jnp.int32)  # 1: leaf; -(depth + 1): interior
+        is_leaf = code > 0
+        h_a = slab(ray, w[0:6], hit[0])
+        h_b = slab(ray, w[6:12], hit[0])
+        child_a = lax.bitcast_convert_type(w[12], jnp.int32)
+        child_b = lax.bitcast_convert_type(w[13], jnp.int32)
+        swap = (lax.shift_right_logical(lax.bitcast_convert_type(w[14], jnp.int32), cls) & 1) > 0
+        near, far = jnp.where(swap, child_b, child_a), jnp.where(swap, child_a, child_b)
+        h_near, h_far = jnp.where(swap, h_b, h_a), jnp.where(swap, h_a, h_b)
+        h, t, bary = test_leaf(ray, w[:9], active & is_leaf, hit)
+        hit = keep(h, t, bary, lax.bitcast_convert_type(w[9], jnp.int32), hit)
+        sk = links_r[cls * nn + n]
+        miss = lax.shift_right_arithmetic(sk, jnp.int32(_SKIP_SHIFT))
+        nxt_leaf = jnp.where(h, -1, miss) if any_hit else miss
+        nxt = jnp.where(is_leaf, nxt_leaf, jnp.where(h_near, near, jnp.where(h_far, far, miss)))
+        nxt = jnp.where(active, nxt, -1)
+        if trail:
+            # Bit trail: bit k set = the ray hit the box of the farther child at depth k that it has
+            # not entered yet. The miss link always leads to such a farther (second-visited) child; if
+            # its bit is clear its box was tested and missed, so the ray takes that node's miss link in
+            # turn (one 4-byte load) instead of a step that would load its row and test its children's
+            # boxes for nothing (a quarter of all steps on the dragon, simulated). Deeper subtrees than
+            # `trail` levels keep no bits and are always entered (correct, as without the trail).
+            child_depth = -code  # depth of an interior node's children
+            both = active & ~is_leaf & h_near & h_far & (child_depth < trail)
+            bits = bits | jnp.where(both, lax.shift_left(jnp.int32(1), jnp.clip(child_depth, 0, 31)), 0)
+            via = (nxt >= 0) & (nxt == miss)
+
+            def hop(s):
+                m, md, via, bits = s
+                tracked = md < trail
+                bit = lax.shift_left(jnp.int32(1), md)
+                enter = ~tracked | ((bits & bit) != 0)
+                bits = jnp.where(via & tracked, bits & ~bit, bits)
+                skip = via & ~enter
+                sk = links_r[cls * nn + jnp.maximum(m, 0)]
+                m = jnp.where(skip, lax.shift_right_arithmetic(sk, jnp.int32(_SKIP_SHIFT)), m)
+                md = jnp.where(skip, sk & _SKIP_DEPTH, md)
+                return m, md, skip & (m >= 0), bits
+
+            # As many hops as the warp needs (one or two fixed hops without the vote measured no faster).
+            nxt, _, _, bits = lax.while_loop(lambda s: jnp.max(s[2].astype(jnp.int32)) > 0, hop,
+                                             (nxt, sk & _SKIP_DEPTH, via, bits))
+        return nxt, hit, bits
+
+    def step_nodes(ray, node, hit, bits):
+        # layout "inline": one 12-word row per node, an interior node's box or a leaf's triangle;
+        # "tables": separate box, leaf-range and triangle tables (any leaf size).
+        cls = ray[12]
+        active = node >= 0
+        n = jnp.maximum(node, 0)
+        if layout == "inline":
+            r12 = n * _ROW
+            w = [box_r[r12 + k] for k in range(9)]
+            bb = w[:6]
+            first = lax.bitcast_convert_type(box_r[r12 + 9], jnp.int32)
+            count = lax.bitcast_convert_type(box_r[r12 + 10], jnp.int32)
+        else:
+            b6 = n * 6
+            bb = [box_r[b6 + k] for k in range(6)]
+            first = leaf_r[n * 2]
+            count = leaf_r[n * 2 + 1]
+        box_in = slab(ray, bb, hit[0])
+        if layout == "inline":
+            # A leaf's row holds its triangle, not its box: the triangle test alone decides (the
+            # padded box test is implied by a hit in [tmin, t_best]) and a leaf's hit and miss links
+            # are the same node, so box_hit only matters for interior nodes.
+            box_hit = active & ((count > 0) | box_in)
+        else:
+            box_hit = active & box_in
+        leaf_hit = box_hit & (count > 0)
+        first = jnp.where(leaf_hit, first, 0)  # lanes not testing a leaf read triangle 0 (cached)
+        any_h = jnp.zeros_like(active)
+        for j in range(leaf_size):
+            idx = jnp.minimum(first + j, nf - 1)
+            if layout == "inline":
+                vs = w
+            else:
+                i9 = idx * 9
+                vs = [tri_r[i9 + k] for k in range(9)]
+            h, t, bary = test_leaf(ray, vs, leaf_hit & (count > j), hit)
+            hit = keep(h, t, bary, idx, hit)
+            any_h = any_h | h
+        row = (cls * nn + n) * 2
+        nxt = jnp.where(box_hit, links_r[row], links_r[row + 1])
+        if any_hit:
+            nxt = jnp.where(any_h, -1, nxt)
+        return jnp.where(active, nxt, -1), hit, bits
+
+    step = step_childbox if layout == "childbox" else step_nodes
+
+    def finish(hit):
+        t, best, bv, bw, det = hit
+        return t, best, bv / det, bw / det
+
+    def steps(ray, node, hit, bits):
+        for _ in range(steps_per_iter):
+            node, hit, bits = step(ray, node, hit, bits)
+        return node, hit, bits
+
+    # One block of consecutive rays per program, traced until the slowest of them ends. The per-ray
+    # constants are computed here (the XLA path's own function, bit for bit) rather than read: an XLA
+    # pass writing 14 columns cost as much as a fifth of a shadow launch.
+    i3 = (pl.program_id(0) * block + jnp.arange(block, dtype=jnp.int32)) * 3
+    inv, shear, kx, ky, kz, cls = ray_constants(*(d_r[i3 + k] for k in range(3)))
+    ray = (*(o_r[i3 + k] for k in range(3)), *inv, *shear, kx, ky, kz, cls, tmin_r[...])
+    shape = ray[0].shape
+    z = jnp.zeros(shape, jnp.float32)
+    hit = (tmax_r[...], jnp.full(shape, -1, jnp.int32), z, z, z + 1.0)
+    _, hit, _ = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s),
+                               (jnp.zeros(shape, jnp.int32), hit, jnp.zeros(shape, jnp.int32)))
+    t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
+
+
+def _children(node_leaf, links):
+    """(is_leaf, a, b, links (classes, nn, 2)): a is class 0's first child of an interior node, b its sibling."""
+    nn = node_leaf.shape[0]
+    lk = links.reshape(NUM_CLASSES, nn, 2)
+    is_leaf = node_leaf[:, 1] > 0
+    a = jnp.where(is_leaf, 0, lk[0, :, 0])  # class 0's hit link of an interior node: its first child
+    b = jnp.where(is_leaf, 0, lk[0, a, 1])  # whose miss link is the sibling
+    return is_leaf, a, b, lk
+
+
+def node_depth(node_leaf, links) -> Array:
+    """(nn,) int32 depth of every node (root 0), by pointer jumping over parent links (log2(nn) rounds)."""
+    nn = node_leaf.shape[0]
+    is_leaf, a, b, _ = _children(node_leaf, links)
+    idx = jnp.arange(nn, dtype=jnp.int32)
+    inner = jnp.where(is_leaf, nn, idx)  # leaves' (meaningless) children are written out of range
+    parent = jnp.zeros(nn, jnp.int32).at[jnp.where(is_leaf, nn, a)].set(inner, mode="drop")
+    parent = parent.at[jnp.where(is_leaf, nn, b)].set(inner, mode="drop")
+    depth = (idx != 0).astype(jnp.int32)
+    for _ in range(max(1, (nn - 1).bit_length())):
+        depth, parent = depth + depth[parent], parent[parent]
+    return depth
+
+
+def pack_rows(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"],
+              depth=None) -> Float[Array, "nn 16"]:
+    """The kernel's node table (nn, 16) float32 (int fields stored bit-cast), one row per node:
+
+    interior: box of child a (6), box of child b (6), a, b, order bits, -(depth + 1) — child a is the
+              first child of ray class 0; bit c of `order` set where class c visits b first
+    leaf:     its triangle v0 v1 v2 (9), its leaf-order triangle index, 0 ... 0, 1
+
+    From a BVH's arrays (see bvh.BVH; leaf_size 1) and optionally `node_depth`'s result. Built once
+    per tree (`bvh.build` stores it as `BVH.rows`), not per traversal call: for the full dragon it is
+    111 MB.
+    """
+    nn = node_box.shape[0]
+    is_leaf, a, b, lk = _children(node_leaf, links)
+    order = jnp.zeros(nn, jnp.int32)
+    for c in range(NUM_CLASSES):
+        order = order | ((lk[c, :, 0] != a) & ~is_leaf).astype(jnp.int32) << c
+    f32 = lambda x: lax.bitcast_convert_type(x.astype(jnp.int32), jnp.float32)  # noqa: E731
+    inner = jnp.concatenate([node_box[a], node_box[b], f32(a)[:, None], f32(b)[:, None], f32(order)[:, None],
+                             f32(-1 - (node_depth(node_leaf, links) if depth is None else depth))[:, None]],
+                            axis=1)
+    first = jnp.where(is_leaf, node_leaf[:, 0], 0)
+    leaf = jnp.concatenate([triangles[first], f32(first)[:, None], jnp.zeros((nn, 5), jnp.float32),
+                            f32(jnp.ones(nn))[:, None]], axis=1)
+    return jnp.where(is_leaf[:, None], leaf, inner)
+
+
+def pack_skips(node_leaf, links, depth=None) -> Array:
+    """The child-box kernel's link table (classes * nn,) int32: per ray class c and node n (entry c*nn + n),
+    miss link << 5 | depth of the node it leads to (31 for depth 31 and deeper; -1 << 5 | 0 where it
+    ends). Built once per tree with `pack_rows` (`BVH.skips`); `depth`: `node_depth`'s result, if at hand."""
+    nn = node_leaf.shape[0]
+    if nn >= 1 << (31 - _SKIP_SHIFT):
+        raise ValueError(f"traverse_pallas: {nn} nodes do not fit the skip table's {31 - _SKIP_SHIFT}-bit links")
+    miss = links.reshape(-1, 2)[:, 1]
+    depth = node_depth(node_leaf, links) if depth is None else depth
+    depth = jnp.minimum(depth, _SKIP_DEPTH)[jnp.maximum(miss, 0)]
+    return lax.shift_left(miss, jnp.int32(_SKIP_SHIFT)) | jnp.where(miss >= 0, depth, 0)
+
+
+def pack_tables(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"]):
+    """(`pack_rows`, `pack_skips`) of one tree, its node depths computed once for both."""
+    depth = node_depth(node_leaf, links)
+    return pack_rows(node_box, node_leaf, links, triangles, depth), pack_skips(node_leaf, links, depth)
+
+
+LAYOUTS = ("childbox", "inline", "tables")
+TRAIL_DEPTH = 31  # the bit trail covers depths 0-30 (one int32 per ray)
+
+
+@functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
+                                             "interpret", "layout", "gate_exact", "skip_tri", "trail"))
+def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"], tmin: Float[Array, " N"],
+             tmax: Float[Array, " N"], *, any_hit: bool, leaf_size: int, block: int = 32,
+             steps_per_iter: int = 1, num_warps: int = 1, interpret: bool = False, layout: str | None = None,
+             gate_exact: bool = True, skip_tri: bool = True, trail: int = TRAIL_DEPTH):
+    """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
+    `traverse_xla.traverse` (without the step counts).
+
+    arrays: node_box (nn,6), node_leaf (nn,2), links (6nn,2), triangles (F,9), optionally rows
+    (nn,16) and skips (6nn,) (see bvh.BVH); origins, directions (N,3) float32; tmin, tmax (N,) float32.
+    block: rays per program instance (a power of 2); steps_per_iter: traversal steps between two
+    checks of the loop predicate; num_warps: Triton warps per program; interpret: run the kernel
+    with the Pallas interpreter (any backend; slow, for tests). gate_exact: evaluate the exact
+    edge signs only in programs where a rounded-product tie occurs (else always).
+    layout (default "childbox" for leaf_size 1, else "tables"): the node table a step reads —
+      "childbox": each node's row holds its children's boxes (`pack_tables`: arrays["rows"] and
+                  arrays["skips"] when present, else packed per call): a step tests both children and moves straight
+                  to the nearer one that is hit, so missed children are never loaded;
+      "inline":   one 12-word row per node, an interior node's box or a leaf's triangle (packed
+                  per call);
+      "tables":   separate box / leaf-range / triangle tables, any leaf size.
+    skip_tri: a warp none of whose rays is at a leaf skips the triangle test's arithmetic (a
+    warp-uniform branch). trail (child-box layout): levels of the tree covered by the bit trail that
+    skips farther children known to be missed (0 to 31; 0 = no trail). All options give the same
+    results; BENCHMARKS.md has their speeds.
+    """
+    layout = layout or ("childbox" if leaf_size == 1 else "tables")
+    if layout not in LAYOUTS:
+        raise ValueError(f"traverse_pallas: layout must be one of {LAYOUTS}, got {layout!r}")
+    if not 0 <= trail <= TRAIL_DEPTH:
+        raise ValueError(f"traverse_pallas: trail must be in [0, {TRAIL_DEPTH}], got {trail}")
+    if layout != "tables" and leaf_size != 1:
+        raise ValueError(f"traverse_pallas: layout {layout!r} needs leaf_size 1")
+    nn = arrays["node_box"].shape[0]
+    nf = arrays["triangles"].shape[0]
+    n = origins.shape[0]
+    n_pad = -(-n // block) * block
+    pad = n_pad - n
+    # Padding rays have an empty interval (tmin 1 > tmax 0): they miss the root's children and end.
+    per_ray = [jnp.pad(origins.astype(jnp.float32), ((0, pad), (0, 0))).reshape(-1),
+               jnp.pad(directions.astype(jnp.float32), ((0, pad), (0, 0)), constant_values=1.0).reshape(-1),
+               jnp.pad(tmin.astype(jnp.float32), (0, pad), constant_values=1.0),
+               jnp.pad(tmax.astype(jnp.float32), (0, pad), constant_values=0.0)]
+    box, leaf, tri = arrays["node_box"], arrays["node_leaf"], arrays["triangles"]
+    links = arrays["links"]
+    if layout == "childbox":
+        if "rows" in arrays:
+            box, links = arrays["rows"], arrays["skips"]
+        else:
+            box, links = pack_tables(box, leaf, links, tri)
+        leaf, tri = leaf[:1], tri[:1]  # unused by this layout
+    elif layout == "inline":
+        is_leaf = (leaf[:, 1] > 0)[:, None]
+        body = jnp.where(is_leaf, tri[jnp.where(is_leaf[:, 0], leaf[:, 0], 0)],
+                         jnp.pad(box, ((0, 0), (0, 3))))
+        box = jnp.concatenate([body, lax.bitcast_convert_type(leaf, jnp.float32), jnp.zeros((nn, 1), jnp.float32)],
+                              axis=1)
+        leaf, tri = leaf[:1], tri[:1]
+    tables = [box.reshape(-1), leaf.reshape(-1), links.reshape(-1), tri.reshape(-1)]
+    whole = lambda x: pl.BlockSpec(x.shape, lambda i: (0,))  # noqa: E731
+    f32 = jax.ShapeDtypeStruct((n_pad,), jnp.float32)
+    i32 = jax.ShapeDtypeStruct((n_pad,), jnp.int32)
+    kw = {}
+    if not interpret:
+        kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
+    static = dict(any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf, nn=nn, layout=layout,
+                  gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout == "childbox" else 0, block=block)
+    name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
+    ray_spec = pl.BlockSpec((block,), lambda i: (i,))
+    t, best, u, v = pl.pallas_call(
+        functools.partial(_kernel, **static),
+        out_shape=(f32, i32, f32, f32),
+        grid=(n_pad // block,),
+        in_specs=[whole(per_ray[0]), whole(per_ray[1]), ray_spec, ray_spec] + [whole(tb) for tb in tables],
+        out_specs=(ray_spec,) * 4,
+        interpret=interpret, name=name, **kw,
+    )(*per_ray, *tables)
+    t, best, u, v = t[:n], best[:n], u[:n], v[:n]
+    return best >= 0, t, best, u, v

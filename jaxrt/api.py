@@ -1,0 +1,50 @@
+"""The top-level entry points: render a scene (a `Scene`, a scene file or a shipped scene's name),
+or trace it once and re-shade it (fitting)."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+from jaxtyping import Array, Float
+
+from jaxrt import integrators
+from jaxrt import scene as _scene
+
+
+def _as_scene(scene: Any, overrides=None):
+    if isinstance(scene, _scene.Scene):
+        if overrides:
+            raise TypeError("overrides apply only when rendering a scene file or name")
+        return scene
+    if isinstance(scene, (str, os.PathLike, dict)):
+        return _scene.load(scene, overrides=overrides)
+    raise TypeError(f"expected a Scene, a scene file path or a shipped scene name, got {type(scene).__name__}")
+
+
+def render(scene: Any, *, aovs: bool = False, overrides: dict | None = None):
+    """Render a scene with its integrator.
+
+    Args:
+        scene: a `jaxrt.scene.Scene`, a scene file path, or a shipped scene name ("spheres").
+        aovs: also return a dict of AOVs (depth, normal, albedo, object_id; see
+            `jaxrt.shading.aovs`).
+        overrides: for a path/name, values applied before validation, e.g. {"camera.width": 64}.
+
+    Returns:
+        (H, W, 3) float32 linear RGB radiance, or (image, aovs dict) with `aovs=True`.
+        Differentiable (reverse mode: jax.grad, jax.vjp) with respect to material parameters and light
+        positions/intensities.
+    """
+    scene = _as_scene(scene, overrides)
+    return integrators.frame(scene, aovs=aovs)
+
+
+def gbuffer(scene: Any) -> "integrators.GBuffer":
+    """Trace once: the ray tree of `scene` for re-shading with `reshade` (fitting)."""
+    return integrators.trace(_as_scene(scene))
+
+
+def reshade(gb: "integrators.GBuffer", scene, *, aovs: bool = False) -> Float[Array, "H W 3"]:
+    """Shade a cached G-buffer with the scene's current materials and lights (differentiable)."""
+    return integrators.shade(gb, scene, aovs=aovs)

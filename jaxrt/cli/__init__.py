@@ -1,0 +1,68 @@
+"""The `jaxrt` command line.
+
+Each subcommand lives in its own module that defines `configure(parser)` and `run(args) -> int`;
+this file only wires them together, so modules are imported only when their command runs.
+Bad input raises `InputError` (or `ValueError`/`FileNotFoundError` from validation) and is printed
+as one line with exit code 2; set JAXRT_DEBUG=1 for the full traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from jaxrt import _config
+from jaxrt.errors import InputError
+
+__all__ = ["COMMANDS", "build_parser", "main"]
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "render": ("jaxrt.cli.render", "render a scene file to EXR/PNG"),
+    "sweep": ("jaxrt.cli.sweep", "render a parameter sweep of one BRDF model as a labelled image strip"),
+    "view": ("jaxrt.cli.view", "open an interactive window with sliders for materials, light and camera"),
+    "fit": ("jaxrt.cli.fit", "recover a BRDF's parameters from target renders (--demo for a self-contained run)"),
+    "fit-matrix": ("jaxrt.cli.fit_matrix", "fit every model to every other model's renders; table and heat map"),
+    "cache": ("jaxrt.cli.cache", "show or clear the on-disk caches (compiled programs, meshes, BVHs)"),
+    "brdf-report": ("jaxrt.cli.brdf_report", "print each BRDF model's albedo table and write a lobe plot PNG"),
+}
+
+
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
+    """The full parser; only the `selected` command's module is imported and configured."""
+    parser = argparse.ArgumentParser(
+        prog="jaxrt", description="jaxrt: a JAX array ray tracer for analysing and fitting BRDFs."
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        if name == selected:
+            mod = importlib.import_module(module)
+            mod.configure(p)
+            p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    selected = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(selected if selected in COMMANDS else None)
+    args = parser.parse_args(argv)
+    debug = False
+    try:
+        debug = _config.config().debug
+        return int(args._run(args) or 0)
+    except (InputError, ValueError, FileNotFoundError) as e:
+        if debug:
+            raise
+        print(f"jaxrt {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jaxrt: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,7 @@
+"""`python -m jaxrt.cli`: the `jaxrt` command."""
+
+import sys
+
+from jaxrt.cli import main
+
+sys.exit(main())

@@ -1,0 +1,370 @@
+"""Unidirectional path tracing with next-event estimation and multiple importance sampling.
+
+`integrator = "path"`. Every pixel sample is one path; the B = H·W·spp paths advance together
+(wavefront style), one bounce per iteration of a `lax.fori_loop` (a scan: BVH traversal is compiled
+once, not once per bounce, and the loop is reverse-differentiable). An iteration whose paths are all
+dead skips its work (`lax.cond`), so short paths cost little whatever max_depth is.
+
+Estimator (pbrt-v4's PathIntegrator, power heuristic with β = 2). At each path vertex:
+
+* Emission reached by the previous BSDF-sampled ray (emissive triangle or environment) is added
+  with MIS weight p_bsdf² / (p_bsdf² + p_light²); camera rays and delta bounces get weight 1.
+* Next-event estimation at non-delta vertices: every point light, deterministically (delta
+  lights: no MIS, and no selection noise), plus one sample of the "continuous" lights: choose the
+  emissive triangles or the environment (probability 1/2 each when both exist), then a triangle by
+  area·luminance(emission) and a uniform point on it (pdf converted to solid angle,
+  d²/|cos θ_light|), or a direction from the environment's luminance distribution. Each gets one
+  shadow ray (`bvh.occluded`) and the weight p_light² / (p_light² + p_bsdf²).
+* The next direction is sampled from the material: the mirror coefficient δ is a delta lobe
+  chosen with probability δ (the opaque BRDF part with 1 − δ, sampled with the model's
+  `sample`/`pdf`); the NEE term above is weighted by (1 − δ) deterministically, so with point
+  lights only and max_depth 1 the estimate equals the Whitted image exactly. Glass chooses
+  reflection with probability R (Fresnel) and transmission otherwise, inside/outside decided by
+  the geometric normal as in Whitted (no nested media; glass casts opaque shadows for NEE but
+  transmits BSDF-sampled paths, so light through glass arrives by path sampling).
+* Russian roulette from vertex RR_DEPTH on: survival probability max(throughput) clamped to
+  [0.05, 0.95].
+
+max_depth counts scattering vertices (as pbrt's maxDepth): 1 is direct lighting (NEE plus the
+MIS-weighted emission found by the BSDF-sampled ray); Mitsuba's `max_depth` is ours + 1.
+
+Emitters are one-sided (they emit on the side the triangle winding's normal points to);
+surfaces are two-sided for reflection. No NaN/Inf reaches the image: zero pdfs and degenerate
+directions end the path, and non-finite samples are replaced by 0.
+
+Random numbers are counter-based: the path of pixel i, sample j in pass P uses
+`fold_in(fold_in(key(seed), P), i·spp + j)`, then folds in the bounce and takes 8 uniforms for the
+8 purposes (light class, triangle, 2 for the light point, lobe/mirror/Fresnel choice, 2 for the
+BSDF direction, roulette). A path's numbers therefore do not depend on the batch around it. Camera
+jitter and lens samples come from `camera.generate_rays` with a per-pass seed.
+
+Gradients. `jax.grad` of an image w.r.t. material parameters, emission, environment texels and
+light intensities is an unbiased estimate of the gradient of the expected image (away from
+visibility changes, which material parameters never move): every sampling decision (directions,
+lobe/mirror/Fresnel choices, light selection, MIS weights, roulette) is computed from
+stop_gradient'ed values, while the path weights f(params)·cosθ/pdf, δ/q, R/R̂ are not. For fixed
+sampling densities the estimator is an unbiased estimate of I(θ) for every θ, so its derivative
+at the current θ is an unbiased estimate of dI/dθ (the densities only have to be positive where
+f is). Geometry and the camera are stop_gradient'ed (edge terms are not modelled).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jaxtyping import Array, Float, Int
+
+import brdfs
+from jaxrt import camera, envmap
+from jaxrt import lights as _lights
+from jaxrt.integrators.common import intersect_active, power_heuristic
+from jaxrt.shading.aovs import build_aovs
+from jaxrt.shading.material import gather_params, glass_split, is_glass
+from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented, to_local
+
+RR_DEPTH = 3
+_NU = 8  # uniforms per path and bounce (see module docstring)
+_sg = lax.stop_gradient
+
+
+class EmitterTable(eqx.Module):
+    """Sampling table of the emissive triangles (derived from current values, never stored).
+
+    cdf: (E + 1,) over emitters by area·luminance(emission); face_pdf: (F,) probability density per
+    unit area of choosing a point on each face (0 for non-emitters); total: () Σ area·luminance.
+    """
+
+    cdf: Float[Array, " E1"]
+    face_pdf: Float[Array, " F"]
+    total: Float[Array, ""]
+
+
+def emitter_table(scene) -> EmitterTable:
+    """Areas and selection probabilities of the scene's emissive triangles (detached values)."""
+    geo = _sg(scene.geometry)
+    al = _sg(scene.area_lights)
+    v0, v1, v2 = geo.triangles(al.prims)
+    area = 0.5 * jnp.linalg.norm(jnp.cross(v1 - v0, v2 - v0), axis=-1)
+    power = area * envmap.luminance(al.emission[geo.face_material(al.prims)])
+    total = jnp.sum(power)
+    norm = jnp.where(total > 0, total, 1.0)
+    cdf = jnp.concatenate([jnp.zeros(1), jnp.cumsum(power) / norm])
+    pdf_area = jnp.where(area > 0, power / norm / jnp.where(area > 0, area, 1.0), 0.0)
+    face_pdf = jnp.zeros(geo.face_count).at[al.prims].set(pdf_area)
+    return EmitterTable(cdf, face_pdf, total)
+
+
+def _light_classes(scene):
+    """Static probabilities of sampling (emissive triangles, environment) for the one NEE sample."""
+    has_tri = scene.area_lights is not None and scene.area_lights.count > 0
+    has_env = getattr(scene, "environment", None) is not None
+    n = int(has_tri) + int(has_env)
+    return (1.0 / n if has_tri else 0.0), (1.0 / n if has_env else 0.0)
+
+
+def _params(mats, s, k: int) -> dict:
+    # textured parameters are looked up at the hit's uv where the Surface carries one
+    uv = getattr(s, "uv", None)
+    return gather_params(mats, s.material, k) if uv is None else gather_params(mats, s.material, k, uv)
+
+
+def _bsdf_models(mats):
+    return [(k, brdfs.get(name)) for k, name in enumerate(mats.models) if not brdfs.get(name).delta]
+
+
+def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None = None, aovs: bool = False):
+    """Radiance of every path of one pass.
+
+    Args:
+        scene: a `jaxrt.scene.Scene` (settings.spp paths per pixel, settings.max_depth bounces).
+        pass_index: which pass (a different random stream per pass; traced, no recompile).
+        jitter: jitter samples inside the pixel (default: spp > 1, as Whitted); progressive
+            accumulation always jitters.
+        aovs: also return the first-hit records (prim, u, v, t, direction) of every path.
+
+    Returns:
+        (H·W, spp, 3) float32 linear radiance per path [W/(m²·sr)], finite; with `aovs` a pair
+        (radiance, first-hit dict).
+    """
+    st, cam, mats = scene.settings, _sg(scene.camera), scene.materials
+    geo = _sg(scene.geometry)
+    D = st.max_depth
+    spp = st.spp
+    npix = cam.num_pixels
+    B = npix * spp
+    p_tri, p_env = _light_classes(scene)
+    env = scene.environment if p_env > 0 else None
+    table = emitter_table(scene) if p_tri > 0 else None
+    al = scene.area_lights
+    nl = scene.lights.count
+    models = _bsdf_models(mats)
+
+    key = jax.random.fold_in(jax.random.key(jnp.asarray(st.seed, jnp.uint32)), jnp.asarray(pass_index, jnp.uint32))
+    kcam, kpath = jax.random.split(key)
+    cam_seed = jax.random.bits(kcam, (), jnp.uint32)
+    o0, d0 = camera.generate_rays(cam, spp, cam_seed, jitter)
+    d0 = normalize(d0)
+    path_keys = jax.vmap(lambda i: jax.random.fold_in(kpath, i))(jnp.arange(B, dtype=jnp.uint32))
+
+    def uniforms(k):
+        return jax.vmap(lambda pk: jax.random.uniform(jax.random.fold_in(pk, k), (_NU,)))(path_keys)
+
+    def work(k, carry):
+        o, d, alive, tput, specular, pdf_prev, L, first = carry
+        u = uniforms(k)
+        hit = intersect_active(geo, o, d, alive)
+        prim = jnp.where(alive, hit.prim, -1)
+        found = prim >= 0
+        first = jax.tree.map(lambda a, b: jnp.where(k == 0, b, a), first,
+                             dict(prim=prim, u=hit.u, v=hit.v, t=jnp.where(found, hit.t, 0.0), d=d))
+        s = geo.surface(prim, hit.u, hit.v)
+        s = eqx.tree_at(lambda x: x.material, s, jnp.where(found, s.material, 0))
+
+        # ---- emission found by the previous ray
+        if env is not None:
+            le = envmap.radiance(env, d)
+            w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_env * _sg(envmap.pdf(env, d))))
+            L = L + jnp.where((alive & ~found)[:, None], tput * w[:, None] * le, 0.0)
+        if table is not None:
+            le = al.emission[s.material]
+            cos_l = -dot(d, s.ng)
+            t = jnp.where(found, hit.t, 0.0)
+            p_l = p_tri * table.face_pdf[jnp.maximum(prim, 0)] * t * t / jnp.where(cos_l > 0, cos_l, 1.0)
+            w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_l))
+            L = L + jnp.where((found & (cos_l > 0))[:, None], tput * w[:, None] * le, 0.0)
+
+        cont = found & (k < D)
+        ng, ns, _ = oriented(s, d)
+        frame = local_frame(ns, s.tangent)
+        wo = to_local(-d, frame)
+        eps = offset_scale(s.p)
+        glass = cont & is_glass(mats, s.material)
+        opaque = cont & ~glass
+        delta = jnp.where(opaque, mats.delta[s.material], 0.0)
+        q = _sg(delta)
+        params = {kk: _params(mats, s, kk) for kk, _ in models}
+        sel = {kk: mats.model_id[s.material] == kk for kk, _ in models}
+
+        def eval_f(wi_l, wo_l, extra_dims=0):
+            f = jnp.zeros(wi_l.shape)
+            pdf = jnp.zeros(wi_l.shape[:-1])
+            for kk, model in models:
+                p = {n: x.reshape(x.shape[:1] + (1,) * extra_dims + x.shape[1:]) for n, x in params[kk].items()}
+                m = sel[kk].reshape((-1,) + (1,) * extra_dims)
+                f = jnp.where(m[..., None], model.eval(p, wi_l, wo_l), f)
+                pdf = jnp.where(m, model.pdf(_sg(p), wo_l, wi_l), pdf)
+            return f, pdf
+
+        # ---- next-event estimation: every point light, one continuous-light sample
+        origin = s.p + ng * eps
+        rays_o, rays_d, rays_t = [], [], []
+        if nl > 0:
+            wi_p, dist_p, scale_p = _lights.incident(scene.lights, s.p)  # (B, L, 3), (B, L), (B, L, 3)
+            lit_p = opaque[:, None] & (dot(wi_p, ng[:, None, :]) > 0)
+            wi_pl = to_local(wi_p, tuple(x[:, None, :] for x in frame))
+            f_p, _ = eval_f(wi_pl, wo[:, None, :], extra_dims=1)
+            c_p = f_p * jnp.maximum(wi_pl[..., 2], 0.0)[..., None] * scale_p  # (B, L, 3)
+            rays_o.append(jnp.broadcast_to(origin[:, None, :], wi_p.shape).reshape(-1, 3))
+            rays_d.append(wi_p.reshape(-1, 3))
+            rays_t.append(jnp.where(lit_p, dist_p - 2.0 * eps, -1.0).reshape(-1))
+        if table is not None or env is not None:
+            wi_c = jnp.zeros((B, 3))
+            le_c = jnp.zeros((B, 3))
+            p_c = jnp.zeros(B)
+            dist_c = jnp.full(B, jnp.inf)
+            pick_tri = u[:, 0] < p_tri
+            if table is not None:
+                j = jnp.clip(jnp.searchsorted(table.cdf, u[:, 1], side="right") - 1, 0, al.count - 1)
+                face = al.prims[j]
+                v0, v1, v2 = geo.triangles(face)
+                su = jnp.sqrt(u[:, 2])
+                b1, b2 = 1.0 - su, u[:, 3] * su
+                y = (1.0 - b1 - b2)[:, None] * v0 + b1[:, None] * v1 + b2[:, None] * v2
+                n_l = normalize(jnp.cross(v1 - v0, v2 - v0))
+                # aim from the offset origin: a ray parallel to y - p would meet the light's plane
+                # eps/cosθ early, short of the shadow ray's end, and count as occluded
+                to = y - origin
+                d2 = dot(to, to)
+                dist = jnp.sqrt(jnp.maximum(d2, 1e-30))
+                wi_t = to / dist[:, None]
+                cos_l = -dot(wi_t, n_l)
+                ok_t = (cos_l > 0) & (d2 > 1e-20) & (table.total > 0)
+                p_t = jnp.where(ok_t, p_tri * table.face_pdf[face] * d2 / jnp.where(ok_t, cos_l, 1.0), 0.0)
+                le_t = jnp.where(ok_t[:, None], al.emission[geo.face_material(face)], 0.0)
+                wi_c = jnp.where(pick_tri[:, None], wi_t, wi_c)
+                le_c = jnp.where(pick_tri[:, None], le_t, le_c)
+                p_c = jnp.where(pick_tri, p_t, p_c)
+                dist_c = jnp.where(pick_tri, dist, dist_c)
+            if env is not None:
+                wi_e, le_e, pdf_e = envmap.sample(env, u[:, 2:4])
+                wi_c = jnp.where(pick_tri[:, None], wi_c, wi_e)
+                le_c = jnp.where(pick_tri[:, None], le_c, le_e)
+                p_c = jnp.where(pick_tri, p_c, p_env * _sg(pdf_e))
+            wi_cl = to_local(wi_c, frame)
+            f_c, pb = eval_f(wi_cl, wo)
+            lit_c = opaque & (dot(wi_c, ng) > 0) & (p_c > 0)
+            w_c = power_heuristic(p_c, (1.0 - q) * pb)
+            c_c = f_c * (jnp.maximum(wi_cl[:, 2], 0.0) * w_c / jnp.where(p_c > 0, p_c, 1.0))[:, None] * le_c
+            rays_o.append(origin)
+            rays_d.append(wi_c)
+            rays_t.append(jnp.where(lit_c, dist_c - 2.0 * eps[:, 0], -1.0))
+        if rays_o:
+            tmax = jnp.concatenate(rays_t)
+            occ = geo.occluded(jnp.concatenate(rays_o), jnp.concatenate(rays_d), tmax)
+            vis = (tmax > 0) & ~occ
+            direct = jnp.zeros((B, 3))
+            if nl > 0:
+                direct = direct + jnp.sum(jnp.where(vis[: B * nl].reshape(B, nl)[..., None], c_p, 0.0), axis=1)
+            if table is not None or env is not None:
+                direct = direct + jnp.where(vis[B * nl:][:, None], c_c, 0.0)
+            L = L + tput * (1.0 - delta)[:, None] * direct
+
+        # ---- next direction: opaque (mirror lobe δ or the model's sampler) ...
+        wi_s = jnp.zeros((B, 3)).at[:, 2].set(1.0)
+        pdf_s = jnp.zeros(B)
+        for kk, model in models:
+            wk, _, pk = model.sample(_sg(params[kk]), _sg(wo), u[:, 5:7])
+            wi_s = jnp.where(sel[kk][:, None], wk, wi_s)
+            pdf_s = jnp.where(sel[kk], pk, pdf_s)
+        f_s, _ = eval_f(wi_s, wo)
+        ok_s = pdf_s > 0
+        # (q = 1 always takes the mirror; the guard keeps this unused branch finite for gradients)
+        den = jnp.where(ok_s & (q < 1.0), pdf_s * (1.0 - q), 1.0)
+        fac_b = f_s * (jnp.maximum(wi_s[:, 2], 0.0) * (1.0 - delta) / den)[:, None]
+        mirror = u[:, 4] < q
+        fac_m = jnp.broadcast_to((delta / jnp.where(q > 0, q, 1.0))[:, None], (B, 3))
+        d_op = jnp.where(mirror[:, None], mirror_dir(d, ng, ns), from_local(wi_s, frame))
+        ok_op = (mirror | ok_s) & (dot(d_op, ng) > 0)
+        fac_op = jnp.where(mirror[:, None], fac_m, fac_b)
+        new_d, new_o, fac, ok = d_op, origin, fac_op, ok_op
+        new_spec = mirror
+        new_pdf = (1.0 - q) * pdf_s
+        # ... or glass: reflection with probability R, else transmission
+        for kk, name in enumerate(mats.models):
+            if not brdfs.get(name).delta:
+                continue
+            r, dr, dt, t_ok = glass_split(mats, s, d, kk)
+            rq = _sg(r)
+            pick_r = (u[:, 4] < rq) | ~t_ok
+            fac_g = jnp.where(pick_r, r / jnp.where(rq > 0, rq, 1.0), (1.0 - r) / jnp.where(rq < 1, 1.0 - rq, 1.0))
+            here = glass & (mats.model_id[s.material] == kk)
+            new_d = jnp.where(here[:, None], jnp.where(pick_r[:, None], dr, dt), new_d)
+            new_o = jnp.where(here[:, None], jnp.where(pick_r[:, None], origin, s.p - ng * eps), new_o)
+            fac = jnp.where(here[:, None], fac_g[:, None], fac)
+            ok = jnp.where(here, True, ok)
+            new_spec = new_spec | here
+        tput = tput * fac
+        alive = cont & ok
+        # ---- Russian roulette
+        q_rr = jnp.clip(jnp.max(_sg(tput), axis=-1), 0.05, 0.95)
+        rr = k >= RR_DEPTH
+        alive = alive & (~rr | (u[:, 7] < q_rr))
+        tput = jnp.where(rr, tput / q_rr[:, None], tput)
+        good = alive & jnp.all(jnp.isfinite(tput), axis=-1)
+        tput = jnp.where(good[:, None], tput, 0.0)
+        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first)
+
+    def body(k, carry):
+        return lax.cond(jnp.any(carry[2]), lambda c: work(k, c), lambda c: c, carry)
+
+    first = dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
+    # the throughput's dtype follows the material values so float64 tests stay float64
+    one = jnp.ones((B, 3), jnp.result_type(float))
+    carry = (o0, d0, jnp.ones(B, bool), one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first)
+    carry = lax.fori_loop(0, D + 1, body, carry)
+    L = carry[6]
+    L = jnp.where(jnp.isfinite(L), L, 0.0).reshape(npix, spp, 3)
+    if aovs:
+        return L, carry[7]
+    return L
+
+
+def _aovs(scene, first: dict) -> dict:
+    # paths are pixel-major (H·W·spp, the spp samples of a pixel together): the first sample of
+    # pixel i is path i·spp
+    idx = jnp.arange(scene.camera.num_pixels) * scene.settings.spp
+    return build_aovs(scene, *(first[k][idx] for k in ("prim", "u", "v", "t", "d")))
+
+
+def render(scene, pass_index: Int[Array, ""] | int = 0, *, aovs: bool = False, jitter: bool | None = None):
+    """One pass of `settings.spp` paths per pixel averaged into an (H, W, 3) image; with `aovs` a pair
+    (image, dict) with depth, normal, albedo and object_id of each pixel's first sample (as Whitted)."""
+    cam = scene.camera
+    out = samples(scene, pass_index, jitter=jitter, aovs=aovs)
+    L, first = out if aovs else (out, None)
+    img = jnp.mean(L, axis=1).reshape(cam.height, cam.width, 3)
+    if not aovs:
+        return img
+    return img, _aovs(scene, first)
+
+
+class Accumulation(eqx.Module):
+    """Running sum of progressive passes: total (H, W, 3) Σ over samples; count () samples per pixel."""
+
+    total: Float[Array, "H W 3"]
+    count: Int[Array, ""]
+    passes: Int[Array, ""]
+
+    @property
+    def image(self) -> Float[Array, "H W 3"]:
+        return self.total / jnp.maximum(self.count, 1)
+
+
+def accumulate(scene, state: Accumulation | None = None) -> Accumulation:
+    """Add one pass of `scene.settings.spp` jittered samples per pixel to `state` (None: start).
+
+    Pass P uses random stream P, so N calls give the same image as one render of N·spp samples
+    would with those streams; the compiled pass is reused across calls (the pass index is traced).
+    """
+    cam = scene.camera
+    if state is None:
+        state = Accumulation(jnp.zeros((cam.height, cam.width, 3)), jnp.asarray(0), jnp.asarray(0))
+    img = jnp.mean(samples_jit(scene, state.passes, jitter=True), axis=1).reshape(cam.height, cam.width, 3)
+    spp = scene.settings.spp
+    return Accumulation(state.total + img * spp, state.count + spp, state.passes + 1)
+
+
+samples_jit = jax.jit(samples, static_argnames=("jitter", "aovs"))
+render_jit = jax.jit(render, static_argnames=("aovs", "jitter"))

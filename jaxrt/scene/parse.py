@@ -1,0 +1,387 @@
+"""Scene files (TOML) -> validated `SceneSpec`, without touching JAX.
+
+`parse` reads the TOML (tomllib: no eval, no pickle) and validates every table and key into the
+plain records of `jaxrt.scene.spec`. Any problem raises one `InputError` naming the file, the table
+and the key, and saying what is allowed. BRDF parameter bounds come from each model's `Param`
+declarations, integrator names from `jaxrt.integrators.names()`.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import brdfs
+from jaxrt import integrators
+from jaxrt.errors import InputError
+from jaxrt.scene.spec import (
+    DELTA,
+    CameraSpec,
+    EnvironmentSpec,
+    GroupSpec,
+    InstanceSpec,
+    MaterialSpec,
+    ObjectSpec,
+    RenderSpec,
+    SceneSpec,
+    TextureSpec,
+)
+from jaxrt.scene.tables import Table, parse_transform, unique_name
+
+SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
+MAX_RESOLUTION = 16384
+
+
+def find_scene(name_or_path: str | os.PathLike) -> Path:
+    """A scene file path, or a shipped scene's name (`spheres` -> scenes/spheres.toml)."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    shipped = SCENES_DIR / f"{p.name if p.suffix == '' else p.stem}.toml"
+    if p.suffix == "" and len(p.parts) == 1 and shipped.is_file():
+        return shipped
+    names = sorted(q.stem for q in SCENES_DIR.glob("*.toml")) if SCENES_DIR.is_dir() else []
+    raise InputError(f"{name_or_path}: no such scene file; shipped scenes: {', '.join(names) or '(none)'}")
+
+
+def apply_overrides(doc: dict, overrides: Mapping[str, Any] | None) -> dict:
+    """Overrides are {"camera.width": 64, "render.spp": 4, ...} applied before validation."""
+    if not overrides:
+        return doc
+    doc = {k: (dict(v) if isinstance(v, dict) else v) for k, v in doc.items()}
+    for dotted, value in overrides.items():
+        if value is None:
+            continue
+        table, key = dotted.split(".", 1)
+        doc.setdefault(table, {})
+        if not isinstance(doc[table], dict):
+            raise InputError(f"[{table}] is not a table")
+        doc[table][key] = value
+    return doc
+
+
+def parse(
+    source: str | os.PathLike | Mapping, base_dir: str | os.PathLike | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> SceneSpec:
+    """Read and validate a scene (a TOML path or an already-parsed dict) without touching JAX."""
+    if isinstance(source, Mapping):
+        file, doc = "<scene>", dict(source)
+        base = Path(base_dir or ".")
+    else:
+        path = Path(source)
+        file = str(path)
+        if not path.is_file():
+            raise InputError(f"{file}: no such scene file")
+        try:
+            with open(path, "rb") as f:
+                doc = tomllib.load(f)
+        except tomllib.TOMLDecodeError as e:
+            raise InputError(f"{file}: not valid TOML: {e}") from None
+        except OSError as e:
+            raise InputError(f"{file}: cannot read: {e.strerror}") from None
+        base = Path(base_dir) if base_dir is not None else path.parent
+    doc = apply_overrides(doc, overrides)
+
+    top = Table(file, "top level", doc)
+    for k in ("camera", "lights", "materials", "objects", "render", "description", "groups", "instances", "environment"):
+        top.used.add(k)
+    top.done()
+    if "description" in doc and not isinstance(doc["description"], str):
+        top.fail("description", "expected a string")
+
+    # ---- camera
+    c = Table(file, "camera", top.raw("camera"))
+    position = c.vector("position", 3)
+    look_at = c.vector("look_at", 3)
+    up = c.vector("up", 3, default=[0.0, 1.0, 0.0])
+    view = np.subtract(look_at, position)
+    if np.linalg.norm(view) == 0:
+        c.fail("look_at", "must differ from position")
+    if np.linalg.norm(np.cross(view, up)) <= 1e-9 * np.linalg.norm(view) * max(np.linalg.norm(up), 1e-30):
+        c.fail("up", f"{list(up)} must not be zero or parallel to the view direction")
+    camera = CameraSpec(
+        position=position, look_at=look_at, up=up,
+        vfov=c.number("vfov", 40.0, lo=0.0, hi=180.0, lo_open=True, hi_open=True),
+        aperture=c.number("aperture", 0.0, lo=0.0),
+        focus_distance=c.number("focus_distance", float(np.linalg.norm(view)), lo=0.0, lo_open=True),
+        width=c.integer("width", 512, lo=1, hi=MAX_RESOLUTION),
+        height=c.integer("height", 512, lo=1, hi=MAX_RESOLUTION),
+    )
+    c.done()
+
+    # ---- environment (optional)
+    environment = None
+    if "environment" in doc:
+        ec = Table(file, "environment", doc["environment"])
+        env_file = ec.string("file", None)
+        env_rad = ec.vector("radiance", 3, default=None, lo=0.0, scalar_ok=True)
+        if (env_file is None) == (env_rad is None):
+            ec.fail(None, "give exactly one of file = \"map.exr\" (lat-long OpenEXR or .hdr) or radiance = [r, g, b]")
+        env_path = None
+        if env_file is not None:
+            env_path = Path(env_file) if Path(env_file).is_absolute() else base / env_file
+            from jaxrt.envmap import SUFFIXES
+
+            if env_path.suffix.lower() not in SUFFIXES:
+                ec.fail("file", f"{env_file!r}: lat-long maps must be OpenEXR (.exr) or Radiance RGBE "
+                                "(.hdr, .pic)")
+            if not env_path.is_file():
+                ec.fail("file", f"{env_file!r}: no such file (looked for {env_path})")
+        environment = EnvironmentSpec(
+            file=env_path, radiance=env_rad or (0.0, 0.0, 0.0),
+            scale=ec.number("scale", 1.0, lo=0.0), rotate=ec.number("rotate", 0.0),
+        )
+        ec.done()
+
+    # ---- lights (point lights; optional when the scene has an environment or an emissive material)
+    raw_lights = top.raw("lights", [])
+    emissive = isinstance(doc.get("materials"), dict) and any(
+        isinstance(m, dict) and "emission" in m for m in doc["materials"].values())
+    if not isinstance(raw_lights, list) or (not raw_lights and environment is None and not emissive):
+        top.fail("lights", "expected one or more [[lights]] tables (point lights), unless the scene has an "
+                           "[environment] or a material with emission")
+    lights = []
+    for i, l in enumerate(raw_lights):
+        lc = Table(file, f"[lights] #{i + 1}", l)
+        lc.string("type", "point", choices=("point",))
+        lights.append((lc.vector("position", 3), lc.vector("intensity", 3, lo=0.0, scalar_ok=True)))
+        lc.done()
+
+    # ---- materials
+    raw_mats = top.raw("materials")
+    if not isinstance(raw_mats, dict) or not raw_mats:
+        top.fail("materials", "expected one or more [materials.NAME] tables")
+    materials: dict[str, MaterialSpec] = {}
+    for name, m in raw_mats.items():
+        mc = Table(file, f"materials.{name}", m)
+        model_name = mc.string("model", choices=tuple(brdfs.names()))
+        model = brdfs.get(model_name)
+        if model.delta:
+            delta = 0.0
+            emission = (0.0, 0.0, 0.0)
+        else:
+            delta = mc.number("delta", DELTA.default, lo=DELTA.lo, hi=DELTA.hi)
+            emission = mc.vector("emission", 3, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
+        params, textures = {}, {}
+        for p in model.spec:
+            value = mc.raw(p.name, p.default)
+            if isinstance(value, Mapping) and not model.delta:
+                textures[p.name] = parse_texture(value, p, model.name, base, f"{file}: materials.{name}.{p.name}")
+                params[p.name] = np.asarray(textures[p.name].texels.reshape(-1, textures[p.name].texels.shape[-1])
+                                            .mean(0) if p.rgb else textures[p.name].texels.mean(), np.float32)
+                continue
+            try:
+                params[p.name] = p.check(value, model.name)
+            except ValueError as e:
+                mc.fail(p.name, str(e).split(": ", 1)[-1])
+        mc.done()
+        materials[name] = MaterialSpec(name, model_name, params, delta, textures, emission=emission)
+
+    # ---- objects (optional when [[instances]] place groups)
+    raw_objs = top.raw("objects", None)
+    has_instances = doc.get("instances") is not None
+    if raw_objs is None and has_instances:
+        raw_objs = []
+    elif not isinstance(raw_objs, list) or (not raw_objs and not has_instances):
+        top.fail("objects", "expected one or more [[objects]] tables (or [[groups]] placed by [[instances]])")
+    names_seen: set[str] = set()
+    objects = [parse_object(Table(file, f"[objects] #{i + 1}", o), materials, base, names_seen)
+               for i, o in enumerate(raw_objs)]
+
+    # ---- groups and instances (jaxrt.geometry.instanced)
+    groups, instances = parse_instances(doc, file, materials, base, names_seen)
+
+    # ---- render
+    rc = Table(file, "render", top.raw("render", {}))
+    render = RenderSpec(
+        integrator=rc.string("integrator", "whitted", choices=integrators.names()),
+        max_depth=rc.integer("max_depth", 5, lo=1, hi=16),
+        spp=rc.integer("spp", 1, lo=1, hi=4096),
+        seed=rc.integer("seed", 0, lo=0, hi=2**31 - 1),
+        background=rc.vector("background", 3, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True),
+        ray_budget=rc.integer("ray_budget", None, lo=1, hi=8) if "ray_budget" in rc.data else None,
+    )
+    rc.raw("ray_budget", None)
+    rc.done()
+    return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances, environment)
+
+
+def parse_object(oc: "Table", materials: dict, base: Path, names_seen: set[str]) -> ObjectSpec:
+    """One [[objects]] (or [[groups.objects]]) table; `names_seen` makes names unique (adds .2, .3)."""
+    mesh_ref = oc.string("mesh", None)
+    prim = oc.string("primitive", None, choices=("sphere", "plane", "box"))
+    if (mesh_ref is None) == (prim is None):
+        oc.fail(None, "give exactly one of mesh = NAME|PATH or primitive = sphere|plane|box")
+    name = oc.string("name", mesh_ref if prim is None else prim)
+    if isinstance(name, str) and mesh_ref is not None and name == mesh_ref:
+        name = Path(mesh_ref).stem
+    name = unique_name(name, names_seen)
+    material = oc.string("material", choices=tuple(materials))
+    prim_args: dict = {}
+    mesh_path = None
+    parts = None
+    part_materials: dict = {}
+    flat = False
+    if prim == "sphere":
+        prim_args["radius"] = oc.number("radius", 1.0, lo=0.0, lo_open=True)
+        prim_args["subdivisions"] = oc.integer("subdivisions", 4, lo=0, hi=7)
+    elif prim == "plane":
+        prim_args["size"] = oc.vector("size", 2, default=[1.0, 1.0], lo=1e-30)
+    elif prim == "box":
+        prim_args["size"] = oc.vector("size", 3, default=[1.0, 1.0, 1.0], lo=1e-30, scalar_ok=True)
+    else:
+        mesh_path = resolve_mesh(mesh_ref, base, oc)
+        flat = oc.boolean("flat", False)
+        p = oc.raw("parts", None)
+        if p is not None:
+            if not isinstance(p, list) or not p or not all(isinstance(x, str) for x in p):
+                oc.fail("parts", f"expected a list of object names in the mesh file, got {p!r}")
+            parts = tuple(p)
+        pm = oc.raw("part_materials", {})
+        if not isinstance(pm, dict) or not all(isinstance(v, str) for v in pm.values()):
+            oc.fail("part_materials", "expected a table {part_name = \"material\", ...}")
+        for part, mat in pm.items():
+            if mat not in materials:
+                oc.fail(f"part_materials.{part}", f"{mat!r} is not a material; allowed: {', '.join(materials)}")
+        part_materials = dict(pm)
+    scale, rotate, translate = parse_transform(oc)
+    oc.done()
+    return ObjectSpec(name, material, mesh_path, prim, prim_args, scale, rotate, translate, flat, parts,
+                      part_materials)
+
+
+def parse_texture(t: Mapping, p, model: str, base: Path, where: str) -> TextureSpec:
+    """Validate a texture table `{ texture = "file.png" | checker = [a, b], wrap, scale, offset }` for
+    parameter declaration `p` (see jaxrt/textures.py for the conventions)."""
+    from jaxrt.shading import textures as _tx
+
+    allowed = ("texture", "checker", "wrap", "scale", "offset")
+    unknown = [k for k in t if k not in allowed]
+    if unknown:
+        raise InputError(f"{where}: unknown texture key {unknown[0]!r}; allowed: {', '.join(allowed)}")
+    if ("texture" in t) == ("checker" in t):
+        raise InputError(f"{where}: a texture table needs exactly one of texture = \"FILE.png|.exr\" "
+                         "or checker = [VALUE_A, VALUE_B]")
+    wrap = t.get("wrap", "repeat")
+    if wrap not in _tx.WRAPS:
+        raise InputError(f"{where}: wrap = {wrap!r}; allowed: {', '.join(_tx.WRAPS)}")
+
+    def pair(key, default, positive):
+        v = t.get(key, default)
+        try:
+            a = np.broadcast_to(np.asarray(v, np.float64), (2,))
+        except (TypeError, ValueError):
+            raise InputError(f"{where}: {key} must be a number or [u, v], got {v!r}") from None
+        if not np.all(np.isfinite(a)) or (positive and np.any(a == 0)):
+            raise InputError(f"{where}: {key} = {v!r} must be finite{' and non-zero' if positive else ''}")
+        return tuple(float(x) for x in a)
+
+    scale, offset = pair("scale", 1.0, True), pair("offset", 0.0, False)
+    chans = 3 if p.rgb else 1
+    if "checker" in t:
+        vals = t["checker"]
+        if not isinstance(vals, list) or len(vals) != 2:
+            raise InputError(f"{where}: checker must be a list of two values, got {vals!r}")
+        texels = []
+        for k, v in enumerate(vals):
+            if not p.rgb and np.ndim(v) != 0:
+                raise InputError(f"{where}: checker value {k + 1} must be a number ({p.name} is not RGB), got {v!r}")
+            try:
+                texels.append(np.broadcast_to(p.check(v, model), (chans,)))
+            except ValueError as e:
+                raise InputError(f"{where}: checker value {k + 1}: {str(e).split(': ', 1)[-1]}") from None
+        return TextureSpec("checker", np.stack(texels)[None].astype(np.float32), wrap, scale, offset, "checker")
+    ref = t["texture"]
+    if not isinstance(ref, str):
+        raise InputError(f"{where}: texture must be a file name, got {ref!r}")
+    path = Path(ref) if Path(ref).is_absolute() else base / ref
+    texels = _tx.read_image(path, p.rgb, where)
+    if not np.all(np.isfinite(texels)):
+        raise InputError(f"{where}: {path} contains non-finite values")
+    lo, hi = float(texels.min()), float(texels.max())
+    if lo < p.lo or hi > p.hi:
+        raise InputError(f"{where}: {path} has values in [{lo:g}, {hi:g}], outside the allowed range "
+                         f"[{p.lo:g}, {p.hi:g}] of {model}.{p.name}")
+    return TextureSpec("image", texels, wrap, scale, offset, str(path))
+
+
+def resolve_mesh(ref: str, base: Path, oc: Table) -> Path:
+    """A registry name (bunny, dragon, ...: found through jaxrt.geometry.data) or a path relative to the scene."""
+    p = Path(ref)
+    if p.suffix == "" and len(p.parts) == 1:
+        from jaxrt.geometry import data
+
+        try:
+            return Path(data.find(ref))
+        except (ValueError, FileNotFoundError, KeyError) as e:
+            msg = str(e)
+        oc.fail("mesh", f"{ref!r}: {msg}")
+    full = p if p.is_absolute() else base / p
+    if not full.is_file():
+        oc.fail("mesh", f"{ref!r}: no such file (looked for {full})")
+    return full
+
+
+def parse_instances(doc: dict, file: str, materials: dict, base: Path, names_seen: set[str]):
+    """Validate [[groups]] and [[instances]] of a parsed TOML document.
+
+    A group's objects take the keys of [[objects]] (`parse_object`). Returns
+    (groups, instances) as tuples of GroupSpec / InstanceSpec; ((), ()) when the scene has none.
+    Raises InputError naming the file, table and key.
+    """
+    raw_groups, raw_inst = doc.get("groups"), doc.get("instances")
+    if raw_groups is None and raw_inst is None:
+        return (), ()
+    top = Table(file, "top level", {k: doc[k] for k in ("groups", "instances") if k in doc})
+    if raw_groups is not None and (not isinstance(raw_groups, list) or not raw_groups):
+        top.fail("groups", "expected one or more [[groups]] tables")
+    groups: dict[str, GroupSpec] = {}
+    for i, g in enumerate(raw_groups or []):
+        gc = Table(file, f"[groups] #{i + 1}", g)
+        name = gc.string("name")
+        if not name or "/" in name:
+            gc.fail("name", f"{name!r}: expected a non-empty name without '/'")
+        if name in groups:
+            gc.fail("name", f"{name!r}: a group of this name is already defined")
+        objs = gc.raw("objects", None)
+        if not isinstance(objs, list) or not objs:
+            gc.fail("objects", "expected one or more [[groups.objects]] tables")
+        gc.done()
+        seen: set[str] = set()
+        specs = []
+        for j, o in enumerate(objs):
+            oc = Table(file, f"[groups] {name}: [objects] #{j + 1}", o)
+            if "group" in o:
+                oc.fail("group", "groups cannot contain groups (nested instancing is not supported); "
+                                 "place each group with [[instances]]")
+            specs.append(parse_object(oc, materials, base, seen))
+        groups[name] = GroupSpec(name, tuple(specs))
+    if raw_inst is None:
+        return tuple(groups.values()), ()
+    if not isinstance(raw_inst, list) or not raw_inst:
+        top.fail("instances", "expected one or more [[instances]] tables")
+    instances = []
+    counts: dict[str, int] = {}
+    for i, t in enumerate(raw_inst):
+        ic = Table(file, f"[instances] #{i + 1}", t)
+        group = ic.raw("group")
+        if not isinstance(group, str) or group not in groups:
+            ic.fail("group", f"{group!r} is not a defined group; groups: {', '.join(groups) or '(none)'}")
+        name = ic.string("name", None)
+        if name is None:
+            counts[group] = counts.get(group, 0) + 1
+            name = f"{group}.{counts[group]}"
+        if not name or "/" in name:
+            ic.fail("name", f"{name!r}: expected a non-empty name without '/'")
+        name = unique_name(name, names_seen)
+        scale, rotate, translate = parse_transform(ic)
+        material = ic.string("material", None, choices=tuple(materials))
+        ic.done()
+        instances.append(InstanceSpec(name, group, scale, rotate, translate, material))
+    return tuple(groups.values()), tuple(instances)

@@ -1,0 +1,148 @@
+"""The `Scene` pytree and its parts, with validated value updates (`with_*`).
+
+In a `Scene` every value (vertices, material parameters, lights, camera, background) is a traced
+array; only shapes and the set of models are static, so changing a parameter, a light or the camera
+never recompiles the renderer.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import brdfs
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from jaxrt.camera import Camera
+from jaxrt.errors import InputError
+from jaxrt.geometry.base import AbstractGeometry
+from jaxrt.lights import AreaLights, PointLights
+from jaxrt.scene.spec import DELTA
+from jaxrt.scene.tables import check_range, check_rgb, check_vec3
+
+
+class Materials(eqx.Module):
+    """Materials grouped by model so per-pixel model selection is a gather plus a select.
+
+    Attributes:
+        params: one stacked parameter table per model in `models`; table k maps each parameter
+            name to an array with one row per material of that model ((rows, 3) RGB, (rows,) scalar).
+        model_id: (M,) index into `models` for each material.
+        row: (M,) row of each material in its model's table.
+        delta: (M,) the mirror reflection coefficient δ in [0, 1] (`jaxrt.scene.DELTA`; 0 for glass).
+        models: static tuple of `brdfs` model names used by the scene.
+        names: static tuple of material names (scene-file keys), index = material id.
+    """
+
+    params: tuple[dict, ...]
+    model_id: Int[Array, "M"]
+    row: Int[Array, "M"]
+    delta: Float[Array, "M"]
+    models: tuple[str, ...] = eqx.field(static=True)
+    names: tuple[str, ...] = eqx.field(static=True)
+    # Textured parameters (jaxrt.shading.textures): the texel values are traced, which parameter of which
+    # material row uses which texture is static: bindings[j] = (model index, row, param, texture index).
+    textures: tuple = ()
+    bindings: tuple[tuple[int, int, str, int], ...] = eqx.field(static=True, default=())
+
+    def index(self, name: str) -> int:
+        if name not in self.names:
+            raise InputError(f"unknown material {name!r}; the scene defines: {', '.join(self.names)}")
+        return self.names.index(name)
+
+
+
+class Settings(eqx.Module):
+    """Render settings. background: (3,) linear RGB radiance of rays that escape; seed: () int."""
+
+    background: Float[Array, "3"]
+    seed: Int[Array, ""]
+    integrator: str = eqx.field(static=True)
+    max_depth: int = eqx.field(static=True)
+    spp: int = eqx.field(static=True)
+    ray_budget: int = eqx.field(static=True)
+
+
+
+class Scene(eqx.Module):
+    geometry: AbstractGeometry
+    materials: Materials
+    lights: PointLights
+    camera: Camera
+    settings: Settings
+    source: str = eqx.field(static=True, default="<scene>")
+    # emissive materials/triangles and the environment (None: no environment); used by the path
+    # tracer, and Whitted's escaping rays see the environment instead of `background`
+    area_lights: AreaLights | None = None
+    environment: Any = None
+
+    # ---- value updates (validated, never recompile) ----
+    def with_material(self, name: str, **values) -> "Scene":
+        """A copy with material `name`'s parameters (or `delta`) changed; bounds-checked."""
+        mats = self.materials
+        i = mats.index(name)
+        m = int(mats.model_id[i])
+        model = brdfs.get(mats.models[m])
+        r = int(mats.row[i])
+        table = dict(mats.params[m])
+        delta = mats.delta
+        for k, v in values.items():
+            if k == "delta":
+                if model.delta:
+                    raise InputError(f"material {name!r}: delta is not a parameter of {model.name}")
+                delta = delta.at[i].set(check_range(v, DELTA.lo, DELTA.hi, f"material {name!r}: delta"))
+                continue
+            if any(b[:3] == (m, r, k) for b in mats.bindings):
+                raise InputError(f"material {name!r}: {k} is textured; change it with with_texture")
+            try:
+                val = model.param(k).check(v, model.name)
+            except ValueError as e:
+                raise InputError(f"material {name!r}: {e}") from None
+            table[k] = table[k].at[r].set(val)
+        params = tuple(table if j == m else t for j, t in enumerate(mats.params))
+        return eqx.tree_at(lambda s: (s.materials.params, s.materials.delta), self, (params, delta))
+
+    def with_texture(self, name: str, param: str, texels) -> "Scene":
+        """A copy with the texels of material `name`'s textured parameter `param` replaced (same shape;
+        never recompiles). Concrete values must be finite; they are not range-checked here (an
+        optimiser's steps may pass through), and traced values (inside jax.grad) are not checked."""
+        mats = self.materials
+        i = mats.index(name)
+        key = (int(mats.model_id[i]), int(mats.row[i]), param)
+        hit = [b[3] for b in mats.bindings if b[:3] == key]
+        if not hit:
+            raise InputError(f"material {name!r}: {param} is not textured")
+        old = mats.textures[hit[0]].texels
+        new = jnp.asarray(texels, jnp.float32)
+        if new.shape != old.shape:
+            raise InputError(f"material {name!r}: {param} texels must keep the shape {old.shape}, got {new.shape}")
+        if not isinstance(new, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(new))):
+            raise InputError(f"material {name!r}: {param} texels must be finite")
+        return eqx.tree_at(lambda s: s.materials.textures[hit[0]].texels, self, new)
+
+    def with_light(self, index: int = 0, position=None, intensity=None) -> "Scene":
+        """A copy with light `index` moved and/or re-scaled."""
+        lights = self.lights
+        pos, inten = lights.position, lights.intensity
+        if position is not None:
+            pos = pos.at[index].set(check_vec3(position, f"light {index}: position"))
+        if intensity is not None:
+            inten = inten.at[index].set(check_rgb(intensity, f"light {index}: intensity", lo=0.0))
+        return eqx.tree_at(lambda s: (s.lights.position, s.lights.intensity), self, (pos, inten))
+
+    def with_camera(self, **values) -> "Scene":
+        """A copy with camera values (position, look_at, up, vfov, aperture, focus_distance) changed."""
+        cam = self.camera
+        names = ("position", "look_at", "up", "vfov", "aperture", "focus_distance")
+        for k in values:
+            if k not in names:
+                raise InputError(f"camera: unknown key {k!r}; allowed: {', '.join(names)}")
+        new = [jnp.asarray(values.get(k, getattr(cam, k)), jnp.float32) for k in names]
+        return eqx.tree_at(lambda s: tuple(getattr(s.camera, k) for k in names), self, tuple(new))
+
+
+def device_bytes(tree_like) -> int:
+    """Total bytes of the array leaves of a pytree (e.g. a Scene)."""
+    return int(sum(x.nbytes for x in jax.tree.leaves(tree_like) if hasattr(x, "nbytes")))

@@ -1,0 +1,77 @@
+"""Direct lighting from point lights, and the radiance of escaping rays.
+
+The Whitted model of Größler & Zettwitz ("An interactive ray tracing system based on Nvidia OptiX",
+2015), for a hit on an opaque material with mirror coefficient δ:
+
+    L(x, wo) = δ·L(x, ω_r) + (1 − δ)·Σ_lights f_r(wi, wo)·I·cosθ_i / d² · V(x, light)
+
+`direct_lighting` is the sum over lights, `local_radiance` what one ray collects at its own hit
+before its path throughput. The path tracer's next-event estimation for point lights uses the same
+`direct_terms`.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+import brdfs
+from jaxrt import envmap
+from jaxrt import lights as _lights
+from jaxrt.shading.material import gather_params
+from jaxrt.shading.surface import Surface, dot, local_frame, oriented, to_local
+
+
+def local_radiance(scene, s: Surface, d, visible, found, delta, glass) -> Float[Array, "B 3"]:
+    """Radiance a ray (B,) collects at its own hit, before its path throughput: (1 − δ)·direct on
+    opaque hits, 0 on glass (all of it is carried by the children), the escaped radiance on misses."""
+    direct = direct_lighting(scene, s, d, visible)
+    local = jnp.where(found[:, None], (1.0 - delta)[:, None] * direct, escaped_radiance(scene, d))
+    return jnp.where(glass[:, None], 0.0, local)
+
+
+
+def direct_terms(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Array, "B L"]):
+    """What the direct-lighting sum needs besides the BRDF, for hits `s` seen along rays `d`.
+
+    Returns:
+        wi: (B, L, 3) local-frame directions to the lights; wo: (B, 1, 3) local direction to the
+        viewer; light: (B, L, 3) cosθ_i·I/d²·V per light (0 behind the geometric surface or shadowed).
+        Σ_l f(wi, wo)·light is the direct term of the Whitted model above, without its (1 − δ).
+    """
+    ng, ns, _ = oriented(s, d)
+    frame = local_frame(ns, s.tangent)
+    wi, _, scale = _lights.incident(scene.lights, s.p)  # (B, L, 3), (B, L, 3)
+    wo_l = to_local(-d, frame)[:, None, :]
+    wi_l = to_local(wi, tuple(x[:, None, :] for x in frame))
+    cos = jnp.maximum(wi_l[..., 2], 0.0)
+    above = dot(wi, ng[:, None, :]) > 0
+    light = jnp.where(visible & above, cos, 0.0)[..., None] * scale
+    return wi_l, wo_l, light
+
+
+
+def direct_lighting(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Array, "B L"]) -> Float[Array, "B 3"]:
+    """Σ_l f_r·I·cosθ/d²·V over the point lights for opaque models (without the 1 − δ), (B, 3);
+    0 on delta materials."""
+    mats = scene.materials
+    wi_l, wo_l, weight = direct_terms(scene, s, d, visible)
+    out = jnp.zeros(s.p.shape)
+    for k, name in enumerate(mats.models):
+        model = brdfs.get(name)
+        if model.delta:
+            continue
+        sel = mats.model_id[s.material] == k
+        p = gather_params(mats, s.material, k, s.uv)
+        f = model.eval({n_: x[:, None] for n_, x in p.items()}, wi_l, wo_l)  # (B, L, 3)
+        out = jnp.where(sel[:, None], jnp.sum(f * weight, axis=1), out)
+    return out
+
+
+
+def escaped_radiance(scene, d: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
+    """Radiance of rays that leave the scene along d: the environment if the scene has one, else
+    the background."""
+    if scene.environment is None:
+        return jnp.broadcast_to(scene.settings.background, d.shape)
+    return envmap.radiance(scene.environment, d)

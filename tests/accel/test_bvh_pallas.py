@@ -1,0 +1,188 @@
+"""The Pallas traversal kernel (jaxrt.accel.traverse_pallas), run in the Pallas interpreter on this CPU, gives the
+XLA loop's hits and agrees with float64 brute force; the traversal switch (impl / JAXRT_TRAVERSAL).
+
+On a GPU the same kernel is compiled by Triton; benchmarks/gpu.py checks there that both traversals
+agree on every ray of full-resolution frames.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+from test_bvh import check_against_reference, icosphere_mesh, ray_mix
+
+from jaxrt.accel import bvh
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh
+from jaxrt.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def fns():
+    """Jitted closest-hit and any-hit for both traversals (compiled once per tree shape)."""
+
+    def make(impl):
+        return (jax.jit(lambda tr, o, d, lo, hi: bvh.intersect(tr, o, d, lo, hi, impl=impl)),
+                jax.jit(lambda tr, o, d, lo, hi: bvh.occluded(tr, o, d, hi, lo, impl=impl)))
+
+    return {"xla": make("xla"), "pallas": make("pallas-interpret")}
+
+
+def assert_same_hits(a, b):
+    """Same triangle for every ray and the same t, u, v (the kernel runs the XLA loop's arithmetic)."""
+    pa, pb = np.asarray(a.prim), np.asarray(b.prim)
+    assert np.array_equal(pa, pb), f"{int(np.sum(pa != pb))} rays hit different triangles"
+    np.testing.assert_allclose(np.asarray(a.t), np.asarray(b.t), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(a.u), np.asarray(b.u), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(a.v), np.asarray(b.v), atol=1e-6)
+
+
+@pytest.mark.data
+def test_pallas_matches_xla_and_brute_force(data_dir, fns, monkeypatch):
+    monkeypatch.setenv("JAXRT_DATA", str(data_dir))
+    m = mesh.load(data.find("bunny"))
+    tree = bvh.build(m.vertices, m.faces)
+    # 700 rays: not a multiple of the kernel's block (1024 in the interpreter): padding rays are exercised.
+    o, d, tmin, tmax = ray_mix(m, 700, seed=3)
+    hit_p = fns["pallas"][0](tree, o, d, tmin, tmax)
+    hit_x = fns["xla"][0](tree, o, d, tmin, tmax)
+    assert_same_hits(hit_p, hit_x)
+    tri = m.vertices.astype(np.float64)[m.faces]
+    _, ref_p = check_against_reference(tri, o.astype(np.float64), d.astype(np.float64), tmin.astype(np.float64),
+                                       tmax.astype(np.float64), hit_p)
+    assert 0.3 < np.mean(ref_p >= 0) < 0.95
+    occ_p = np.asarray(fns["pallas"][1](tree, o, d, tmin, tmax))
+    occ_x = np.asarray(fns["xla"][1](tree, o, d, tmin, tmax))
+    assert np.array_equal(occ_p, occ_x)
+    assert np.array_equal(occ_p, np.asarray(hit_p.prim) >= 0)
+
+
+@pytest.mark.parametrize("leaf_size", [1, 4])
+def test_pallas_watertight_edges_and_vertices(fns, leaf_size):
+    """Rays aimed exactly at edges and vertices of a closed mesh all hit (exact edge signs), also with
+    several triangles per leaf (the kernel's per-leaf loop)."""
+    m = icosphere_mesh(2)
+    tree = bvh.build(m.vertices, m.faces, leaf_size=leaf_size)
+    v = m.vertices.astype(np.float64)
+    rng = np.random.default_rng(11)
+    n = 1200
+    e = m.faces[rng.integers(0, len(m.faces), n)][:, :2]
+    s = np.where(rng.random(n) < 0.5, 0.5, rng.random(n))
+    tgt = v[e[:, 0]] * (1 - s[:, None]) + v[e[:, 1]] * s[:, None]
+    at_vertex = rng.random(n) < 0.3
+    tgt = np.where(at_vertex[:, None], v[rng.integers(0, len(v), n)], tgt).astype(np.float32)
+    rnd = rng.normal(size=(n, 3))
+    rnd /= np.linalg.norm(rnd, axis=1, keepdims=True)
+    o = (tgt + 3.0 * (tgt / np.linalg.norm(tgt, axis=1, keepdims=True) + 0.7 * rnd)).astype(np.float32)
+    d = (tgt - o).astype(np.float32)
+    lo, hi = np.zeros(n, np.float32), np.full(n, np.inf, np.float32)
+    hit = fns["pallas"][0](tree, o, d, lo, hi)
+    prim = np.asarray(hit.prim)
+    assert np.all(prim >= 0), f"{int(np.sum(prim < 0))} of {n} rays slipped through edges/vertices"
+    assert np.all(np.abs(np.asarray(hit.t) - 1.0) < 1e-4)
+    assert_same_hits(hit, fns["xla"][0](tree, o, d, lo, hi))
+
+
+def test_traversal_switch(monkeypatch):
+    m = icosphere_mesh(1)
+    tree = bvh.build(m.vertices, m.faces)
+    o = np.zeros((4, 3), np.float32)
+    d = np.eye(3, dtype=np.float32)[[0, 1, 2, 0]]
+    with pytest.raises(InputError, match="JAXRT_TRAVERSAL"):
+        bvh.intersect(tree, o, d, impl="cuda")
+    monkeypatch.setenv("JAXRT_TRAVERSAL", "fast")
+    with pytest.raises(InputError, match="'fast'"):
+        bvh.occluded(tree, o, d)
+    monkeypatch.delenv("JAXRT_TRAVERSAL")
+    # "auto" on a CPU lowers the native kernel only (jaxrt.accel.traverse_cpu: no Triton call, no XLA loop);
+    # "xla" the portable loop.
+    text = jax.jit(bvh.intersect).lower(tree, o, d).as_text()
+    assert "triton" not in text.lower()
+    assert "jaxrt_bvh_traverse" in text and "while" not in text
+    text = jax.jit(lambda *a: bvh.intersect(*a, impl="xla")).lower(tree, o, d).as_text()
+    assert "while" in text and "jaxrt_bvh_traverse" not in text
+    hit = bvh.intersect(tree, o, d)
+    t = np.asarray(hit.t)  # a closed polyhedron inscribed in the unit sphere, seen from its centre
+    assert np.all(np.asarray(hit.prim) >= 0) and np.all((t > 0.79) & (t <= 1.0))
+
+
+def plane_distance(tri9, o, d):
+    """Float64 distance along each ray to the plane of its triangle (rows of 9: v0, v1, v2)."""
+    v0, v1, v2 = tri9[:, 0:3], tri9[:, 3:6], tri9[:, 6:9]
+    nrm = np.cross(v1 - v0, v2 - v0)
+    o, d = o.astype(np.float64), d.astype(np.float64)
+    return np.sum(nrm * (v0 - o), 1) / np.sum(nrm * d, 1)
+
+
+def test_pallas_layout_variants_agree():
+    """The kernel's speed options (node-row layouts, exact signs always on, the triangle test in every
+    warp) give the default's hits, on rays aimed at vertices and edges (where the exact signs
+    matter), with and without the tree's packed rows."""
+    from jaxrt.accel import traverse_pallas as bvh_pallas
+
+    m = icosphere_mesh(1)
+    tree = bvh.build(m.vertices, m.faces)
+    arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
+    v = m.vertices.astype(np.float32)
+    rng = np.random.default_rng(5)
+    tgt = np.concatenate([v, (v[m.faces[:, 0]] + v[m.faces[:, 1]]) / 2]).astype(np.float32)
+    o = (tgt * 3 + rng.normal(size=tgt.shape) * 0.5).astype(np.float32)
+    d = (tgt - o).astype(np.float32)
+    lo, hi = np.zeros(len(o), np.float32), np.full(len(o), np.inf, np.float32)
+    hi[::5] = 0.3  # some rays end before the mesh
+    run = lambda arr=arrays, any_hit=False, block=64, **kw: [np.asarray(x) for x in bvh_pallas.traverse(  # noqa: E731
+        arr, o, d, lo, hi, any_hit=any_hit, leaf_size=1, block=block, interpret=True, **kw)]
+    found, t, tri, u, v_ = run()
+    assert 0.5 < found.mean() < 1
+    packed = dict(arrays, **dict(zip(("rows", "skips"), bvh_pallas.pack_tables(**arrays))))
+    variants = (dict(arr=packed), dict(trail=0), dict(trail=2), dict(gate_exact=False), dict(layout="inline"),
+                dict(layout="tables"), dict(skip_tri=False), dict(layout="tables", block=32),
+                dict(layout="inline", steps_per_iter=3))
+    for kw in variants:
+        r = run(**kw)
+        assert np.array_equal(r[0], found), kw
+        # The same triangle, except where the compiler's choice of multiply-add contraction moved t by
+        # an ulp at a tie (rays aimed at shared edges and vertices): there both are hit at that t.
+        np.testing.assert_allclose(r[1], t, rtol=1e-6, err_msg=str(kw))
+        other = np.flatnonzero(r[2] != tri)
+        assert len(other) <= 0.1 * len(o), kw
+        for tri_ids in (tri[other], r[2][other]):
+            t64 = plane_distance(np.asarray(tree.triangles, np.float64)[tri_ids], o[other], d[other])
+            np.testing.assert_allclose(t64, t[other], rtol=1e-5, err_msg=str(kw))
+        same = r[2] == tri
+        for a, b in zip(r[3:], (u, v_)):
+            np.testing.assert_allclose(a[same], b[same], atol=1e-6, err_msg=str(kw))
+        assert np.array_equal(run(any_hit=True, **kw)[0], found), kw
+
+
+def test_node_depth_and_skip_table():
+    """The kernel's node depths (pointer jumping) against a breadth-first walk in numpy, and its skip
+    table decodes to the tree's miss links and their targets' depths."""
+    from jaxrt.accel import builder as bvh_build
+    from jaxrt.accel import traverse_pallas as bvh_pallas
+
+    m = icosphere_mesh(2)
+    rng = np.random.default_rng(2)
+    v = np.concatenate([m.vertices, rng.normal(size=(60, 3)) * 0.01 + 2.0]).astype(np.float32)  # a dense clump: deep
+    f = np.concatenate([m.faces, len(m.vertices) + rng.integers(0, 60, size=(200, 3))])
+    tree = bvh.build(v, f)
+    leaf = np.asarray(tree.node_leaf)
+    links = np.asarray(tree.links)
+    nn = len(leaf)
+    is_leaf = leaf[:, 1] > 0
+    want = np.full(nn, -1)
+    frontier, d = np.array([0]), 0
+    while len(frontier):
+        want[frontier] = d
+        inner = frontier[~is_leaf[frontier]]
+        first = links[inner, 0]
+        frontier = np.concatenate([first, links[first, 1]])
+        d += 1
+    got = np.asarray(bvh_pallas.node_depth(tree.node_leaf, tree.links))
+    assert np.array_equal(got, want) and want.max() > 8
+    sk = np.asarray(bvh_pallas.pack_skips(tree.node_leaf, tree.links))
+    miss = links[:, 1]
+    assert len(sk) == bvh_build.NUM_RAY_CLASSES * nn
+    assert np.array_equal(sk >> 5, miss)
+    assert np.array_equal(sk & 31, np.where(miss >= 0, np.minimum(want[np.maximum(miss, 0)], 31), 0))

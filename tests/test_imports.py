@@ -1,0 +1,204 @@
+"""The package structure: no import cycles and no module reaching into another module's private names.
+
+The walk reads every first-party module's source (jaxrt, brdfs, fitting, benchmarks) with `ast`, so it
+sees imports inside functions too (a lazy import that closes a cycle is still coupling), and it
+never imports the code it checks.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("jaxrt", "brdfs", "fitting")
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _modules(dirs=PACKAGES) -> dict[str, Path]:
+    out = {}
+    for d in dirs:
+        for p in sorted((ROOT / d).rglob("*.py")):
+            out[_module_name(p)] = p
+    return out
+
+
+MODULES = _modules()
+
+
+def _is_package(name: str) -> bool:
+    return MODULES.get(name, Path()).name == "__init__.py"
+
+
+def _resolve(importer: str, node: ast.ImportFrom | ast.Import) -> list[tuple[str, str | None]]:
+    """(first-party module imported, name taken from it or None) for one import statement."""
+    out = []
+    if isinstance(node, ast.Import):
+        for a in node.names:
+            if a.name.split(".")[0] in PACKAGES:
+                out.append((a.name, None))
+        return out
+    base = node.module or ""
+    if node.level:
+        pkg = importer if _is_package(importer) else importer.rpartition(".")[0]
+        for _ in range(node.level - 1):
+            pkg = pkg.rpartition(".")[0]
+        base = f"{pkg}.{base}" if base else pkg
+    if base.split(".")[0] not in PACKAGES:
+        return out
+    for a in node.names:
+        sub = f"{base}.{a.name}"
+        out.append((sub, None) if sub in MODULES else (base, a.name))
+    return out
+
+
+def _edges() -> dict[str, list[tuple[str, str | None, int]]]:
+    graph = {}
+    for name, path in MODULES.items():
+        tree = ast.parse(path.read_text(), filename=str(path))
+        edges = []
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for mod, taken in _resolve(name, node):
+                    edges.append((mod, taken, node.lineno))
+        graph[name] = edges
+    return graph
+
+
+GRAPH = _edges()
+
+
+def _cycles(graph: dict[str, list[tuple[str, str | None, int]]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    adj = {m: sorted({t for t, _, _ in e if t in graph and t != m}) for m, e in graph.items()}
+    index, low, stack, on, out = {}, {}, [], set(), []
+    counter = [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in adj[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    sys.setrecursionlimit(10_000)
+    for v in adj:
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_walk_sees_the_packages():
+    # guards the checks below against passing vacuously (a wrong root or a parser that finds nothing)
+    assert {"jaxrt.scene.parse", "jaxrt.geometry.base", "jaxrt.integrators.whitted", "brdfs", "fitting.setup"} <= set(MODULES)
+    assert ("jaxrt.shading.surface", "Surface") in {(m, t) for m, t, _ in GRAPH["jaxrt.geometry.base"]}
+
+
+def test_no_import_cycles():
+    assert _cycles(GRAPH) == []
+
+
+def test_cycle_finder_finds_a_cycle():
+    fake = {"a": [("b", None, 1)], "b": [("c", None, 1)], "c": [("a", "_x", 1)], "d": [("a", None, 1)]}
+    assert _cycles(fake) == [["a", "b", "c"]]
+
+
+def _private_imports(graph) -> list[str]:
+    bad = []
+    for importer, edges in graph.items():
+        for mod, taken, line in edges:
+            if taken is not None and taken.startswith("_") and not taken.startswith("__") and mod != importer:
+                bad.append(f"{importer}:{line} takes {taken} from {mod}")
+    return bad
+
+
+def test_no_module_imports_another_modules_private_names():
+    assert _private_imports(GRAPH) == []
+
+
+def test_no_private_attribute_of_another_first_party_module():
+    """`from jaxrt.accel import bvh; bvh._impl(...)` reaches in as surely as importing `_impl`."""
+    bad = []
+    for name, path in MODULES.items():
+        tree = ast.parse(path.read_text())
+        aliases = {}
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for a, (mod, taken) in zip(node.names, _resolve(name, node)):
+                    if taken is None and mod != name:
+                        aliases[a.asname or a.name.split(".")[0]] = mod
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases
+                    and node.attr.startswith("_") and not node.attr.startswith("__")):
+                bad.append(f"{name}:{node.lineno} uses {node.value.id}.{node.attr}")
+    assert bad == []
+
+
+def test_private_import_check_catches_one():
+    fake = {"x": [("y", "_helper", 3), ("y", "public", 4), ("x", "_own", 5), ("y", "__version__", 6)]}
+    assert _private_imports(fake) == ["x:3 takes _helper from y"]
+
+
+def test_packages_declare_their_public_names():
+    """Every package's `__init__` lists its public API in `__all__`, and each listed name exists."""
+    for name, path in MODULES.items():
+        if path.name != "__init__.py" or name.count(".") > 1:
+            continue
+        tree = ast.parse(path.read_text())
+        decl = [n for n in tree.body if isinstance(n, ast.Assign) and any(
+            isinstance(t, ast.Name) and t.id == "__all__" for t in n.targets)]
+        assert decl, f"{name} has no __all__"
+    code = ("import importlib, sys\n"
+            "for m in sys.argv[1:]:\n"
+            "    mod = importlib.import_module(m)\n"
+            "    missing = [n for n in mod.__all__ if not hasattr(mod, n)]\n"
+            "    assert not missing, (m, missing)\n")
+    pkgs = [n for n, p in MODULES.items() if p.name == "__init__.py" and n.count(".") <= 1]
+    r = subprocess.run([sys.executable, "-c", code, *pkgs], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
+@pytest.mark.parametrize("module", ["jaxrt.integrators.path", "jaxrt.integrators.whitted"])
+def test_integrators_never_import_each_other(module):
+    others = {"jaxrt.integrators.path", "jaxrt.integrators.whitted"} - {module}
+    assert not [m for m, _, _ in GRAPH[module] if m in others]
+
+
+def test_no_geometry_kind_dispatch_above_the_geometry_layer():
+    """Integrators, shading, sweeps, the viewer, the CLI and fitting program against
+    `AbstractGeometry`: they never test which kind of geometry they hold."""
+    kinds = ("InstancedGeometry", "TriangleGeometry", "InstancedBVH", "is_instanced")
+    bad = []
+    for name, path in MODULES.items():
+        if not name.startswith(("jaxrt.integrators", "jaxrt.shading", "jaxrt.sweep", "jaxrt.viewer", "jaxrt.cli",
+                                "fitting")):
+            continue
+        src = path.read_text()
+        bad += [f"{name}: {k}" for k in kinds if k in src]
+    assert bad == []

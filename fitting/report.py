@@ -68,15 +68,17 @@ def format_result(r: FitResult, truth: dict | None = None) -> str:
     lines.append(head)
     for name, v in r.params.items():
         fixed = name in r.fixed
-        row = f"  {name:<10} {_fmt(v):>26} {('(fixed)' if fixed else _fmt(r.stderr.get(name, float('nan')))):>26}"
+        err = "(fixed)" if fixed else "(meaningless)" if name in r.meaningless else _fmt(r.stderr.get(name, float("nan")))
+        row = f"  {name:<10} {_fmt(v):>26} {err:>26}"
         if truth is not None:
             row += f" {_fmt(truth.get(name, float('nan'))):>26}"
         lines.append(row)
-    lines.append(f"  RMSE {r.rmse:.3g}   ΔE2000 mean {r.delta_e_mean:.3g} max {r.delta_e_max:.3g}   "
+    lines.append(f"  RMSE {r.rmse:.3g} ({r.relative_rmse:.3g} of the target's RMS)   ΔE2000 mean {r.delta_e_mean:.3g} max {r.delta_e_max:.3g}   "
                  f"cond(JᵀJ) {r.condition_number:.3g}")
     if r.ill_conditioned:
         pairs = ", ".join(f"{a}~{b} ({c:+.3f})" for a, b, c in r.correlated) or "large condition number"
         lines.append(f"  warning: ill-conditioned — parameters trade off: {pairs}")
+    lines += [f"  warning: {w}" for w in r.warnings]
     return "\n".join(lines)
 
 
@@ -87,8 +89,17 @@ def _fmt(v) -> str:
     return "[" + ", ".join(f"{x:.4g}" for x in a.ravel()) + "]"
 
 
-def matrix_png(path: str | os.PathLike, names: Sequence[str], matrix: np.ndarray, title: str) -> None:
-    """Heat map of a (targets × fitted models) matrix of relative RMSE values."""
+def text_colour(rgba) -> str:
+    """"black" or "white", whichever reads better on a background of colour `rgba` (sRGB in [0, 1]):
+    black where the background's relative luminance (WCAG 2) is above 0.179, where both contrast
+    ratios are equal."""
+    lin = [c / 12.92 if c <= 0.04045 else ((c + 0.055) / 1.055) ** 2.4 for c in rgba[:3]]
+    return "black" if 0.2126 * lin[0] + 0.7152 * lin[1] + 0.0722 * lin[2] > 0.179 else "white"
+
+
+def matrix_figure(names: Sequence[str], matrix: np.ndarray, title: str):
+    """The heat map of a (targets × fitted models) matrix of relative RMSE values, as a Figure; each
+    cell's label is black or white by the cell's colour (`text_colour`)."""
     from matplotlib.figure import Figure
 
     m = np.asarray(matrix, np.float64)
@@ -99,12 +110,18 @@ def matrix_png(path: str | os.PathLike, names: Sequence[str], matrix: np.ndarray
     ax.set_yticks(range(len(names)), names)
     ax.set_xlabel("fitted model")
     ax.set_ylabel("target rendered with")
+    cells = im.cmap(im.norm(np.log10(np.maximum(m, 1e-6))))
     for i in range(len(names)):
         for j in range(len(names)):
-            ax.text(j, i, f"{m[i, j]:.2g}", ha="center", va="center", fontsize=8,
-                    color="white" if np.log10(max(m[i, j], 1e-6)) < np.log10(max(np.nanmax(m), 1e-6)) - 1.5 else "black")
+            ax.text(j, i, f"{m[i, j]:.2g}", ha="center", va="center", fontsize=8, color=text_colour(cells[i, j]))
     fig.colorbar(im, ax=ax, label="log10 relative RMSE")
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
+    return fig
+
+
+def matrix_png(path: str | os.PathLike, names: Sequence[str], matrix: np.ndarray, title: str) -> None:
+    """Write `matrix_figure` as a PNG (atomically)."""
+    fig = matrix_figure(names, matrix, title)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100)

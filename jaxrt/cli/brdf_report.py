@@ -50,7 +50,8 @@ def albedo_table(angles_deg, samples: int = 256) -> dict[str, np.ndarray]:
 
 
 def write_lobe_grid(path, lobe_angles_deg) -> None:
-    """A 2 x 4 grid of polar lobe slices (plane of incidence), one panel per model."""
+    """A 2 x 4 grid of polar lobe slices (plane of incidence), one panel per model, written to `path`
+    (atomically)."""
     from matplotlib.figure import Figure
 
     import brdfs
@@ -80,6 +81,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--lobe-angles: light angles must be in [0, 90) degrees, got {args.lobe_angles}")
     if not (4 <= args.samples <= 2048):
         raise InputError(f"--samples: must be in [4, 2048], got {args.samples}")
+    from jaxrt.fsutil import Outputs
+
+    outs = Outputs()
+    out = outs.add(args.output, ".png", "-o")
     t0 = time.perf_counter()
     table = albedo_table(args.angles, args.samples)
     head = f"{'model':<18}" + "".join(f"{f'{a:g}°':>9}" for a in args.angles)
@@ -87,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
     print(head)
     for name, row in table.items():
         print(f"{name:<18}" + "".join(f"{v:9.4f}" for v in row))
-    write_lobe_grid(args.output, args.lobe_angles)
+    with outs.writing() as tmp:
+        write_lobe_grid(tmp[out], args.lobe_angles)
     print(f"wrote {args.output}  ({time.perf_counter() - t0:.1f} s)")
     return 0

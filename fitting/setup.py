@@ -37,17 +37,25 @@ FIT_MATERIAL = "fit"  # name given to the substituted material when the object's
 #: The largest target value a fit accepts: the solver's sum of squared residuals is float32, and
 #: (1e12)² · 3 channels · 16384² pixels (the largest render) stays below float32's 3.4e38.
 MAX_TARGET = 1e12
+#: How far below 0 a target may dip, as a fraction of its largest |value|: measurement noise
+#: around black (a dark-frame-subtracted photograph, a noisy render) is negative here and there;
+#: a target mostly or substantially negative cannot be radiance.
+NEGATIVE_TOLERANCE = 0.1
 
 
 def check_targets(targets, where: str = "targets") -> None:
-    """Refuse targets no render can be: NaN/Inf, negative (radiance is >= 0; clip noise first) or
-    above MAX_TARGET. InputError naming `where` (a file, or "targets")."""
+    """Refuse targets no render can be: NaN/Inf, negative beyond noise (below −NEGATIVE_TOLERANCE
+    times the largest |value|), or above MAX_TARGET. InputError naming `where` (a file, or "targets")."""
     t = np.asarray(targets)
     if not np.all(np.isfinite(t)):
         raise InputError(f"{where}: contains NaN or Inf pixels")
-    if t.size and float(t.min()) < 0:
-        raise InputError(f"{where}: has negative pixel values (min {float(t.min()):g}); rendered radiance is "
-                         ">= 0, so clip noise or offsets to 0 first")
+    if not t.size:
+        return
+    low, peak = float(t.min()), float(np.abs(t).max())
+    if low < 0 and (low < -NEGATIVE_TOLERANCE * peak or float(t.max()) <= 0):
+        raise InputError(f"{where}: has negative pixel values down to {low:g} (largest |value| {peak:g}); "
+                         f"radiance is >= 0, and only noise down to -{NEGATIVE_TOLERANCE:g} x the largest value "
+                         "is accepted")
     if t.size and float(t.max()) > MAX_TARGET:
         raise InputError(f"{where}: pixel values reach {float(t.max()):g}; a target must be at most "
                          f"{MAX_TARGET:g} (scale it down, e.g. by the exposure it was taken with)")
@@ -223,8 +231,8 @@ def fit(
 
     Args:
         scenes, model, object, overrides: as for `prepare` (ignored when `setup` is given).
-        targets: (K, H, W, 3) linear RGB, one per scene, at the scene's resolution: finite, >= 0 and
-            at most MAX_TARGET (`check_targets`).
+        targets: (K, H, W, 3) linear RGB, one per scene, at the scene's resolution: finite, not
+            negative beyond noise and at most MAX_TARGET (`check_targets`).
         mask: optional (K, H, W) weights multiplied into the default mask (the material's pixels).
         setup: a `prepare` result to reuse (skips building and tracing).
         **solver_options: fix, init, rgb, solver, starts, max_steps, rtol, atol, progress

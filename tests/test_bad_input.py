@@ -462,6 +462,16 @@ def test_fit_refuses_targets_that_cannot_be_renders(fit_setup_small, value, need
         fit_setup.fit(None, targets, "lambert", setup=fit_setup_small, starts=1, progress=False)
 
 
+def test_fit_accepts_noise_below_zero(fit_setup_small):
+    from fitting import setup as fit_setup
+
+    clean = np.asarray(fit_setup.render_with(fit_setup_small, fit_setup_small.model.params(rho_d=0.4)))
+    noisy = clean + np.random.default_rng(1).normal(0.0, 0.01 * clean.max(), clean.shape).astype(np.float32)
+    assert noisy.min() < 0
+    r, _ = fit_setup.fit(None, noisy, "lambert", setup=fit_setup_small, starts=1, progress=False)
+    assert abs(np.mean(r.params["rho_d"]) - 0.4) < 0.05
+
+
 def test_fit_cli_refuses_negative_targets(tmp_path, capsys):
     from jaxrt import image
 
@@ -619,3 +629,40 @@ def test_heat_map_labels_contrast_with_their_cells():
         contrast = (lum + 0.05) / 0.05 if t.get_color() == "black" else 1.05 / (lum + 0.05)
         assert contrast >= 4.5, (t.get_text(), t.get_color(), lum)
     assert {t.get_color() for t in ax.texts} == {"black", "white"}
+
+
+def test_fit_picture_is_cropped_to_the_object_with_a_unit_colour_bar():
+    from fitting import report
+
+    h = w = 96
+    yy, xx = np.mgrid[:h, :w]
+    mask = ((yy - 50) ** 2 + (xx - 40) ** 2 < 12 ** 2).astype(np.float32)[None]
+    target = np.repeat(mask[..., None] * 0.5, 3, -1)
+    fig = report.comparison_figure(target, target * 1.05, mask)
+    err_ax = fig.axes[2]
+    shape = err_ax.images[0].get_array().shape
+    assert shape[0] < 40 and shape[1] < 40  # the 24-pixel disc and a margin, not the 96-pixel frame
+    labels = [a.get_ylabel() for a in fig.axes[3:]]
+    assert any("W/(m²·sr)" in l for l in labels), labels
+
+
+def test_lobe_grid_has_one_legend_and_states_each_panel_scale():
+    from jaxrt.cli.brdf_report import lobe_figure
+
+    fig = lobe_figure([0, 30, 60])
+    assert len(fig.legends) == 1 and all(ax.get_legend() is None for ax in fig.axes)
+    for ax in fig.axes:
+        assert "/sr" in ax.get_title() or "R, 1 − R" in ax.get_title(), ax.get_title()
+        assert len(ax.get_yticks()) <= 2
+
+
+def test_correlated_parameters_are_explained_not_alarmed():
+    from fitting import report
+    from fitting.solve import FitResult
+
+    r = FitResult(model="cook_torrance", params={"rho_s": 0.5, "eta": 1.5}, stderr={"rho_s": 0.01, "eta": 0.02},
+                  fixed=[], rmse=1e-3, delta_e_mean=0.1, delta_e_max=0.2, iterations=5, total_iterations=9,
+                  starts=2, starts_at_best=2, wall_time_s=1.0, us_per_iteration=1.0, condition_number=1e5,
+                  ill_conditioned=True, correlated=[("rho_s", "eta", 0.995)], converged=True, relative_rmse=0.01)
+    text = report.format_result(r)
+    assert "ill-conditioned" not in text and "combination" in text and "include the trade-off" in text

@@ -44,8 +44,8 @@ Only pixels whose camera ray hits the chosen object are compared.
 Examples:
   jaxrt fit --demo                                   # hidden parameters on the default scene, 3 models
   jaxrt fit target.exr --scene scenes/bunny.toml --model cook_torrance --fix eta=1.5 --out fit.json --plot fit.png
-Targets must be finite and non-negative, at most 1e12 (what a render can be and a float32 least-squares
-sum can hold). The result says when the solver did not converge, when a parameter's standard error
+Targets must be finite, at most 1e12 (a float32 least-squares sum must hold them) and not negative
+beyond noise (down to -0.1 x the largest value). The result says when the solver did not converge, when a parameter's standard error
 is meaningless (the views do not determine it) and when the model cannot reproduce the target.
 Outputs (--out, --plot; the demo's default fit_demo.png) are checked before any work and written
 together at the end. --confine refuses scene paths outside the scene's folder and the data folder.

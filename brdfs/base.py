@@ -72,7 +72,7 @@ class Param:
         where = f"{model}.{self.name}" if model else self.name
         try:
             arr = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise InputError(f"{where}: expected a number{' or RGB triple' if self.rgb else ''}, got {value!r}")
         if self.rgb:
             if arr.shape == ():
@@ -83,7 +83,11 @@ class Param:
             raise InputError(f"{where}: value {value!r} is not finite; allowed range is [{self.lo:g}, {self.hi:g}]")
         if np.any(arr < self.lo) or np.any(arr > self.hi):
             raise InputError(f"{where}: value {value!r} is outside the allowed range [{self.lo:g}, {self.hi:g}]")
-        return arr.astype(np.float32)
+        with np.errstate(over="ignore"):
+            out = arr.astype(np.float32)
+        if not np.all(np.isfinite(out)):  # finite as float64, beyond float32's 3.4e38
+            raise InputError(f"{where}: value {value!r} is not representable in float32 (|x| <= 3.4e38)")
+        return out
 
 
 class Lobe(enum.Flag):

@@ -13,7 +13,9 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
+
+from brdfs.base import Component
 
 INV_PI = 1.0 / math.pi
 # Cosines below this are treated as grazing/below the horizon: the BRDF is 0 there. It also keeps
@@ -35,6 +37,14 @@ def safe_div(a: Float[Array, "..."], b: Float[Array, "..."], eps: float = 1e-30)
 
 def dot(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "..."]:
     return jnp.sum(a * b, axis=-1)
+
+
+def norm2(v: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """|v|^2 where it is > 1e-12, else 1 (a harmless stand-in for the near-zero vectors wi + wo of
+    opposite directions, which callers mask): dividing by it keeps values and gradients finite
+    (a floor like max(|v|^2, tiny) would not: d(x/y)/dy = -x/y^2 underflows y^2 to 0 in float32)."""
+    n2 = dot(v, v)
+    return jnp.where(n2 > 1e-12, n2, 1.0)
 
 
 def normalize(v: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
@@ -66,19 +76,85 @@ def upper(wi: Float[Array, "... 3"], wo: Float[Array, "... 3"]) -> Float[Array, 
 
 
 def spherical(cos_t: Float[Array, "..."], phi: Float[Array, "..."]) -> Float[Array, "... 3"]:
-    """Unit vector from cos(theta) and phi (radians)."""
-    sin_t = safe_sqrt(1.0 - cos_t * cos_t)
+    """Unit vector from cos(theta) and phi (radians); sin(theta) = sqrt(1 - cos^2), which loses
+    relative accuracy for theta -> 0: samplers of sharp lobes use `spherical_tan2` or
+    `spherical_log_cos` instead."""
+    return spherical_cs(cos_t, safe_sqrt(1.0 - cos_t * cos_t), phi)
+
+
+def spherical_cs(cos_t: Float[Array, "..."], sin_t: Float[Array, "..."], phi: Float[Array, "..."]) -> Float[Array, "... 3"]:
+    """Unit vector (sin cos phi, sin sin phi, cos) from cos(theta), sin(theta) and phi (radians)."""
     return jnp.stack([sin_t * jnp.cos(phi), sin_t * jnp.sin(phi), cos_t], axis=-1)
+
+
+def spherical_tan2(tan2: Float[Array, "..."], phi: Float[Array, "..."]) -> Float[Array, "... 3"]:
+    """Unit vector at polar angle theta with tan^2(theta) = tan2 >= 0 (Beckmann-type samplers):
+    cos = 1/sqrt(1 + tan2), sin = sqrt(tan2 / (1 + tan2)), both to full relative precision, so a
+    lobe of width 1e-3 rad is sampled as accurately in float32 as a wide one."""
+    inv = jax.lax.rsqrt(1.0 + tan2)
+    return spherical_cs(inv, safe_sqrt(tan2) * inv, phi)
+
+
+def spherical_log_cos(log_cos: Float[Array, "..."], phi: Float[Array, "..."]) -> Float[Array, "... 3"]:
+    """Unit vector at polar angle theta with log(cos theta) = log_cos <= 0 (power-cosine samplers,
+    cos = (1 - u)^(1/(s+1))): sin^2 = 1 - cos^2 = -expm1(2 log_cos), exact for large exponents."""
+    return spherical_cs(jnp.exp(log_cos), safe_sqrt(-jnp.expm1(2.0 * log_cos)), phi)
 
 
 def cosine_sample(u: Float[Array, "... 2"]) -> Float[Array, "... 3"]:
     """Cosine-weighted hemisphere sample (Malley's method), density cos(theta)/pi [1/sr]."""
-    return spherical(jnp.sqrt(1.0 - u[..., 0]), 2.0 * math.pi * u[..., 1])
+    return spherical_cs(safe_sqrt(1.0 - u[..., 0]), safe_sqrt(u[..., 0]), 2.0 * math.pi * u[..., 1])
 
 
 def cosine_pdf(wi: Float[Array, "... 3"]) -> Float[Array, "..."]:
     """Density of `cosine_sample` [1/sr]; 0 below the horizon."""
     return jnp.maximum(wi[..., 2], 0.0) * INV_PI
+
+
+def half_cos(wi: Float[Array, "... 3"], wo: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """wi·h = wo·h for the unit half vector h = (wi + wo)/|wi + wo| of unit wi, wo, computed as
+    |wi + wo| / 2. The dot product wi·h loses all its digits in float32 when wi and wo are both
+    grazing and nearly opposite in azimuth (near the mirror configuration at a grazing view, where
+    wi·h ~ cos(theta_o) ~ 1e-4 comes from cancelling terms ~1); |wi + wo| does not (each component
+    sum is exact there, by Sterbenz's lemma)."""
+    h = wi + wo
+    return 0.5 * safe_sqrt(dot(h, h))
+
+
+def pow_cos(log_cos: Float[Array, "..."], s: Float[Array, "..."], ok: Bool[Array, "..."]) -> Float[Array, "..."]:
+    """cos^s = exp(s log cos) where `ok`, 0 elsewhere, with finite value and gradient everywhere."""
+    return jnp.where(ok, jnp.exp(s * jnp.where(ok, log_cos, 0.0)), 0.0)
+
+
+def log_cos_between(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
+    """(log cos(angle between a and b), cos) for non-zero a, b, accurate near angle 0: with
+    d = 1 - cos = |a - b|^2 / (2 |a| |b|) - (|a| - |b|)^2 / (2 |a| |b|), the first term is computed
+    without cancellation and the second is ~1e-15 for float32 unit vectors (dropped), so
+    log cos = log1p(-d) keeps its relative accuracy for the largest Phong exponents."""
+    diff = a - b
+    na = jnp.sqrt(norm2(a))
+    nb = jnp.sqrt(norm2(b))
+    d = dot(diff, diff) / (2.0 * na * nb)
+    c = 1.0 - d
+    return jnp.log1p(-jnp.minimum(d, 1.0 - 1e-7)), c
+
+
+def log_cos_z(h: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """log(h_z / |h|) for a (possibly un-normalised) h with h_z > 0 (0 elsewhere, to be masked by the
+    caller): near +z from h's tangential part, 0.5 log1p(-(h_x^2 + h_y^2) / |h|^2), which keeps full
+    relative accuracy as h -> +z (cos^s of the half vector for exponents up to 1e6 in float32);
+    elsewhere log(h_z) - log|h|."""
+    hh = norm2(h)
+    t = (h[..., 0] ** 2 + h[..., 1] ** 2) / hh
+    near = t < 0.5
+    hz = jnp.where(h[..., 2] > 0, h[..., 2], 1.0)
+    return jnp.where(near, 0.5 * jnp.log1p(-jnp.where(near, t, 0.0)), jnp.log(hz) - 0.5 * jnp.log(hh))
+
+
+def one_minus_pow5(x: Float[Array, "..."]) -> Float[Array, "..."]:
+    """1 - (1 - x)^5 for x in [0, 1], accurate for x -> 0 (= -expm1(5 log1p(-x)))."""
+    x = jnp.clip(x, 0.0, 1.0)
+    return -jnp.expm1(5.0 * jnp.log1p(-jnp.minimum(x, 1.0 - 1e-7)))
 
 
 def rgb(x: Float[Array, "..."]) -> Float[Array, "... 1"]:
@@ -108,9 +184,16 @@ def lobe_prob(w_spec: Float[Array, "..."], w_diff: Float[Array, "..."], floor: f
     return jnp.clip(ps, floor, 1.0)
 
 
-def half_jacobian(wo: Float[Array, "... 3"], h: Float[Array, "... 3"]) -> Float[Array, "..."]:
-    """d(omega_h)/d(omega_i) = 1 / (4 |wo·h|) for wi = reflect(wo, h); 0 where wo·h <= 0."""
-    return safe_div(1.0, 4.0 * jnp.maximum(dot(wo, h), 0.0), 1e-12)
+def half_vector_jacobian(wi: Float[Array, "... 3"], wo: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """d(omega_h)/d(omega_i) = 1 / (4 wo·h) for wi = reflect(wo, h), with wo·h = |wi + wo|/2
+    (`half_cos`); 0 where wi = -wo."""
+    return safe_div(1.0, 4.0 * half_cos(wi, wo), 1e-20)
+
+
+def diffuse_component(p, wo: Float[Array, "... 3"], u: Float[Array, "... 2"]) -> Float[Array, "... 3"]:
+    """`cosine_sample(u)` broadcast against wo's leading dims (the sampler of a diffuse `Component`)."""
+    wi = cosine_sample(u)
+    return jnp.broadcast_to(wi, jnp.broadcast_shapes(wi.shape, wo.shape))
 
 
 def mixture(
@@ -118,9 +201,9 @@ def mixture(
     spec_sample: Callable,
     spec_pdf: Callable,
     eval_fn: Callable,
-) -> tuple[Callable, Callable]:
-    """Build `sample` and `pdf` for a one-sample mixture of a cosine-weighted diffuse lobe and a
-    specular lobe (pbrt style).
+) -> tuple[Callable, Callable, tuple[Component, Component]]:
+    """Build `sample`, `pdf` and the `Component`s of a one-sample mixture of a cosine-weighted
+    diffuse lobe and a specular lobe (pbrt style).
 
     Args:
         ps_fn(p) -> (...,): probability of choosing the specular lobe.
@@ -157,16 +240,5 @@ def mixture(
         weight = jnp.where(ok[..., None], f * safe_div(jnp.maximum(wi[..., 2], 0.0), pd)[..., None], 0.0)
         return wi, weight, pd
 
-    return sample, pdf
-
-
-# cos(alpha) below this contributes < 1e-6 * (s+2)/(2 pi) even for s = 1; treating it as 0 keeps
-# log(cos) finite for the gradient.
-COS_MIN = 1e-6
-
-
-def cos_power(cos_a: Float[Array, "..."], s: Float[Array, "..."]) -> Float[Array, "..."]:
-    """max(0, cos_a)^s with finite value and gradient everywhere (the Phong and Blinn-Phong lobes)."""
-    ok = cos_a > COS_MIN
-    c = jnp.where(ok, cos_a, 1.0)
-    return jnp.where(ok, jnp.exp(s * jnp.log(c)), 0.0)
+    components = (Component(lambda p, wo: 1.0 - ps_fn(p), diffuse_component), Component(lambda p, wo: ps_fn(p), spec_sample))
+    return sample, pdf, components

@@ -45,6 +45,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from brdfs import _common as C
+from brdfs.base import Component
 
 N_H = 64
 _TH_EDGES = (math.pi / 2) * (np.arange(N_H + 1, dtype=np.float64) / N_H) ** 2
@@ -64,7 +65,7 @@ SHAPES = {"cdf": (K, N_H + 1), "pmf": (K, N_H), "ps": (K,)}
 def _node_weights(wo: Float[Array, "... 3"]) -> Float[Array, "... K"]:
     """Hat-function weights (..., K) of the view angle θo over the nodes THETA_O (clamped at the ends)."""
     th = jnp.arctan2(C.safe_sqrt(wo[..., 0] ** 2 + wo[..., 1] ** 2), wo[..., 2])
-    nodes = jnp.asarray(THETA_O)
+    nodes = jnp.asarray(THETA_O, th.dtype)
     th = jnp.clip(th, nodes[0], nodes[-1])[..., None]
     left = jnp.concatenate([nodes[:1] - 1.0, nodes[:-1]])
     right = jnp.concatenate([nodes[1:], nodes[-1:] + 1.0])
@@ -76,7 +77,7 @@ def _node_weights(wo: Float[Array, "... 3"]) -> Float[Array, "... K"]:
 def _blend(table, wo):
     """Σ_j w_j(θo) table_j: (..., K, n) -> (..., n)."""
     w = _node_weights(wo)
-    return jnp.sum(w[..., :, None] * table, axis=-2)
+    return jnp.sum(w[..., :, None] * jnp.asarray(table, w.dtype), axis=-2)
 
 
 def _v_of(h: Float[Array, "... 3"]) -> Float[Array, "..."]:
@@ -99,7 +100,7 @@ def spec_sample(p, wo: Float[Array, "... 3"], u: Float[Array, "... 2"]) -> Float
     c0 = jnp.take_along_axis(cdf, b[..., None], axis=-1)[..., 0]
     c1 = jnp.take_along_axis(cdf, b[..., None] + 1, axis=-1)[..., 0]
     frac = jnp.clip(C.safe_div(u0 - c0, c1 - c0), 0.0, 1.0)
-    ve = jnp.asarray(V_EDGES)
+    ve = jnp.asarray(V_EDGES, frac.dtype)
     v = ve[b] + frac * (ve[b + 1] - ve[b])
     # sin θh from v directly (sqrt(1 - cos²θh) would lose it in float32 for tiny θh)
     sin_h = C.safe_sqrt(v * (2.0 - v))
@@ -114,7 +115,7 @@ def spec_pdf(p, wo: Float[Array, "... 3"], wi: Float[Array, "... 3"]) -> Float[A
     """Density [1/sr] of `spec_sample` at wi (also > 0 for some wi below the horizon)."""
     h = C.normalize(wi + wo)
     v = _v_of(h)
-    ve = jnp.asarray(V_EDGES)
+    ve = jnp.asarray(V_EDGES, v.dtype)
     b = jnp.clip(jnp.searchsorted(ve, v, side="right") - 1, 0, N_H - 1)
     # the bin probabilities from "pmf", not from differences of "cdf" (which lose relative precision
     # for small bins); both tables hold the same distribution
@@ -125,7 +126,16 @@ def spec_pdf(p, wo: Float[Array, "... 3"], wi: Float[Array, "... 3"]) -> Float[A
     b = b[..., 0]
     p_h = prob / (2.0 * math.pi * (ve[b + 1] - ve[b]))
     p_h = jnp.where(h[..., 2] > 0, p_h, 0.0)
-    return p_h * C.half_jacobian(wo, h)
+    return p_h * C.half_vector_jacobian(wi, wo)
+
+
+def _diffuse_prob(p, wo):
+    return 1.0 - lobe_prob(p, wo)
+
+
+#: The mixture's `Component`s (cosine-weighted diffuse, tabulated lobe) with their view-dependent
+#: probabilities, for `Model.mixture`.
+COMPONENTS = (Component(_diffuse_prob, C.diffuse_component), Component(lobe_prob, spec_sample))
 
 
 def make(eval_fn):
@@ -167,10 +177,10 @@ def build(eval_fn, p) -> dict:
     """
     ve = jnp.asarray(V_EDGES, jnp.float32)
     dv = ve[1:] - ve[:-1]  # (N,)
-    t = (jnp.arange(_SUB_V) + 0.5) / _SUB_V
+    t = (jnp.arange(_SUB_V, dtype=jnp.float32) + 0.5) / _SUB_V
     v = ve[:-1, None] + dv[:, None] * t  # (N, S)
     sin_h = jnp.sqrt(v * (2.0 - v))
-    phi = (jnp.arange(_SUB_PHI) + 0.5) / _SUB_PHI * math.pi  # (M,)
+    phi = (jnp.arange(_SUB_PHI, dtype=jnp.float32) + 0.5) / _SUB_PHI * math.pi  # (M,)
     h = jnp.stack(jnp.broadcast_arrays(sin_h[..., None] * jnp.cos(phi), sin_h[..., None] * jnp.sin(phi),
                                        (1.0 - v)[..., None]), axis=-1)  # (N, S, M, 3)
     tho = jnp.asarray(THETA_O)

@@ -19,8 +19,19 @@ Sampling: mixture of cosine-weighted diffuse and Beckmann half-vector sampling
 tan^2(theta_h) = -m^2 ln(1-u0), phi = 2 pi u1 (density D cos(theta_h) / (4 wo·h) in wi);
 specular chosen with probability mean(rho_s) / (mean(rho_d) + mean(rho_s)).
 
-Parameters: rho_d, rho_s (RGB, 0-1), m (0.01-1, log) RMS microfacet slope, eta (1-10) relative
-index of refraction for F0.
+float32 at small m: D is evaluated from the half vector's components (tan^2 = (h_x^2 + h_y^2)/h_z^2),
+the sampler builds the half vector from tan^2(theta_h) directly (`_common.spherical_tan2`; the
+usual cos = 1/sqrt(1 + tan^2), sin = sqrt(1 - cos^2) loses 6 % of sin^2 at m = 0.001 in float32),
+and wo·h = |wi + wo|/2 (the dot product loses its digits near the mirror direction of a grazing
+view). Values, gradients and the sampling distribution stay accurate down to m = 0.001
+(tests/test_brdf_grad.py, tests/test_brdf_sampling.py).
+
+Parameters: rho_d, rho_s (RGB, 0-1), m (0.001-1, log) RMS microfacet slope, eta (1-1000, log)
+relative index of refraction for F0 = ((eta - 1)/(eta + 1))^2. Published fits of measured
+materials need m < 0.01 (about 0.007 for the sharpest MERL metals) and Schlick F0 above the
+0.669 of eta = 10 (e.g. F0 ~ 0.73 for nickel); F0 = 0.9 is eta = 38.0, 0.96 is eta = 98 and the
+bound eta = 1000 gives F0 = 0.996. eta enters only through F0 (a scalar Schlick Fresnel tinted by
+rho_s, not a complex metal IOR).
 """
 
 from __future__ import annotations
@@ -31,13 +42,14 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from brdfs import _common as C
-from brdfs.base import Model, Param, Params
+from brdfs.base import Lobe, Model, Param, Params
 
 SPEC = (
     Param("rho_d", 0.2, 0.0, 1.0, rgb=True, doc="diffuse albedo"),
     Param("rho_s", 0.8, 0.0, 1.0, rgb=True, doc="specular scale"),
-    Param("m", 0.3, 0.01, 1.0, scale="log", doc="Beckmann RMS slope (roughness)"),
-    Param("eta", 1.5, 1.0, 10.0, doc="index of refraction for the Fresnel term"),
+    Param("m", 0.3, 0.001, 1.0, scale="log", doc="Beckmann RMS slope (roughness)", typical=(0.01, 1.0)),
+    Param("eta", 1.5, 1.0, 1000.0, scale="log", doc="index of refraction for the Fresnel term (F0 = ((eta-1)/(eta+1))^2)",
+          typical=(1.0, 10.0)),
 )
 
 
@@ -69,7 +81,7 @@ def eval(p: Params, wi: Float[Array, "... 3"], wo: Float[Array, "... 3"]) -> Flo
     co = jnp.where(ok, wo[..., 2], 1.0)
     h = C.normalize(wi + wo)
     nh = h[..., 2]
-    oh = jnp.where(ok, jnp.maximum(C.dot(wo, h), C.COS_EPS), 1.0)
+    oh = jnp.where(ok, jnp.maximum(C.half_cos(wi, wo), C.COS_EPS), 1.0)  # wo·h, accurate at grazing views
     g_over = jnp.minimum(1.0 / (4.0 * ci * co), jnp.minimum(nh / (2.0 * oh * ci), nh / (2.0 * oh * co)))
     spec = beckmann_d(h, p["m"]) * schlick(schlick_f0(p["eta"]), oh) * g_over
     f = p["rho_d"] * C.INV_PI + p["rho_s"] * C.rgb(spec)
@@ -79,19 +91,18 @@ def eval(p: Params, wi: Float[Array, "... 3"], wo: Float[Array, "... 3"]) -> Flo
 def _spec_sample(p: Params, wo, u):
     m = p["m"]
     tan2 = -(m * m) * jnp.log1p(-u[..., 0])
-    cos_h = 1.0 / jnp.sqrt(1.0 + tan2)
-    h = C.spherical(cos_h, 2.0 * math.pi * u[..., 1])
+    h = C.spherical_tan2(tan2, 2.0 * math.pi * u[..., 1])
     return C.reflect_about(wo, h)
 
 
 def _spec_pdf(p: Params, wo, wi):
     h = C.normalize(wi + wo)
-    return beckmann_d(h, p["m"]) * jnp.maximum(h[..., 2], 0.0) * C.half_jacobian(wo, h)
+    return beckmann_d(h, p["m"]) * jnp.maximum(h[..., 2], 0.0) * C.half_vector_jacobian(wi, wo)
 
 
 _ps = C.rho_lobe_prob
 
-sample, pdf = C.mixture(_ps, _spec_sample, _spec_pdf, eval)
+sample, pdf, _components = C.mixture(_ps, _spec_sample, _spec_pdf, eval)
 
 MODEL = Model(
     name="cook_torrance",
@@ -99,8 +110,10 @@ MODEL = Model(
     eval=eval,
     sample=sample,
     pdf=pdf,
+    flags=Lobe.REFLECTION | Lobe.DIFFUSE | Lobe.GLOSSY,
     energy_conserving=True,
     reciprocal=True,
-    extras={"lobe_prob": _ps, "sample_specular": _spec_sample, "beckmann_d": beckmann_d},
+    diffuse=lambda p: p["rho_d"],
+    mixture=_components,
     doc=__doc__,
 )

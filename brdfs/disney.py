@@ -65,7 +65,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from brdfs import _common as C
-from brdfs.base import Model, Param, Params
+from brdfs.base import Component, Lobe, Model, Param, Params
 
 SPEC = (
     Param("base_color", 0.8, 0.0, 1.0, rgb=True, doc="base colour: diffuse albedo, metal's specular colour"),
@@ -149,7 +149,7 @@ def lobes(p: Params, wi: Float[Array, "... 3"], wo: Float[Array, "... 3"]) -> di
     wo = jnp.where(ok[..., None], wo, jnp.array([0.0, 0.0, 1.0], wo.dtype))
     ci, co = wi[..., 2], wo[..., 2]
     h = C.normalize(wi + wo)
-    ih = jnp.clip(C.dot(wi, h), 0.0, 1.0)
+    ih = jnp.clip(C.half_cos(wi, wo), 0.0, 1.0)  # wi·h, accurate at grazing views
     s_i, s_o, s_h = schlick_weight(ci), schlick_weight(co), schlick_weight(ih)
     rough = p["roughness"]
     cd = p["base_color"]
@@ -203,9 +203,7 @@ def _vec(x, y, z):
     return jnp.stack(jnp.broadcast_arrays(x, y, z), axis=-1)
 
 
-def _sample_diffuse(p: Params, wo, u):
-    wi = C.cosine_sample(u)
-    return jnp.broadcast_to(wi, jnp.broadcast_shapes(wi.shape, wo.shape))
+_sample_diffuse = C.diffuse_component
 
 
 def _sample_specular(p: Params, wo, u):
@@ -238,14 +236,18 @@ def _pdf_specular(p: Params, wo, wi):
 
 def _sample_clearcoat(p: Params, wo, u):
     a2 = _clearcoat_alpha(p) ** 2
-    cos2 = (1.0 - jnp.power(a2, 1.0 - u[..., 0])) / (1.0 - a2)
-    h = C.spherical(C.safe_sqrt(cos2), 2.0 * math.pi * u[..., 1])
+    # cos^2(theta_h) = (1 - a2^(1 - u0)) / (1 - a2); sin^2 = a2 (a2^(-u0) - 1) / (1 - a2), both
+    # without cancellation (the clearcoat lobe is as narrow as a = 0.001)
+    log_a2 = jnp.log(a2)
+    cos2 = -jnp.expm1((1.0 - u[..., 0]) * log_a2) / (1.0 - a2)
+    sin2 = a2 * jnp.expm1(-u[..., 0] * log_a2) / (1.0 - a2)
+    h = C.spherical_cs(C.safe_sqrt(cos2), C.safe_sqrt(sin2), 2.0 * math.pi * u[..., 1])
     return C.reflect_about(wo, h)
 
 
 def _pdf_clearcoat(p: Params, wo, wi):
     h = C.normalize(wi + wo)
-    return gtr1(h[..., 2], _clearcoat_alpha(p)) * jnp.maximum(h[..., 2], 0.0) * C.half_jacobian(wo, h)
+    return gtr1(h[..., 2], _clearcoat_alpha(p)) * jnp.maximum(h[..., 2], 0.0) * C.half_vector_jacobian(wi, wo)
 
 
 def pdf(p: Params, wo: Float[Array, "... 3"], wi: Float[Array, "... 3"]) -> Float[Array, "..."]:
@@ -290,21 +292,14 @@ MODEL = Model(
     eval=eval,
     sample=sample,
     pdf=pdf,
+    flags=Lobe.REFLECTION | Lobe.DIFFUSE | Lobe.GLOSSY,
     energy_conserving=False,
     reciprocal=True,
-    extras={
-        # (probability, sampler) per lobe of the mixture; brdfs.albedo integrates each lobe on its own grid.
-        "lobes": (
-            (lambda p: _lobe_probs(p)[0], _sample_diffuse),
-            (lambda p: _lobe_probs(p)[1], _sample_specular),
-            (lambda p: _lobe_probs(p)[2], _sample_clearcoat),
-        ),
-        "lobe_terms": lobes,
-        "pdf_specular": _pdf_specular,
-        "pdf_clearcoat": _pdf_clearcoat,
-        "gtr1": gtr1,
-        "gtr2_aniso": gtr2_aniso,
-        "alphas": alphas,
-    },
+    diffuse=lambda p: p["base_color"],
+    mixture=(
+        Component(lambda p, wo: _lobe_probs(p)[0], _sample_diffuse),
+        Component(lambda p, wo: _lobe_probs(p)[1], _sample_specular),
+        Component(lambda p, wo: _lobe_probs(p)[2], _sample_clearcoat),
+    ),
     doc=__doc__,
 )

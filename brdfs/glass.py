@@ -4,7 +4,8 @@ The outside medium has index 1, the inside `n_t`. In the local frame the normal 
 outside, so wo.z > 0 means the viewer is outside (the path enters the glass) and wo.z < 0 means
 it is inside (the path leaves it, where total internal reflection can happen).
 
-Functions in `MODEL.extras` (all pure, leading batch dims broadcast):
+`MODEL.flags` is REFLECTION | TRANSMISSION | DELTA. The interface functions are in the typed record
+`MODEL.dielectric` (a `brdfs.base.Dielectric`; all pure, leading batch dims broadcast):
 
     fresnel(p, cos_i, entering, exact=False) -> R (...,)
         Unpolarised reflectance for a ray arriving with cosine cos_i >= 0 on its own side;
@@ -13,21 +14,23 @@ Functions in `MODEL.extras` (all pure, leading batch dims broadcast):
         on the *less dense* (outside) side -- cos_i when entering, cos_t when leaving -- which is
         what makes Schlick symmetric under reversal; R = 1 under total internal reflection.
         exact=True: the full dielectric Fresnel equations (mean of s and p polarisations).
-    fresnel_exact(p, cos_i, entering) -> R    same as fresnel(..., exact=True)
     reflect(wo) -> wi (..., 3)                 mirror direction (-wo_x, -wo_y, wo_z)
     refract(p, wo) -> (wt (..., 3), valid (...,) bool)
         Snell refraction of wo through the interface with the correct IOR ratio for the side wo
         is on; valid is False under total internal reflection (wt is then the mirror direction).
+    split(p, wo) -> (R, wr, wt, transmits)    all of the above at once for a view direction wo
+                                               (transmits: valid and R < 1)
 
     MODEL.sample(p, wo, u, exact=False) -> (wi, weight, pdf)
         Chooses reflection with probability R (u[..., 0] < R) and transmission otherwise; weight is
         1 (RGB ones): R / R or (1 - R) / (1 - R); pdf is the discrete probability of the chosen
         branch (R or 1 - R), as pbrt's specular BSDFs report it -- it is not a solid-angle density.
     MODEL.pdf(p, wo, wi) -> 0                  a delta distribution has no density w.r.t. solid angle
-    MODEL.eval is None.
+    MODEL.eval is None; MODEL.diffuse_albedo(p) is 1 (white, for an albedo AOV).
 
 Radiance scaling on transmission: the (eta_t/eta_i)^2 factor of non-symmetric radiance transport
-is *omitted* (weight 1), as in Whitted-style renderers (and the seed). For a closed object seen
+is *omitted* (weight 1), as in Whitted-style renderers (and in Größler & Zettwitz, "An interactive
+ray tracing system based on Nvidia OptiX", 2015). For a closed object seen
 from outside with lights outside, every path enters and leaves the glass equally often, so the
 factors cancel exactly; only paths that start or end inside would differ.
 
@@ -44,7 +47,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from brdfs import _common as C
-from brdfs.base import Model, Param, Params
+from brdfs.base import Dielectric, Lobe, Model, Param, Params
 
 SPEC = (Param("n_t", 1.5, 1.0, 3.0, doc="index of refraction inside the object (outside is 1)"),)
 
@@ -75,10 +78,6 @@ def fresnel(
         c = jnp.where(entering, cos_i, cos_t)
         r = f0 + (1.0 - f0) * (1.0 - c) ** 5
     return jnp.where(tir, 1.0, r)
-
-
-def fresnel_exact(p: Params, cos_i: Float[Array, "..."], entering: Bool[Array, "..."]) -> Float[Array, "..."]:
-    return fresnel(p, cos_i, entering, exact=True)
 
 
 def reflect(wo: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
@@ -119,9 +118,9 @@ MODEL = Model(
     eval=None,
     sample=sample,
     pdf=pdf,
-    delta=True,
+    flags=Lobe.REFLECTION | Lobe.TRANSMISSION | Lobe.DELTA,
     energy_conserving=True,
     reciprocal=True,
-    extras={"fresnel": fresnel, "fresnel_exact": fresnel_exact, "reflect": reflect, "refract": refract},
+    dielectric=Dielectric(fresnel=fresnel, reflect=reflect, refract=refract),
     doc=__doc__,
 )

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from brdfs import _common as C
-from brdfs.base import Model, Param, Params
+from brdfs.base import Lobe, Model, Param, Params
 
 SPEC = (Param("rho_d", 0.8, 0.0, 1.0, rgb=True, doc="diffuse albedo"),)
 
@@ -30,7 +30,7 @@ def _ps(p: Params) -> Float[Array, "..."]:
     return jnp.zeros_like(p["rho_d"][..., 0])
 
 
-sample, pdf = C.mixture(_ps, lambda p, wo, u: C.cosine_sample(u), lambda p, wo, wi: C.cosine_pdf(wi), eval)
+sample, pdf, _components = C.mixture(_ps, C.diffuse_component, lambda p, wo, wi: C.cosine_pdf(wi), eval)
 
 MODEL = Model(
     name="lambert",
@@ -38,8 +38,10 @@ MODEL = Model(
     eval=eval,
     sample=sample,
     pdf=pdf,
+    flags=Lobe.REFLECTION | Lobe.DIFFUSE,
     energy_conserving=True,
     reciprocal=True,
-    extras={"lobe_prob": _ps, "sample_specular": lambda p, wo, u: C.cosine_sample(u)},
+    diffuse=lambda p: p["rho_d"],
+    mixture=_components[:1],  # the "specular" branch is never chosen (ps = 0)
     doc=__doc__,
 )

@@ -14,7 +14,7 @@ leading batch dimensions broadcasting like any model's parameters. So one compil
 every material of a kind, `jax.vmap` runs over a stack of them (the measured-material study fits 100
 materials in one batched call), and the models stay hashable static jit arguments. The models'
 `spec` is empty: there is nothing to tune, so loaders, sliders and fits that walk `spec` see no
-parameters; `extras["data_shapes"]` gives the core shape of each data entry (brdfs.analysis uses it
+parameters; `Model.data_shapes` gives the core shape of each data entry (brdfs.analysis uses it
 to insert batch axes).
 
 `load(data, base=None)`: `data` is a material name "COLLECTION/NAME" (brdfs.measured_data) or a file

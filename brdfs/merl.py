@@ -43,7 +43,7 @@ from jaxtyping import Array, Float
 
 from brdfs import _common as C
 from brdfs import _measured_sampling as S
-from brdfs.base import Model, Params
+from brdfs.base import Lobe, Model, Params
 from brdfs.errors import InputError
 from brdfs.halfdiff import angles, directions
 
@@ -198,7 +198,8 @@ MODEL = Model(
     pdf=pdf,
     energy_conserving=False,
     reciprocal=True,
-    extras={"lobe_prob": S.lobe_prob, "lobe_prob_wo": True, "sample_specular": S.spec_sample, "data_shapes": SHAPES,
-            "lookup": lookup},
+    flags=Lobe.REFLECTION | Lobe.GLOSSY,  # no diffuse-colour parameter: diffuse_albedo is 0
+    mixture=S.COMPONENTS,
+    data_shapes=SHAPES,
     doc=__doc__,
 )

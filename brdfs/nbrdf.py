@@ -50,7 +50,7 @@ from jaxtyping import Array, Float
 
 from brdfs import _common as C
 from brdfs import _measured_sampling as S
-from brdfs.base import Model, Params
+from brdfs.base import Lobe, Model, Params
 from brdfs.errors import InputError
 from brdfs.halfdiff import half_diff
 
@@ -155,7 +155,8 @@ MODEL = Model(
     pdf=pdf,
     energy_conserving=False,
     reciprocal=False,
-    extras={"lobe_prob": S.lobe_prob, "lobe_prob_wo": True, "sample_specular": S.spec_sample, "data_shapes": SHAPES,
-            "network": network, "encode": encode},
+    flags=Lobe.REFLECTION | Lobe.GLOSSY,  # no diffuse-colour parameter: diffuse_albedo is 0
+    mixture=S.COMPONENTS,
+    data_shapes=SHAPES,
     doc=__doc__,
 )

@@ -34,6 +34,32 @@ from jaxrt.errors import InputError
 
 FIT_MATERIAL = "fit"  # name given to the substituted material when the object's own name is shared
 
+#: The largest target value a fit accepts: the solver's sum of squared residuals is float32, and
+#: (1e12)² · 3 channels · 16384² pixels (the largest render) stays below float32's 3.4e38.
+MAX_TARGET = 1e12
+#: How far below 0 a target may dip, as a fraction of its largest |value|: measurement noise
+#: around black (a dark-frame-subtracted photograph, a noisy render) is negative here and there;
+#: a target mostly or substantially negative cannot be radiance.
+NEGATIVE_TOLERANCE = 0.1
+
+
+def check_targets(targets, where: str = "targets") -> None:
+    """Refuse targets no render can be: NaN/Inf, negative beyond noise (below −NEGATIVE_TOLERANCE
+    times the largest |value|), or above MAX_TARGET. InputError naming `where` (a file, or "targets")."""
+    t = np.asarray(targets)
+    if not np.all(np.isfinite(t)):
+        raise InputError(f"{where}: contains NaN or Inf pixels")
+    if not t.size:
+        return
+    low, peak = float(t.min()), float(np.abs(t).max())
+    if low < 0 and (low < -NEGATIVE_TOLERANCE * peak or float(t.max()) <= 0):
+        raise InputError(f"{where}: has negative pixel values down to {low:g} (largest |value| {peak:g}); "
+                         f"radiance is >= 0, and only noise down to -{NEGATIVE_TOLERANCE:g} x the largest value "
+                         "is accepted")
+    if t.size and float(t.max()) > MAX_TARGET:
+        raise InputError(f"{where}: pixel values reach {float(t.max()):g}; a target must be at most "
+                         f"{MAX_TARGET:g} (scale it down, e.g. by the exposure it was taken with)")
+
 
 @dataclasses.dataclass(frozen=True)
 class Setup:
@@ -76,12 +102,12 @@ def variant(source, *, lights: Sequence[Mapping[str, Any]] | None = None, **tabl
     return doc
 
 
-def _spec(source, overrides=None) -> _scene.SceneSpec:
+def _spec(source, overrides=None, confine=None) -> _scene.SceneSpec:
     if isinstance(source, _scene.SceneSpec):
         return source
     if not isinstance(source, Mapping):
         source = _scene.find_scene(source)
-    return _scene.parse(source, overrides=overrides)
+    return _scene.parse(source, overrides=overrides, confine=confine)
 
 
 def _substitute(spec: _scene.SceneSpec, model: Model, obj: str | None) -> tuple[_scene.SceneSpec, str, str]:
@@ -103,6 +129,7 @@ def prepare(
     *,
     object: str | None = None,
     overrides: Sequence[Mapping[str, Any] | None] | None = None,
+    confine: bool | None = None,
 ) -> Setup:
     """Build and trace the scene(s) for fitting `model` on `object`'s material.
 
@@ -112,6 +139,8 @@ def prepare(
         model: the model to fit (name or `brdfs` Model).
         object: name of the object whose material is fitted (default: the scene's first object).
         overrides: per-scene override dicts ({"camera.position": [...]}), same length as scenes.
+        confine: refuse scene paths outside each scene's folder and the data folder (default:
+            JAXRT_CONFINE; `jaxrt.scene.parse`).
     """
     model = brdfs.get(model) if isinstance(model, str) else model
     if isinstance(scenes, (str, os.PathLike, Mapping, _scene.SceneSpec)):
@@ -122,7 +151,7 @@ def prepare(
     built, gbs, masks = [], [], []
     obj_name = None
     for src, ov in zip(scenes, overrides):
-        original = _spec(src, ov)
+        original = _spec(src, ov, confine)
         spec, mat_name, obj_name = _substitute(original, model, object)
         sc = _scene.build(spec)
         # The ray tree depends on geometry, δ and which materials are glass, not on the opaque
@@ -202,7 +231,8 @@ def fit(
 
     Args:
         scenes, model, object, overrides: as for `prepare` (ignored when `setup` is given).
-        targets: (K, H, W, 3) linear RGB, one per scene, at the scene's resolution.
+        targets: (K, H, W, 3) linear RGB, one per scene, at the scene's resolution: finite, not
+            negative beyond noise and at most MAX_TARGET (`check_targets`).
         mask: optional (K, H, W) weights multiplied into the default mask (the material's pixels).
         setup: a `prepare` result to reuse (skips building and tracing).
         **solver_options: fix, init, rgb, solver, starts, max_steps, rtol, atol, progress
@@ -218,8 +248,7 @@ def fit(
     expect = setup.mask.shape + (3,)
     if targets.shape != expect:
         raise InputError(f"targets have shape {targets.shape}; the scene renders {expect} (K, H, W, RGB)")
-    if not np.all(np.isfinite(targets)):
-        raise InputError("targets contain NaN or Inf pixels")
+    check_targets(targets)
     m = setup.mask if mask is None else setup.mask * np.asarray(mask, np.float32)
     result = fit_images(compact.shader(setup.model.name), setup.fitbuffer, targets, setup.model, mask=m,
                         **solver_options)

@@ -41,6 +41,9 @@ SOLVERS: dict[str, Callable[[float, float], object]] = {
 # brighter, wider lobe looks like a dimmer, sharper one at the pixels that see it).
 CONDITION_WARN = 1e8
 CORRELATION_WARN = 0.99
+# A fit "cannot reproduce" its target when the residual RMS exceeds this fraction of the target's
+# RMS over the compared pixels (a wrong scene, lighting, exposure or object, or a model too simple).
+RELATIVE_RMSE_WARN = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,6 +75,12 @@ class FitResult:
     ill_conditioned: bool
     correlated: list[tuple[str, str, float]]
     converged: bool
+    relative_rmse: float = float("nan")  # rmse / RMS of the target over the compared pixels
+    # fitted parameters whose standard error says nothing: the views do not determine them (the
+    # image does not change with them, the error exceeds the parameter's whole range, it is not
+    # finite, or there are no more residuals than parameters)
+    meaningless: list[str] = dataclasses.field(default_factory=list)
+    warnings: list[str] = dataclasses.field(default_factory=list)  # one sentence each, for people
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -222,14 +231,28 @@ def fit_images(
     tgt = np.asarray(targets)
     m = np.asarray(mask) > 0
     de = metrics.delta_e_2000(fitted, tgt, m)
-    se, cond, corr = _standard_errors(shade, gbuffer, pixels, free, params)
+    se, cond, corr, meaningless = _standard_errors(shade, gbuffer, pixels, free, params)
     names = [fp.param.name for fp in free]
+    rmse = metrics.rmse(fitted, tgt, m)
+    rms = float(np.sqrt(np.mean(np.asarray(tgt, np.float64)[m] ** 2))) if np.any(m) else 0.0
+    relative = rmse / rms if rms > 0 else (0.0 if rmse == 0 else float("inf"))
+    warnings = []
+    if not ok:
+        why = f"it used all {max_steps} steps" if steps >= max_steps else "the solver stopped early"
+        warnings.append(f"not converged: the best of {len(z_starts)} starts did not meet the tolerances ({why}); "
+                        "raise max_steps (--max-steps) or starts (--starts)")
+    if meaningless:
+        warnings.append(f"the standard error of {', '.join(meaningless)} is meaningless: these views do not "
+                        "determine it (add views or lights that change with it, or fix it)")
+    if relative > RELATIVE_RMSE_WARN:
+        warnings.append(f"the model cannot reproduce the target: the fit misses it by {relative:.0%} of its RMS "
+                        "(check the scene, lighting, exposure and object)")
     return FitResult(
         model=model.name,
         params={k: _tolist(v) for k, v in params.items()},
         stderr={n: _tolist(s) for n, s in zip(names, se)},
         fixed=sorted(fix),
-        rmse=metrics.rmse(fitted, tgt, m),
+        rmse=rmse,
         delta_e_mean=float(de.mean()) if de.size else 0.0,
         delta_e_max=float(de.max()) if de.size else 0.0,
         iterations=steps,
@@ -242,6 +265,9 @@ def fit_images(
         ill_conditioned=bool(cond > CONDITION_WARN or corr),
         correlated=corr,
         converged=ok,
+        relative_rmse=relative,
+        meaningless=meaningless,
+        warnings=warnings,
     )
 
 
@@ -334,6 +360,10 @@ def _standard_errors(shade, gbuffer, pixels, free, params):
     J is taken with respect to the parameters in their own units (not z), so the errors are in those
     units. Computed in the precision of the render (float32); the condition number is of the
     column-scaled JᵀJ so it reflects parameter trade-offs, not units.
+
+    Returns (errors per free parameter, condition number, strongly correlated pairs, names of the
+    parameters whose error is meaningless: a Jacobian column that is (numerically) zero, an error
+    that is not finite or wider than the parameter's range, or no more residuals than parameters).
     """
     sizes = [fp.size for fp in free]
     theta0 = jax.device_put(np.concatenate([np.ravel(_shaped_host(params[fp.param.name], fp)) for fp in free]))
@@ -359,11 +389,17 @@ def _standard_errors(shade, gbuffer, pixels, free, params):
         for j in range(i + 1, p):
             if np.isfinite(cc[i, j]) and abs(cc[i, j]) > CORRELATION_WARN:
                 corr.append((labels[i], labels[j], float(cc[i, j])))
-    out, i = [], 0
-    for n_ in sizes:
-        out.append(sd[i : i + n_] if n_ > 1 else sd[i])
+    col = np.diag(jtj)
+    flat = ~(col > 1e-20 * max(float(col.max()), 1e-300))  # the image does not change with it
+    out, meaningless, i = [], [], 0
+    for fp, n_ in zip(free, sizes):
+        s_ = sd[i : i + n_]
+        span = fp.param.hi - fp.param.lo
+        if n <= p or np.any(flat[i : i + n_]) or not np.all(np.isfinite(s_)) or np.any(s_ > span):
+            meaningless.append(fp.param.name)
+        out.append(s_ if n_ > 1 else sd[i])
         i += n_
-    return out, cond, corr
+    return out, cond, corr, meaningless
 
 
 def _tolist(v):

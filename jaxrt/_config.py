@@ -16,7 +16,7 @@ standard library and `jaxrt.errors`, so anything may import it without pulling i
 | JAXRT_CACHE | whether the on-disk caches are used | on, off (on) |
 | JAXRT_CACHE_SIZE | the cache folder's size bound; least recently used entries go first | bytes, or a number with K/M/G/T (binary units) (2G) |
 | JAXRT_MEMORY | reserved: a memory budget for tiled rendering; parsed, not yet used | bytes, or a number with K/M/G/T (unset: derived from the device) |
-| JAXRT_CONFINE | reserved: refuse scene paths outside the scene's folder and the data folder; parsed, not yet used | as JAXRT_DEBUG (off) |
+| JAXRT_CONFINE | refuse scene paths (meshes, textures, environment maps) outside the scene's folder and the data folder (`jaxrt.scene.parse`; the CLI's `--confine`) | as JAXRT_DEBUG (off) |
 
 Relative paths are taken relative to the current directory at the time of the call and returned
 absolute, so a value read once means the same folder after a ``chdir``.
@@ -61,7 +61,7 @@ class Config:
     cache:       JAXRT_CACHE is on
     cache_size:  JAXRT_CACHE_SIZE in bytes (0 stores nothing)
     memory:      JAXRT_MEMORY in bytes, or None (reserved)
-    confine:     JAXRT_CONFINE (reserved)
+    confine:     JAXRT_CONFINE
     """
 
     data: Path | None

@@ -75,11 +75,13 @@ def generate_rays(
     y = (1.0 - 2.0 * (rows + sub[..., 1]) / h) * tan_half
     r, up, f = basis(camera)
     d = x[..., None] * r + y[..., None] * up + f  # (h, w, spp, 3), unnormalised: f-component is 1
-    # thin lens: every ray through the lens point reaches the same point on the focus plane
-    focus = camera.position + d * camera.focus_distance
+    # thin lens: every ray through the lens point reaches the same point on the focus plane,
+    # position + d·focus_distance; its direction is taken relative to the lens point, so it keeps
+    # its precision far from the origin and at small focus distances
     lens_r = 0.5 * camera.aperture * jnp.sqrt(u[..., 2])
     phi = 2.0 * jnp.pi * u[..., 3]
-    o = camera.position + (lens_r * jnp.cos(phi))[..., None] * r + (lens_r * jnp.sin(phi))[..., None] * up
-    d = focus - o
+    lens = (lens_r * jnp.cos(phi))[..., None] * r + (lens_r * jnp.sin(phi))[..., None] * up
+    o = camera.position + lens
+    d = d * camera.focus_distance - lens
     d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
     return o.reshape(-1, 3), d.reshape(-1, 3)

@@ -93,6 +93,9 @@ def from_array(texels: Float[np.ndarray, "H W 3"], scale: float = 1.0, rotate: f
         raise InputError(f"environment map: expected an (H, W, 3) RGB image, got shape {tex.shape}")
     if not np.all(np.isfinite(tex)) or np.any(tex < 0):
         raise InputError("environment map: texels must be finite and non-negative")
+    if np.any(tex > np.finfo(np.float32).max):
+        raise InputError(f"environment map: texels × scale reach {tex.max():g}, beyond float32's "
+                         f"{np.finfo(np.float32).max:g}")
     h = tex.shape[0]
     theta = (np.arange(h) + 0.5) / h * np.pi
     f = (tex @ np.asarray(_LUM)) * np.sin(theta)[:, None]  # (H, W)

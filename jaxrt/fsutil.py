@@ -37,15 +37,99 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
 
 
 def check_output(path: str | os.PathLike, suffix: str, flag: str) -> Path:
-    """Validate a CLI output path before any work: the right extension and an existing directory.
+    """Validate a CLI output path before any work; `Outputs.add` without keeping it (see there)."""
+    return Outputs().add(path, suffix, flag)
 
-    Raises InputError naming the option (`flag`), the path and what is allowed.
+
+class _Temporaries(dict):
+    """{output path: temporary path}, looked up by a str or a Path."""
+
+    def __getitem__(self, path):
+        return super().__getitem__(Path(path))
+
+
+class Outputs:
+    """Every output file of one command: checked before any work, written all together or not at all.
+
+        outs = Outputs()
+        exr = outs.add(args.output, ".exr", "-o")        # InputError now, before any work
+        ...                                              # the work
+        with outs.writing() as tmp:                      # tmp[exr]: a temporary file beside exr
+            image.write_exr(tmp[exr], img)
+        # all outputs renamed into place here, or (on any exception) none, old files untouched
+
+    `add` checks the name (extension), that the path is not a directory, that its folder exists,
+    and that a file can be created there (by creating and removing one: permission bits do not
+    tell, e.g. for root or in /sys), and that no other output of the command names the same file.
+    Failures are one-line InputErrors naming the option and the path.
     """
-    from jaxrt.errors import InputError
 
-    path = Path(path)
-    if path.suffix.lower() != suffix:
-        raise InputError(f"{flag} {path}: the file name must end in {suffix}")
-    if not path.resolve().parent.is_dir():
-        raise InputError(f"{flag} {path}: output directory {path.resolve().parent} does not exist")
-    return path
+    def __init__(self):
+        self.paths: list[Path] = []
+        self._flags: dict[Path, str] = {}
+
+    def add(self, path: str | os.PathLike | None, suffix: str, flag: str) -> Path | None:
+        from jaxrt.errors import InputError
+
+        if path is None:
+            return None
+        path = Path(path)
+        shown = f"{flag} {path}"
+        if path.suffix.lower() != suffix:
+            raise InputError(f"{shown}: the file name must end in {suffix}")
+        if path.is_dir():
+            raise InputError(f"{shown}: is a directory; give a file name ending in {suffix}")
+        folder = path.resolve().parent
+        if not folder.is_dir():
+            raise InputError(f"{shown}: output directory {folder} does not exist")
+        key = folder / path.name
+        if key in self._flags:
+            raise InputError(f"{shown}: also given as {self._flags[key]}; each output needs its own file")
+        try:
+            fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=folder)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as e:
+            raise InputError(f"{shown}: cannot write in {folder}: {e.strerror or e}") from None
+        self.paths.append(path)
+        self._flags[key] = flag
+        return path
+
+    @contextlib.contextmanager
+    def writing(self) -> Iterator[dict[Path, Path]]:
+        """Yield {output path: temporary path beside it}; rename every temporary file onto its
+        output after the block, or remove them all if the block (or a rename) fails, restoring
+        any output a failed commit had already replaced."""
+        tmps: dict[Path, Path] = _Temporaries()
+        backups: dict[Path, Path] = {}
+        done: list[Path] = []
+        try:
+            for p in self.paths:
+                fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=p.suffix, dir=p.resolve().parent)
+                os.close(fd)
+                tmps[p] = Path(tmp)
+            yield tmps
+            umask = os.umask(0)
+            os.umask(umask)
+            for p, tmp in tmps.items():
+                # mkstemp makes the file private (0600); give the result the mode a plain open() would
+                os.chmod(tmp, 0o666 & ~umask)
+                if p.exists():
+                    fd, bak = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".old", dir=p.resolve().parent)
+                    os.close(fd)
+                    os.replace(p, bak)
+                    backups[p] = Path(bak)
+                os.replace(tmp, p)
+                done.append(p)
+        except BaseException:
+            for p in done:
+                p.unlink(missing_ok=True)
+            for p, bak in backups.items():
+                os.replace(bak, p)
+            backups.clear()
+            raise
+        finally:
+            for tmp in tmps.values():
+                tmp.unlink(missing_ok=True)
+            for bak in backups.values():
+                bak.unlink(missing_ok=True)

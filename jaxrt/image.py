@@ -87,8 +87,27 @@ def read_exr(path: str | os.PathLike, channels: bool = False):
     raise InputError(f"{path}: EXR has no RGB channels (found {', '.join(sorted(ch))})")
 
 
+#: The allowed display exposure in stops: 2^±64 (1.8e19) is far beyond any useful display scaling
+#: and stays finite in float32.
+MAX_EXPOSURE = 64.0
+
+
+def check_exposure(exposure: float, flag: str = "exposure") -> float:
+    """`exposure` as a float if it is a number of stops in [-MAX_EXPOSURE, MAX_EXPOSURE], else InputError
+    naming `flag`."""
+    try:
+        ev = float(exposure)
+    except (TypeError, ValueError):
+        ev = float("nan")
+    if not -MAX_EXPOSURE <= ev <= MAX_EXPOSURE:
+        raise InputError(f"{flag}: expected a number of stops in [{-MAX_EXPOSURE:g}, {MAX_EXPOSURE:g}], "
+                         f"got {exposure!r}")
+    return ev
+
+
 def to_srgb8(image: Float[np.ndarray, "H W 3"], exposure: float = 0.0) -> np.ndarray:
     """Linear RGB -> 8-bit sRGB: scale by 2^exposure, clip to [0, 1], sRGB transfer (colour-science)."""
+    check_exposure(exposure)
     import colour
 
     img = _finite_rgb(image, "image")

@@ -86,11 +86,14 @@ class Viewer:
 
     def __init__(self, scene: str | os.PathLike, object: str | None = None, width: int | None = None,
                  height: int | None = None, exposure: float = 0.0, frame: bool = False,
-                 integrator: str | None = None, spp: int | None = None):
+                 integrator: str | None = None, spp: int | None = None, confine: bool | None = None):
         from jaxrt import scene as _scene
+        from jaxrt.image import check_exposure
 
+        check_exposure(exposure)
         spec = _scene.parse(_scene.find_scene(scene), overrides={
-            "camera.width": width, "camera.height": height, "render.integrator": integrator, "render.spp": spp})
+            "camera.width": width, "camera.height": height, "render.integrator": integrator, "render.spp": spp},
+            confine=confine)
         spec, self.object, self.model = _sweep.substitute(spec, None, object, inherit=True)
         self.scene = _scene.build(spec)
         if frame:

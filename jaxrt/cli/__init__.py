@@ -3,14 +3,14 @@
 Each subcommand lives in its own module that defines `configure(parser)` and `run(args) -> int`;
 this file only wires them together, so modules are imported only when their command runs.
 Bad input raises `InputError` (or `ValueError`/`FileNotFoundError` from validation) and is printed
-as one line with exit code 2; set JAXRT_DEBUG=1 for the full traceback.
+as one line with exit code 2; set JAXRT_DEBUG=1 for the full traceback. argparse's own errors (an
+unknown option, a value that is not a number) are one line with exit code 2 as well.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 
 from jaxrt import _config
@@ -30,12 +30,23 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage block), exit code 2, as every other jaxrt error."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
+
+
+def one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """The full parser; only the `selected` command's module is imported and configured."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="jaxrt", description="jaxrt: a JAX array ray tracer for analysing and fitting BRDFs."
     )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=OneLineParser)
     for name, (module, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_)
         if name == selected:
@@ -57,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, ValueError, FileNotFoundError) as e:
         if debug:
             raise
-        print(f"jaxrt {args.command}: error: {e}", file=sys.stderr)
+        print(f"jaxrt {args.command}: error: {one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("jaxrt: interrupted", file=sys.stderr)

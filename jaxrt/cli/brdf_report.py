@@ -49,26 +49,50 @@ def albedo_table(angles_deg, samples: int = 256) -> dict[str, np.ndarray]:
     return out
 
 
-def write_lobe_grid(path, lobe_angles_deg) -> None:
-    """A 2 x 4 grid of polar lobe slices (plane of incidence), one panel per model."""
+def lobe_figure(lobe_angles_deg):
+    """A 2 x 4 grid of polar lobe slices (plane of incidence), one panel per model, as a Figure.
+
+    Each opaque panel is scaled to its own maximum of f·cos θo (the panel's title gives that value,
+    in 1/sr); glass draws R and 1 − R as lengths. One legend for all panels, under the grid, and two
+    radial ticks per panel, so nothing covers the curves or overlaps."""
     from matplotlib.figure import Figure
 
     import brdfs
     from brdfs.analysis import draw_lobe
-    from jaxrt.fsutil import atomic_path
 
     th = [math.radians(a) for a in lobe_angles_deg]
     names = brdfs.names()
-    fig = Figure(figsize=(16, 7.5))
+    fig = Figure(figsize=(16, 8.2))
+    handles = None
     for k, name in enumerate(names):
         ax = fig.add_subplot(2, 4, k + 1, projection="polar")
         m = brdfs.get(name)
-        draw_lobe(ax, m, m.params(), th)
-        ax.set_title(name, pad=12)
-        if k == 0:
-            ax.legend(loc="lower left", fontsize=7)
-    fig.suptitle("f·cos θo in the plane of incidence (defaults; glass: R solid, 1-R dashed)")
-    fig.tight_layout()
+        p = m.params()
+        draw_lobe(ax, m, p, th)
+        ax.set_rticks([0.5, 1.0])
+        ax.set_rlabel_position(-60.0 if not m.delta else 200.0)
+        ax.tick_params(labelsize=7)
+        if m.delta:
+            scale = "lengths R, 1 − R"
+        else:
+            peak = max(float(np.max(np.asarray(f).mean(-1) * np.cos(t))) for t, f in
+                       (brdfs.lobe_slice(m, p, a) for a in th))
+            scale = f"1 = {peak:.3g} /sr"
+            handles = handles or ax.get_legend_handles_labels()
+        ax.set_title(f"{name}  ({scale})", pad=10, fontsize=10)
+    if handles:
+        fig.legend(*handles, loc="lower center", ncol=len(handles[0]), fontsize=9, title="light angle θi")
+    fig.suptitle("f·cos θo in the plane of incidence at default parameters; each panel scaled to its own "
+                 "maximum (in its title); glass: R solid, 1 − R dashed")
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    return fig
+
+
+def write_lobe_grid(path, lobe_angles_deg) -> None:
+    """Write `lobe_figure` to `path` as a PNG (atomically)."""
+    from jaxrt.fsutil import atomic_path
+
+    fig = lobe_figure(lobe_angles_deg)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=80)
 
@@ -80,6 +104,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--lobe-angles: light angles must be in [0, 90) degrees, got {args.lobe_angles}")
     if not (4 <= args.samples <= 2048):
         raise InputError(f"--samples: must be in [4, 2048], got {args.samples}")
+    from jaxrt.fsutil import Outputs
+
+    outs = Outputs()
+    out = outs.add(args.output, ".png", "-o")
     t0 = time.perf_counter()
     table = albedo_table(args.angles, args.samples)
     head = f"{'model':<18}" + "".join(f"{f'{a:g}°':>9}" for a in args.angles)
@@ -87,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
     print(head)
     for name, row in table.items():
         print(f"{name:<18}" + "".join(f"{v:9.4f}" for v in row))
-    write_lobe_grid(args.output, args.lobe_angles)
+    with outs.writing() as tmp:
+        write_lobe_grid(tmp[out], args.lobe_angles)
     print(f"wrote {args.output}  ({time.perf_counter() - t0:.1f} s)")
     return 0

@@ -44,14 +44,25 @@ Only pixels whose camera ray hits the chosen object are compared.
 Examples:
   jaxrt fit --demo                                   # hidden parameters on the default scene, 3 models
   jaxrt fit target.exr --scene scenes/bunny.toml --model cook_torrance --fix eta=1.5 --out fit.json --plot fit.png
+Targets must be finite, at most 1e12 (a float32 least-squares sum must hold them) and not negative
+beyond noise (down to -0.1 x the largest value). The result says when the solver did not converge, when a parameter's standard error
+is meaningless (the views do not determine it) and when the model cannot reproduce the target.
+Outputs (--out, --plot; the demo's default fit_demo.png) are checked before any work and written
+together at the end. --confine refuses scene paths outside the scene's folder and the data folder.
 Exit codes: 0 success, 2 bad input (one-line message), 130 interrupted.
 """
 
 
+#: The allowed --starts and --max-steps (a fit of more is a typing error, not a plan).
+MAX_STARTS, MAX_STEPS = 1024, 100_000
+
+
 def add_common_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--solver", default="lm", help="lm (Levenberg–Marquardt, default), gauss_newton, dogleg, bfgs")
-    p.add_argument("--starts", type=int, default=6, help="number of deterministic starts (default 6)")
-    p.add_argument("--max-steps", type=int, default=200, help="solver iterations per start (default 200)")
+    p.add_argument("--starts", type=int, default=6,
+                   help=f"number of deterministic starts, 1..{MAX_STARTS} (default 6)")
+    p.add_argument("--max-steps", type=int, default=200,
+                   help=f"solver iterations per start, 1..{MAX_STEPS} (default 200)")
     p.add_argument("--grey", action="store_true", help="fit ρ parameters as one grey value instead of RGB")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
 
@@ -70,6 +81,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="starting value for the first start; repeatable")
     parser.add_argument("--out", metavar="FIT.json", help="write the result as JSON")
     parser.add_argument("--plot", metavar="FIT.png", help="write target | fit | error picture")
+    parser.add_argument("--confine", action="store_true",
+                        help="refuse scene paths (meshes, textures, environment maps) outside the scene's "
+                             "folder and the data folder (also JAXRT_CONFINE=1)")
     parser.add_argument("--demo", action="store_true",
                         help="render targets of the default scene with hidden parameters and fit "
                              f"{', '.join(DEMO_MODELS)}")
@@ -92,31 +106,47 @@ def _assignments(items: list[str], flag: str) -> dict:
     return out
 
 
-def check_outputs(*pairs):
-    from jaxrt.fsutil import check_output
+def check_common(args) -> None:
+    """The solver options shared by fit and fit-matrix, before any work."""
+    from fitting.solve import SOLVERS
 
-    for path, suffix, flag in pairs:
-        if path is not None:
-            check_output(path, suffix, flag)
+    if args.solver not in SOLVERS:
+        raise InputError(f"--solver {args.solver!r}: allowed: {', '.join(SOLVERS)}")
+    if not 1 <= args.starts <= MAX_STARTS:
+        raise InputError(f"--starts: expected an integer in [1, {MAX_STARTS}], got {args.starts}")
+    if not 1 <= args.max_steps <= MAX_STEPS:
+        raise InputError(f"--max-steps: expected an integer in [1, {MAX_STEPS}], got {args.max_steps}")
+
+
+def check_outputs(*triples):
+    """An `Outputs` holding every (path, suffix, flag) whose path is given, checked now."""
+    from jaxrt.fsutil import Outputs
+
+    outs = Outputs()
+    for path, suffix, flag in triples:
+        outs.add(path, suffix, flag)
+    return outs
 
 
 def write_json(path, obj) -> None:
-    from jaxrt.fsutil import atomic_path
-
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2))
+    """Write `obj` as JSON to `path` (a temporary file of `Outputs.writing`, or any path)."""
+    Path(path).write_text(json.dumps(obj, indent=2))
 
 
-def fit_model(name: str | None):
+def fit_model(name: str | None, flag: str = "--model"):
     if name is None:
-        raise InputError("--model is required (or use --demo)")
-    model = brdfs.get(name)  # unknown names raise a ValueError listing the models
+        raise InputError(f"{flag} is required (or use --demo)")
+    if name not in brdfs.names():
+        raise InputError(f"{flag} {name!r}: unknown model; allowed: {', '.join(FIT_MODELS)}")
+    model = brdfs.get(name)
     if model.delta:
-        raise InputError(f"--model {name}: a delta BSDF has no parameters a render can recover this way")
+        raise InputError(f"{flag} {name}: a delta BSDF has no parameters a render can recover this way; "
+                         f"allowed: {', '.join(FIT_MODELS)}")
     return model
 
 
 def _read_targets(paths: list[str]) -> np.ndarray:
+    from fitting.setup import check_targets
     from jaxrt import image
 
     imgs = []
@@ -131,8 +161,7 @@ def _read_targets(paths: list[str]) -> np.ndarray:
             raise InputError(f"{p}: cannot read as OpenEXR ({e})") from None
         if img.ndim != 3 or img.shape[-1] != 3:
             raise InputError(f"{p}: expected an RGB image, got shape {img.shape}")
-        if not np.all(np.isfinite(img)):
-            raise InputError(f"{p}: contains NaN or Inf pixels")
+        check_targets(img, p)
         imgs.append(img)
     return imgs
 
@@ -141,9 +170,11 @@ def run(args: argparse.Namespace) -> int:
     from fitting import report
     from fitting import setup as fit_setup
 
-    check_outputs((args.out, ".json", "--out"), (args.plot, ".png", "--plot"))
+    check_common(args)
     if args.demo:
-        return _demo(args)
+        outs = check_outputs((args.out, ".json", "--out"), (args.plot or "fit_demo.png", ".png", "--plot"))
+        return _demo(args, outs)
+    outs = check_outputs((args.out, ".json", "--out"), (args.plot, ".png", "--plot"))
     if not args.targets:
         raise InputError("give at least one TARGET.exr (or --demo)")
     model = fit_model(args.model)
@@ -156,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
     if len(scenes) == 1:
         scenes = scenes * len(args.targets)
     targets = _read_targets(args.targets)
-    setup = fit_setup.prepare(scenes, model, object=args.object)
+    setup = fit_setup.prepare(scenes, model, object=args.object, confine=args.confine or None)
     expect = setup.mask.shape[1:]
     for p, t in zip(args.targets, targets):
         if t.shape[:2] != expect:
@@ -167,11 +198,13 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"object {setup.object!r}, {int(setup.mask.sum())} pixels")
     print(report.format_result(result))
-    if args.out:
-        write_json(args.out, result.to_json())
-    if args.plot:
-        fitted = np.asarray(fit_setup.render_with(setup, _as_params(model, result)))
-        report.comparison_png(args.plot, np.stack(targets), fitted, setup.mask, titles=[Path(p).name for p in args.targets])
+    fitted = np.asarray(fit_setup.render_with(setup, _as_params(model, result))) if args.plot else None
+    with outs.writing() as tmp:  # both outputs or neither
+        if args.out:
+            write_json(tmp[args.out], result.to_json())
+        if args.plot:
+            report.comparison_png(tmp[args.plot], np.stack(targets), fitted, setup.mask,
+                                  titles=[Path(p).name for p in args.targets])
     return 0
 
 
@@ -195,7 +228,7 @@ def hidden_params(model, seed: int) -> dict:
     return out
 
 
-def _demo(args) -> int:
+def _demo(args, outs) -> int:
     from fitting import report
     from fitting import setup as fit_setup
 
@@ -217,9 +250,11 @@ def _demo(args) -> int:
         titles.append(name)
         summary.append({"truth": truth, "fit": result.to_json()})
     print(f"demo: {len(DEMO_MODELS)} fits in {time.perf_counter() - t0:.1f} s (including compilation)")
-    plot = args.plot or "fit_demo.png"
-    report.comparison_png(plot, np.stack(targets), np.stack(fits), np.ones(np.stack(targets).shape[:-1]), titles=titles)
+    plot = Path(args.plot or "fit_demo.png")
+    with outs.writing() as tmp:  # both outputs or neither
+        report.comparison_png(tmp[plot], np.stack(targets), np.stack(fits), np.ones(np.stack(targets).shape[:-1]),
+                              titles=titles)
+        if args.out:
+            write_json(tmp[args.out], summary)
     print(f"wrote {plot}")
-    if args.out:
-        write_json(args.out, summary)
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from jaxrt.errors import InputError
 
 from jaxrt.cli.fit import (
     DEMO_OBJECT,
@@ -11,6 +12,7 @@ from jaxrt.cli.fit import (
     DEMO_SCENE,
     FIT_MODELS,
     add_common_options,
+    check_common,
     check_outputs,
     fit_model,
     hidden_params,
@@ -36,8 +38,15 @@ def run(args: argparse.Namespace) -> int:
     from fitting import setup as fit_setup
 
     names = [n.strip() for n in args.models.split(",") if n.strip()]
-    models = [fit_model(n) for n in names]
-    check_outputs((args.output, ".png", "-o"), (args.out, ".json", "--out"))
+    if not names:
+        raise InputError(f"--models {args.models!r}: give one or more comma-separated models of: "
+                         f"{', '.join(FIT_MODELS)}")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise InputError(f"--models {args.models!r}: {twice[0]} is given more than once")
+    models = [fit_model(n, "--models") for n in names]
+    check_common(args)
+    outs = check_outputs((args.output, ".png", "-o"), (args.out, ".json", "--out"))
     overrides = [DEMO_OVERRIDES] if args.scene == DEMO_SCENE else None
     setups = {m.name: fit_setup.prepare(args.scene, m, object=args.object, overrides=overrides) for m in models}
     truths = {m.name: hidden_params(m, seed=7 + i) for i, m in enumerate(models)}
@@ -48,9 +57,10 @@ def run(args: argparse.Namespace) -> int:
     print(" " * width + "".join(f"{n[:10]:>11}" for n in names))
     for i, n in enumerate(names):
         print(f"{n:<{width}}" + "".join(f"{mat[i, j]:>11.3g}" for j in range(len(names))))
-    report.matrix_png(args.output, names, mat, f"cross-model fit residuals ({args.scene}, {args.object})")
+    with outs.writing() as tmp:  # both outputs or neither
+        report.matrix_png(tmp[args.output], names, mat, f"cross-model fit residuals ({args.scene}, {args.object})")
+        if args.out:
+            write_json(tmp[args.out], {"models": names, "relative_rmse": mat.tolist()})
     print(f"wrote {args.output}")
-    if args.out:
-        write_json(args.out, {"models": names, "relative_rmse": mat.tolist()})
     return 0
 

@@ -8,7 +8,8 @@ import time
 
 from jaxrt.errors import InputError
 from jaxrt import integrators
-from jaxrt.fsutil import check_output
+from jaxrt.fsutil import Outputs
+from jaxrt.image import check_exposure
 from jaxrt.shading import AOV_NAMES
 
 
@@ -19,7 +20,10 @@ cornell, showcase, instances, bunnies, and the path-traced cornell_area and furn
 
 Outputs: -o sets the EXR (linear float32 RGB, plus AOV channels with --aovs); --png sets the PNG
 (sRGB, exposure applied). Without -o and --png, SCENE_STEM.exr and SCENE_STEM.png are written to the
-current directory; with only one of them, only that one. Files are written atomically.
+current directory; with only one of them, only that one. Every output is checked (extension,
+folder, writable) before any work, and all are written together at the end or none is.
+With --confine (or JAXRT_CONFINE=1), mesh, texture and environment paths in the scene must stay
+inside the scene file's folder or the data folder (JAXRT_DATA).
 
 Exit codes: 0 success, 2 bad input (unreadable or invalid scene, bad option, missing mesh), 130
 interrupted. Errors are one line; set JAXRT_DEBUG=1 for a traceback.
@@ -48,18 +52,17 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="PNG exposure in stops: pixel values are scaled by 2^EXPOSURE (default 0)")
     parser.add_argument("--aovs", action="store_true",
                         help=f"also store AOV channels in the EXR: {', '.join(AOV_NAMES)}")
+    parser.add_argument("--confine", action="store_true",
+                        help="refuse scene paths (meshes, textures, environment maps) outside the scene's "
+                             "folder and the data folder (also JAXRT_CONFINE=1)")
     parser.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
 
 
 def run(args: argparse.Namespace) -> int:
-    import math
-
-    if not math.isfinite(args.exposure):
-        raise InputError(f"--exposure: expected a finite number of stops, got {args.exposure}")
-    for flag in ("output", "png"):
-        p = getattr(args, flag)
-        if p is not None:
-            check_output(p, ".exr" if flag == "output" else ".png", "-o" if flag == "output" else "--png")
+    check_exposure(args.exposure, "--exposure")
+    outs = Outputs()
+    outs.add(args.output, ".exr", "-o")
+    outs.add(args.png, ".png", "--png")
 
     from jaxrt import scene as _scene
 
@@ -69,10 +72,11 @@ def run(args: argparse.Namespace) -> int:
         "render.max_depth": args.max_depth, "render.seed": args.seed,
         "render.integrator": args.integrator,
     }
-    spec = _scene.parse(path, overrides=overrides)  # every input error surfaces here, before JAX work
-    exr, png = args.output, args.png
+    spec = _scene.parse(path, overrides=overrides, confine=args.confine or None)  # input errors surface
+    exr, png = args.output, args.png                                              # here, before JAX work
     if exr is None and png is None:
-        exr, png = f"{path.stem}.exr", f"{path.stem}.png"
+        exr = outs.add(f"{path.stem}.exr", ".exr", "output")
+        png = outs.add(f"{path.stem}.png", ".png", "output")
 
     import numpy as np
 
@@ -86,11 +90,15 @@ def run(args: argparse.Namespace) -> int:
     t2 = time.perf_counter()
     if not np.all(np.isfinite(img)):  # a renderer bug, never bad input: refuse to write it
         raise RuntimeError(f"{path}: the render contains NaN/Inf pixels; nothing was written")
-    if exr is not None:
-        extra = {k: np.asarray(v) for k, v in aovs.items()} if args.aovs else None
-        image.write_exr(exr, img, extra)
-    if png is not None:
-        image.write_png(png, img, exposure=args.exposure)
+    if not img.any():  # say so rather than write a black image silently
+        print(f"jaxrt render: warning: {path.name}: the image is black everywhere (no light reaches the camera)",
+              file=sys.stderr)
+    with outs.writing() as tmp:  # all outputs or none
+        if exr is not None:
+            extra = {k: np.asarray(v) for k, v in aovs.items()} if args.aovs else None
+            image.write_exr(tmp[exr], img, extra)
+        if png is not None:
+            image.write_png(tmp[png], img, exposure=args.exposure)
     if not args.quiet:
         c = spec.camera
         outs = " and ".join(str(p) for p in (exr, png) if p is not None)

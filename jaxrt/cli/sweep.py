@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 
 import brdfs
@@ -68,18 +67,20 @@ def run(args: argparse.Namespace) -> int:
     if not 1 <= args.steps <= 64:
         raise InputError(f"--steps: expected an integer in [1, 64], got {args.steps}")
     vals = sweep.span(model, args.param, args.start, args.stop, args.steps)
-    from jaxrt.fsutil import check_output
+    from jaxrt.fsutil import Outputs
+    from jaxrt.image import check_exposure
 
-    out = check_output(args.output, ".png", "-o")
-    if not math.isfinite(args.exposure):
-        raise InputError(f"--exposure: expected a finite number of stops, got {args.exposure}")
+    outs = Outputs()
+    out = outs.add(args.output, ".png", "-o")
+    check_exposure(args.exposure, "--exposure")
     base = _assignments(args.set)
     if args.param in base:
         raise InputError(f"--set {args.param}: that is the swept parameter")
     images = sweep.sweep(model, args.param, vals, scene=args.scene, object=args.object, width=args.width,
                          height=args.height, base_params=base)
-    sweep.strip_png(out, images, sweep.labels(model, args.param, vals), sweep.title(model, args.param),
-                    exposure=args.exposure)
+    with outs.writing() as tmp:
+        sweep.strip_png(tmp[out], images, sweep.labels(model, args.param, vals), sweep.title(model, args.param),
+                        exposure=args.exposure)
     if not args.quiet:
         print(f"{model.name}.{args.param}: {len(vals)} frames {args.width}x{args.height}; wrote {out}",
               file=sys.stdout)

@@ -4,10 +4,8 @@
 from __future__ import annotations
 
 import argparse
-import math
 
 from jaxrt import integrators
-from jaxrt.errors import InputError
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -34,18 +32,21 @@ Examples:
     parser.add_argument("--integrator", help=f"{' or '.join(integrators.names())} (default: the scene's; path "
                                                  "refines progressively)")
     parser.add_argument("--spp", type=int, help="samples per pixel of one (progressive) pass (default: the scene's)")
+    parser.add_argument("--confine", action="store_true",
+                        help="refuse scene paths (meshes, textures, environment maps) outside the scene's "
+                             "folder and the data folder (also JAXRT_CONFINE=1)")
 
 
 def run(args: argparse.Namespace) -> int:
     import matplotlib
     import matplotlib.pyplot as plt
 
+    from jaxrt.image import check_exposure
     from jaxrt.viewer import Viewer
 
-    if not math.isfinite(args.exposure):
-        raise InputError(f"--exposure: expected a finite number of stops, got {args.exposure}")
+    check_exposure(args.exposure, "--exposure")
     v = Viewer(args.scene, object=args.object, width=args.width, height=args.height, exposure=args.exposure,
-               frame=args.frame, integrator=args.integrator, spp=args.spp)
+               frame=args.frame, integrator=args.integrator, spp=args.spp, confine=args.confine or None)
     v.figure()
     if matplotlib.get_backend().lower() == "agg":
         print("jaxrt view: no interactive matplotlib backend (is a display available?); "

@@ -160,6 +160,8 @@ def load(path: str | os.PathLike, *, flat: bool = False, name: str | None = None
         raise InputError(
             f"{path}: unsupported mesh format {''.join(path.suffixes) or '(no extension)'!r}; "
             f"allowed: {', '.join('.' + e for e in SUPPORTED_EXTENSIONS)} (optionally followed by .gz)")
+    if path.is_dir():
+        raise InputError(f"{path}: is a directory, not a mesh file")
     if not path.is_file():
         raise InputError(f"{path}: mesh file not found")
     try:
@@ -171,13 +173,19 @@ def load(path: str | os.PathLike, *, flat: bool = False, name: str | None = None
     kwargs = dict(process=False)
     if ext == "obj":
         kwargs.update(split_objects=True, split_groups=True, group_material=False, maintain_order=True)
+        # trimesh reads index 0 (no OBJ index) as -1 without a word; report it as the file numbers it
+        if _OBJ_ZERO_INDEX.search(raw) and (why := _obj_index_error(raw)):
+            raise InputError(f"{path}: {why}")
     try:
         if ext == "gltf" and not gz:  # side files (buffers) resolve relative to the path
             loaded = trimesh.load(str(path), file_type=ext, **kwargs)
         else:
             loaded = trimesh.load(io.BytesIO(raw), file_type=ext, **kwargs)
     except Exception as e:  # trimesh raises many kinds for malformed files
-        raise InputError(f"{path}: cannot parse as {ext.upper()} ({type(e).__name__}: {e})") from None
+        # an out-of-range face index surfaces as numpy's 0-based IndexError: say it in the file's terms
+        why = _obj_index_error(raw) if ext == "obj" else None
+        raise InputError(f"{path}: {why}" if why else
+                         f"{path}: cannot parse as {ext.upper()} ({type(e).__name__}: {e})") from None
 
     parts = _parts(loaded, raw if ext == "obj" else None)
     parts = [(n, g) for n, g in parts if len(getattr(g, "faces", ())) > 0]
@@ -208,6 +216,34 @@ def load(path: str | os.PathLike, *, flat: bool = False, name: str | None = None
 
 # ---------------------------------------------------------------------------------------------
 # internals
+
+
+# a face entry whose vertex index is 0 (or -0): "f 1 2 0", "f 0/1/1 ..."
+_OBJ_ZERO_INDEX = re.compile(rb"(?m)^[ \t]*f[ \t][^\n]*?(?<=[ \t])-?0+(?=[/ \t\r\n]|$)")
+
+
+def _obj_index_error(raw: bytes) -> str | None:
+    """The first face vertex index of an OBJ file that names no vertex, as "line N: ..." in the
+    file's own terms (1-based; negative indices count back from the last vertex read), or None."""
+    lines = raw.splitlines()
+    total = sum(1 for l in lines if l.split()[:1] == [b"v"])
+    seen = 0
+    for lineno, line in enumerate(lines, 1):
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == b"v":
+            seen += 1
+        elif tok[0] == b"f":
+            for t in tok[1:]:
+                try:
+                    i = int(t.split(b"/")[0])
+                except ValueError:
+                    return f"line {lineno}: face entry {t.decode(errors='replace')!r} does not start with a vertex index"
+                if not (1 <= i <= total or -seen <= i <= -1):
+                    return (f"line {lineno}: face index {i} names no vertex; the file has {total} vertices, "
+                            f"and OBJ indices are 1-based (1..{total}) or negative (-1 = the last vertex read)")
+    return None
 
 
 def _uv_of(g) -> np.ndarray | None:

@@ -28,6 +28,7 @@ from jaxrt.shading import textures as _tx
 from jaxrt.lights import AreaLights, PointLights
 from jaxrt.scene.parse import find_scene, parse
 from jaxrt.scene.spec import ObjectSpec, SceneSpec
+from jaxrt.scene.tables import MAX_MAGNITUDE
 from jaxrt.scene.types import Materials, Scene, Settings
 
 
@@ -94,8 +95,19 @@ def _object_meshes(o: ObjectSpec, cache: dict):
                 rotation=(0.0, 0.0, 0.0) if o.rotate is None else o.rotate,
                 translation=(0.0, 0.0, 0.0) if o.translate is None else o.translate,
             )
+        check_extent(np.asarray(m.vertices), f"object {name!r}")
         out.append((name, m, mat))
     return out
+
+
+def check_extent(vertices: np.ndarray, where: str) -> None:
+    """Vertices placed in the world must stay within ±MAX_MAGNITUDE (jaxrt.scene.tables), where
+    the squares the renderer forms stay finite in float32."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        peak = float(np.max(np.abs(vertices))) if vertices.size else 0.0
+    if not peak <= MAX_MAGNITUDE:
+        raise InputError(f"{where}: after its scale and translate the geometry reaches {peak:g}; "
+                         f"coordinates must stay within ±{MAX_MAGNITUDE:g}")
 
 
 
@@ -188,9 +200,17 @@ def build(spec: SceneSpec) -> Scene:
     if spec.environment is not None:
         e = spec.environment
         if e.file is None:
-            environment = envmap.constant(np.asarray(e.radiance) * e.scale)
+            radiance = np.asarray(e.radiance) * e.scale
+            peak = float(radiance.max())
         else:
             environment = envmap.load(e.file, scale=e.scale, rotate=e.rotate)
+            peak = float(np.max(np.asarray(environment.texels)))
+        if not peak <= MAX_MAGNITUDE:
+            what = "radiance" if e.file is None else f"{e.file}: texels"
+            raise InputError(f"{spec.source}: [environment] scale: {what} × scale reaches {peak:g}; "
+                             f"radiance must stay within {MAX_MAGNITUDE:g}")
+        if e.file is None:
+            environment = envmap.constant(radiance)
     c = spec.camera
     camera = Camera(
         position=_put(c.position, np.float32), look_at=_put(c.look_at, np.float32),
@@ -283,6 +303,12 @@ def build_instanced(spec: SceneSpec, mat_names: tuple[str, ...], cache: dict) ->
     for v, *_ in protos:
         if not np.all(np.isfinite(v)):
             raise InputError(f"{spec.source}: scene geometry contains non-finite vertices")
+    for inst in spec.instances:  # the world-space extent of each placement (corners of its bounds)
+        v = protos[group_proto[inst.group]][0]
+        lo, hi = v.min(0).astype(np.float64), v.max(0).astype(np.float64)
+        corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), -1).reshape(-1, 3)
+        m = instance_matrix(inst.scale, inst.rotate, inst.translate)
+        check_extent(corners @ m[:, :3].T + m[:, 3], f"{spec.source}: instance {inst.name!r}")
     tree = two_level.build([(p[0], p[3]) for p in protos], inst_proto, np.asarray(xforms))
     v_off = np.cumsum([0] + [len(p[0]) for p in protos])[:-1]
     f_off = np.cumsum([0] + [len(p[3]) for p in protos])[:-1]

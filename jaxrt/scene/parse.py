@@ -3,11 +3,19 @@
 `parse` reads the TOML (tomllib: no eval, no pickle) and validates every table and key into the
 plain records of `jaxrt.scene.spec`. Any problem raises one `InputError` naming the file, the table
 and the key, and saying what is allowed. BRDF parameter bounds come from each model's `Param`
-declarations, integrator names from `jaxrt.integrators.names()`.
+declarations, integrator names from `jaxrt.integrators.names()`, the bound on every other number
+from `jaxrt.scene.tables.MAX_MAGNITUDE`.
+
+Paths in a scene (mesh files, textures, environment maps) are relative to the scene file's folder
+or absolute, as in other renderers. With `confine` (`--confine` on the CLI, or JAXRT_CONFINE=1) a
+path is refused unless it resolves, symbolic links followed, inside the scene's folder or the data
+folder (JAXRT_DATA), so an untrusted scene cannot read other files into its output. Registry names
+(`mesh = "bunny"`) are always allowed.
 """
 
 from __future__ import annotations
 
+import numbers
 import os
 import tomllib
 from collections.abc import Mapping
@@ -17,7 +25,7 @@ from typing import Any
 import numpy as np
 
 import brdfs
-from jaxrt import integrators
+from jaxrt import _config, integrators
 from jaxrt.errors import InputError
 from jaxrt.scene.spec import (
     DELTA,
@@ -31,7 +39,7 @@ from jaxrt.scene.spec import (
     SceneSpec,
     TextureSpec,
 )
-from jaxrt.scene.tables import Table, parse_transform, unique_name
+from jaxrt.scene.tables import MAX_APERTURE_RATIO, MAX_MAGNITUDE, MIN_FOCUS_DISTANCE, Names, Table, parse_transform
 
 SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
 MAX_RESOLUTION = 16384
@@ -65,28 +73,73 @@ def apply_overrides(doc: dict, overrides: Mapping[str, Any] | None) -> dict:
     return doc
 
 
+class Paths:
+    """Resolves the file paths a scene names: relative to `base` (the scene's folder) or absolute;
+    with `confine`, only inside `base` or the data folder (see the module docstring)."""
+
+    def __init__(self, base: Path, confine: bool):
+        self.base, self.confine = base, confine
+        data = _config.config().data
+        self.roots = [Path(os.path.realpath(base))] + ([Path(os.path.realpath(data))] if data else [])
+
+    def resolve(self, ref: str) -> Path:
+        p = Path(ref)
+        return p if p.is_absolute() else self.base / p
+
+    def refusal(self, ref: str, full: Path) -> str | None:
+        """Why `full` (from the scene's `ref`) is refused under confinement, or None."""
+        if not self.confine:
+            return None
+        real = Path(os.path.realpath(full))
+        if any(real.is_relative_to(r) for r in self.roots):
+            return None
+        where = " or the data folder " + str(self.roots[1]) if len(self.roots) > 1 else ""
+        return (f"{ref!r} resolves to {real}, outside the scene's folder {self.roots[0]}{where}; "
+                "paths must stay inside them with --confine / JAXRT_CONFINE=1")
+
+
+def _not_a_file(ref: str, full: Path) -> str:
+    if full.is_dir():
+        return f"{ref!r} is a directory, not a file (looked for {full})"
+    return f"{ref!r}: no such file (looked for {full})"
+
+
 def parse(
     source: str | os.PathLike | Mapping, base_dir: str | os.PathLike | None = None,
-    overrides: Mapping[str, Any] | None = None,
+    overrides: Mapping[str, Any] | None = None, confine: bool | None = None,
 ) -> SceneSpec:
-    """Read and validate a scene (a TOML path or an already-parsed dict) without touching JAX."""
+    """Read and validate a scene (a TOML path or an already-parsed dict) without touching JAX.
+
+    base_dir: the folder relative paths are resolved against (default: the file's; for a dict,
+    the current directory). confine: refuse paths outside that folder and the data folder
+    (default: JAXRT_CONFINE).
+    """
+    confine = _config.config().confine if confine is None else bool(confine)
     if isinstance(source, Mapping):
         file, doc = "<scene>", dict(source)
         base = Path(base_dir or ".")
     else:
         path = Path(source)
         file = str(path)
+        if path.is_dir():
+            raise InputError(f"{file}: is a directory, not a scene file")
         if not path.is_file():
             raise InputError(f"{file}: no such scene file")
         try:
             with open(path, "rb") as f:
                 doc = tomllib.load(f)
         except tomllib.TOMLDecodeError as e:
-            raise InputError(f"{file}: not valid TOML: {e}") from None
+            raise InputError(f"{file}: not valid TOML: {' '.join(str(e).split())}") from None
+        except UnicodeDecodeError:
+            raise InputError(f"{file}: not a text file (TOML must be UTF-8 text)") from None
         except OSError as e:
             raise InputError(f"{file}: cannot read: {e.strerror}") from None
         base = Path(base_dir) if base_dir is not None else path.parent
-    doc = apply_overrides(doc, overrides)
+    paths = Paths(base, confine)
+    try:
+        doc = apply_overrides(doc, overrides)
+    except InputError as e:
+        raise InputError(f"{file}: {e}") from None
 
     top = Table(file, "top level", doc)
     for k in ("camera", "lights", "materials", "objects", "render", "description", "groups", "instances", "environment"):
@@ -100,16 +153,24 @@ def parse(
     position = c.vector("position", 3)
     look_at = c.vector("look_at", 3)
     up = c.vector("up", 3, default=[0.0, 1.0, 0.0])
-    view = np.subtract(look_at, position)
-    if np.linalg.norm(view) == 0:
-        c.fail("look_at", "must differ from position")
-    if np.linalg.norm(np.cross(view, up)) <= 1e-9 * np.linalg.norm(view) * max(np.linalg.norm(up), 1e-30):
+    # the camera's basis is computed in float32 (jaxrt.camera.basis): check it there
+    view = np.subtract(np.float32(look_at), np.float32(position), dtype=np.float32)
+    if not np.any(view):
+        c.fail("look_at", f"{list(look_at)} must differ from position {list(position)} (in float32)")
+    fwd = view / np.linalg.norm(view)
+    up32 = np.asarray(up, np.float32)
+    if np.linalg.norm(np.cross(fwd, up32)) <= 1e-6 * np.linalg.norm(up32) or not np.any(up32):
         c.fail("up", f"{list(up)} must not be zero or parallel to the view direction")
+    focus = c.number("focus_distance", min(float(np.linalg.norm(np.subtract(look_at, position))), MAX_MAGNITUDE),
+                     lo=MIN_FOCUS_DISTANCE)
+    aperture = c.number("aperture", 0.0, lo=0.0)
+    if aperture > MAX_APERTURE_RATIO * focus:
+        c.fail("aperture", f"{aperture:g} is more than {MAX_APERTURE_RATIO:g} × focus_distance ({focus:g}); "
+                           "a lens that wide loses the scene in float32")
     camera = CameraSpec(
         position=position, look_at=look_at, up=up,
         vfov=c.number("vfov", 40.0, lo=0.0, hi=180.0, lo_open=True, hi_open=True),
-        aperture=c.number("aperture", 0.0, lo=0.0),
-        focus_distance=c.number("focus_distance", float(np.linalg.norm(view)), lo=0.0, lo_open=True),
+        aperture=aperture, focus_distance=focus,
         width=c.integer("width", 512, lo=1, hi=MAX_RESOLUTION),
         height=c.integer("height", 512, lo=1, hi=MAX_RESOLUTION),
     )
@@ -125,27 +186,27 @@ def parse(
             ec.fail(None, "give exactly one of file = \"map.exr\" (lat-long OpenEXR or .hdr) or radiance = [r, g, b]")
         env_path = None
         if env_file is not None:
-            env_path = Path(env_file) if Path(env_file).is_absolute() else base / env_file
+            env_path = paths.resolve(env_file)
             from jaxrt.envmap import SUFFIXES
 
             if env_path.suffix.lower() not in SUFFIXES:
                 ec.fail("file", f"{env_file!r}: lat-long maps must be OpenEXR (.exr) or Radiance RGBE "
                                 "(.hdr, .pic)")
+            if (why := paths.refusal(env_file, env_path)) is not None:
+                ec.fail("file", why)
             if not env_path.is_file():
-                ec.fail("file", f"{env_file!r}: no such file (looked for {env_path})")
+                ec.fail("file", _not_a_file(env_file, env_path))
         environment = EnvironmentSpec(
             file=env_path, radiance=env_rad or (0.0, 0.0, 0.0),
             scale=ec.number("scale", 1.0, lo=0.0), rotate=ec.number("rotate", 0.0),
         )
         ec.done()
 
-    # ---- lights (point lights; optional when the scene has an environment or an emissive material)
+    # ---- lights (point lights; optional when the scene has an environment or an emissive material,
+    # checked below once the materials are read)
     raw_lights = top.raw("lights", [])
-    emissive = isinstance(doc.get("materials"), dict) and any(
-        isinstance(m, dict) and "emission" in m for m in doc["materials"].values())
-    if not isinstance(raw_lights, list) or (not raw_lights and environment is None and not emissive):
-        top.fail("lights", "expected one or more [[lights]] tables (point lights), unless the scene has an "
-                           "[environment] or a material with emission")
+    if not isinstance(raw_lights, list):
+        top.fail("lights", "expected one or more [[lights]] tables (point lights)")
     lights = []
     for i, l in enumerate(raw_lights):
         lc = Table(file, f"[lights] #{i + 1}", l)
@@ -160,6 +221,8 @@ def parse(
     materials: dict[str, MaterialSpec] = {}
     for name, m in raw_mats.items():
         mc = Table(file, f"materials.{name}", m)
+        if not name or not name.isprintable():
+            mc.fail(None, f"{name!r}: a material name must be a non-empty name without control characters")
         model_name = mc.string("model", choices=tuple(brdfs.names()))
         model = brdfs.get(model_name)
         if model.delta:
@@ -172,16 +235,28 @@ def parse(
         for p in model.spec:
             value = mc.raw(p.name, p.default)
             if isinstance(value, Mapping) and not model.delta:
-                textures[p.name] = parse_texture(value, p, model.name, base, f"{file}: materials.{name}.{p.name}")
+                textures[p.name] = parse_texture(value, p, model.name, paths, f"{file}: materials.{name}.{p.name}")
                 params[p.name] = np.asarray(textures[p.name].texels.reshape(-1, textures[p.name].texels.shape[-1])
                                             .mean(0) if p.rgb else textures[p.name].texels.mean(), np.float32)
                 continue
+            if not _numbers(value, p.rgb):
+                mc.fail(p.name, f"expected a number{' or an RGB triple [r, g, b]' if p.rgb else ''}"
+                                f"{' or a texture table' if not model.delta else ''}, got {value!r}")
             try:
                 params[p.name] = p.check(value, model.name)
             except ValueError as e:
                 mc.fail(p.name, str(e).split(": ", 1)[-1])
         mc.done()
         materials[name] = MaterialSpec(name, model_name, params, delta, textures, emission=emission)
+
+    emits = (any(max(i) > 0 for _, i in lights)
+             or any(max(m.emission) > 0 for m in materials.values())
+             or (environment is not None and environment.scale > 0
+                 and (environment.file is not None or max(environment.radiance) > 0)))
+    if not emits:
+        top.fail("lights", "the scene has no light that emits anything: give one or more [[lights]] tables "
+                           "(point lights) with intensity > 0, an [environment], or a material with "
+                           "emission > 0")
 
     # ---- objects (optional when [[instances]] place groups)
     raw_objs = top.raw("objects", None)
@@ -190,12 +265,12 @@ def parse(
         raw_objs = []
     elif not isinstance(raw_objs, list) or (not raw_objs and not has_instances):
         top.fail("objects", "expected one or more [[objects]] tables (or [[groups]] placed by [[instances]])")
-    names_seen: set[str] = set()
-    objects = [parse_object(Table(file, f"[objects] #{i + 1}", o), materials, base, names_seen)
+    names = Names.of(doc)
+    objects = [parse_object(Table(file, f"[objects] #{i + 1}", o), materials, paths, names)
                for i, o in enumerate(raw_objs)]
 
     # ---- groups and instances (jaxrt.geometry.instanced)
-    groups, instances = parse_instances(doc, file, materials, base, names_seen)
+    groups, instances = parse_instances(doc, file, materials, paths, names)
 
     # ---- render
     rc = Table(file, "render", top.raw("render", {}))
@@ -212,16 +287,32 @@ def parse(
     return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances, environment)
 
 
-def parse_object(oc: "Table", materials: dict, base: Path, names_seen: set[str]) -> ObjectSpec:
-    """One [[objects]] (or [[groups.objects]]) table; `names_seen` makes names unique (adds .2, .3)."""
+def _numbers(value, rgb: bool) -> bool:
+    """value is a number, or (rgb) 3 numbers (a list, tuple or array): what a parameter's value may be."""
+    def num(x):
+        return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind in "fiu" and value.shape in (((), (3,)) if rgb else ((),))
+    if num(value):
+        return True
+    return rgb and isinstance(value, (list, tuple)) and len(value) == 3 and all(num(x) for x in value)
+
+
+def parse_object(oc: "Table", materials: dict, paths: Paths, names: Names) -> ObjectSpec:
+    """One [[objects]] (or [[groups.objects]]) table. An explicit name must be unique (`names`);
+    a default one (the primitive or the mesh file's stem) gets .2, .3, ... when taken."""
     mesh_ref = oc.string("mesh", None)
     prim = oc.string("primitive", None, choices=("sphere", "plane", "box"))
     if (mesh_ref is None) == (prim is None):
         oc.fail(None, "give exactly one of mesh = NAME|PATH or primitive = sphere|plane|box")
-    name = oc.string("name", mesh_ref if prim is None else prim)
-    if isinstance(name, str) and mesh_ref is not None and name == mesh_ref:
-        name = Path(mesh_ref).stem
-    name = unique_name(name, names_seen)
+    if "name" in oc.data:
+        name = oc.string("name")
+        if not name or not name.isprintable():
+            oc.fail("name", f"{name!r}: expected a non-empty name without control characters")
+        names.claim(name, oc)
+    else:
+        oc.raw("name", None)
+        name = names.generate(Path(mesh_ref).stem if prim is None else prim, oc)
     material = oc.string("material", choices=tuple(materials))
     prim_args: dict = {}
     mesh_path = None
@@ -236,7 +327,7 @@ def parse_object(oc: "Table", materials: dict, base: Path, names_seen: set[str])
     elif prim == "box":
         prim_args["size"] = oc.vector("size", 3, default=[1.0, 1.0, 1.0], lo=1e-30, scalar_ok=True)
     else:
-        mesh_path = resolve_mesh(mesh_ref, base, oc)
+        mesh_path = resolve_mesh(mesh_ref, paths, oc)
         flat = oc.boolean("flat", False)
         p = oc.raw("parts", None)
         if p is not None:
@@ -256,7 +347,7 @@ def parse_object(oc: "Table", materials: dict, base: Path, names_seen: set[str])
                       part_materials)
 
 
-def parse_texture(t: Mapping, p, model: str, base: Path, where: str) -> TextureSpec:
+def parse_texture(t: Mapping, p, model: str, paths: Paths, where: str) -> TextureSpec:
     """Validate a texture table `{ texture = "file.png" | checker = [a, b], wrap, scale, offset }` for
     parameter declaration `p` (see jaxrt/textures.py for the conventions)."""
     from jaxrt.shading import textures as _tx
@@ -269,7 +360,7 @@ def parse_texture(t: Mapping, p, model: str, base: Path, where: str) -> TextureS
         raise InputError(f"{where}: a texture table needs exactly one of texture = \"FILE.png|.exr\" "
                          "or checker = [VALUE_A, VALUE_B]")
     wrap = t.get("wrap", "repeat")
-    if wrap not in _tx.WRAPS:
+    if not isinstance(wrap, str) or wrap not in _tx.WRAPS:
         raise InputError(f"{where}: wrap = {wrap!r}; allowed: {', '.join(_tx.WRAPS)}")
 
     def pair(key, default, positive):
@@ -278,8 +369,12 @@ def parse_texture(t: Mapping, p, model: str, base: Path, where: str) -> TextureS
             a = np.broadcast_to(np.asarray(v, np.float64), (2,))
         except (TypeError, ValueError):
             raise InputError(f"{where}: {key} must be a number or [u, v], got {v!r}") from None
-        if not np.all(np.isfinite(a)) or (positive and np.any(a == 0)):
-            raise InputError(f"{where}: {key} = {v!r} must be finite{' and non-zero' if positive else ''}")
+        if a.dtype == object or isinstance(v, (bool, str)) or (isinstance(v, list) and any(
+                isinstance(x, (bool, str)) for x in v)):
+            raise InputError(f"{where}: {key} must be a number or [u, v], got {v!r}")
+        if not np.all(np.isfinite(a)) or (positive and np.any(a == 0)) or np.any(np.abs(a) > MAX_MAGNITUDE):
+            raise InputError(f"{where}: {key} = {v!r} must be finite{' and non-zero' if positive else ''}, "
+                             f"with magnitude <= {MAX_MAGNITUDE:g}")
         return tuple(float(x) for x in a)
 
     scale, offset = pair("scale", 1.0, True), pair("offset", 0.0, False)
@@ -290,6 +385,9 @@ def parse_texture(t: Mapping, p, model: str, base: Path, where: str) -> TextureS
             raise InputError(f"{where}: checker must be a list of two values, got {vals!r}")
         texels = []
         for k, v in enumerate(vals):
+            if not _numbers(v, p.rgb):
+                raise InputError(f"{where}: checker value {k + 1} must be a number"
+                                 f"{' or an RGB triple' if p.rgb else ''}, got {v!r}")
             if not p.rgb and np.ndim(v) != 0:
                 raise InputError(f"{where}: checker value {k + 1} must be a number ({p.name} is not RGB), got {v!r}")
             try:
@@ -300,7 +398,11 @@ def parse_texture(t: Mapping, p, model: str, base: Path, where: str) -> TextureS
     ref = t["texture"]
     if not isinstance(ref, str):
         raise InputError(f"{where}: texture must be a file name, got {ref!r}")
-    path = Path(ref) if Path(ref).is_absolute() else base / ref
+    path = paths.resolve(ref)
+    if (why := paths.refusal(ref, path)) is not None:
+        raise InputError(f"{where}: texture {why}")
+    if path.is_dir():
+        raise InputError(f"{where}: texture {ref!r} is a directory, not an image file (looked for {path})")
     texels = _tx.read_image(path, p.rgb, where)
     if not np.all(np.isfinite(texels)):
         raise InputError(f"{where}: {path} contains non-finite values")
@@ -311,8 +413,9 @@ def parse_texture(t: Mapping, p, model: str, base: Path, where: str) -> TextureS
     return TextureSpec("image", texels, wrap, scale, offset, str(path))
 
 
-def resolve_mesh(ref: str, base: Path, oc: Table) -> Path:
-    """A registry name (bunny, dragon, ...: found through jaxrt.geometry.data) or a path relative to the scene."""
+def resolve_mesh(ref: str, paths: Paths, oc: Table) -> Path:
+    """A registry name (bunny, dragon, ...: found through jaxrt.geometry.data) or a path relative to the
+    scene (refused outside the allowed folders under confinement)."""
     p = Path(ref)
     if p.suffix == "" and len(p.parts) == 1:
         from jaxrt.geometry import data
@@ -322,13 +425,15 @@ def resolve_mesh(ref: str, base: Path, oc: Table) -> Path:
         except (ValueError, FileNotFoundError, KeyError) as e:
             msg = str(e)
         oc.fail("mesh", f"{ref!r}: {msg}")
-    full = p if p.is_absolute() else base / p
+    full = paths.resolve(ref)
+    if (why := paths.refusal(ref, full)) is not None:
+        oc.fail("mesh", why)
     if not full.is_file():
-        oc.fail("mesh", f"{ref!r}: no such file (looked for {full})")
+        oc.fail("mesh", _not_a_file(ref, full))
     return full
 
 
-def parse_instances(doc: dict, file: str, materials: dict, base: Path, names_seen: set[str]):
+def parse_instances(doc: dict, file: str, materials: dict, paths: Paths, names: Names):
     """Validate [[groups]] and [[instances]] of a parsed TOML document.
 
     A group's objects take the keys of [[objects]] (`parse_object`). Returns
@@ -345,22 +450,22 @@ def parse_instances(doc: dict, file: str, materials: dict, base: Path, names_see
     for i, g in enumerate(raw_groups or []):
         gc = Table(file, f"[groups] #{i + 1}", g)
         name = gc.string("name")
-        if not name or "/" in name:
-            gc.fail("name", f"{name!r}: expected a non-empty name without '/'")
+        if not name or "/" in name or not name.isprintable():
+            gc.fail("name", f"{name!r}: expected a non-empty name without '/' or control characters")
         if name in groups:
             gc.fail("name", f"{name!r}: a group of this name is already defined")
         objs = gc.raw("objects", None)
         if not isinstance(objs, list) or not objs:
             gc.fail("objects", "expected one or more [[groups.objects]] tables")
         gc.done()
-        seen: set[str] = set()
+        seen = Names.of({"objects": objs})
         specs = []
         for j, o in enumerate(objs):
             oc = Table(file, f"[groups] {name}: [objects] #{j + 1}", o)
             if "group" in o:
                 oc.fail("group", "groups cannot contain groups (nested instancing is not supported); "
                                  "place each group with [[instances]]")
-            specs.append(parse_object(oc, materials, base, seen))
+            specs.append(parse_object(oc, materials, paths, seen))
         groups[name] = GroupSpec(name, tuple(specs))
     if raw_inst is None:
         return tuple(groups.values()), ()
@@ -376,10 +481,11 @@ def parse_instances(doc: dict, file: str, materials: dict, base: Path, names_see
         name = ic.string("name", None)
         if name is None:
             counts[group] = counts.get(group, 0) + 1
-            name = f"{group}.{counts[group]}"
-        if not name or "/" in name:
-            ic.fail("name", f"{name!r}: expected a non-empty name without '/'")
-        name = unique_name(name, names_seen)
+            name = names.generate(f"{group}.{counts[group]}", ic)
+        else:
+            if not name or "/" in name or not name.isprintable():
+                ic.fail("name", f"{name!r}: expected a non-empty name without '/' or control characters")
+            names.claim(name, ic)
         scale, rotate, translate = parse_transform(ic)
         material = ic.string("material", None, choices=tuple(materials))
         ic.done()

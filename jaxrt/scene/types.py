@@ -7,12 +7,14 @@ never recompiles the renderer.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import brdfs
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxrt.camera import Camera
@@ -20,7 +22,7 @@ from jaxrt.errors import InputError
 from jaxrt.geometry.base import AbstractGeometry
 from jaxrt.lights import AreaLights, PointLights
 from jaxrt.scene.spec import DELTA
-from jaxrt.scene.tables import check_range, check_rgb, check_vec3
+from jaxrt.scene.tables import MAX_APERTURE_RATIO, MIN_FOCUS_DISTANCE, check_range, check_rgb, check_vec3
 
 
 class Materials(eqx.Module):
@@ -123,8 +125,12 @@ class Scene(eqx.Module):
         return eqx.tree_at(lambda s: s.materials.textures[hit[0]].texels, self, new)
 
     def with_light(self, index: int = 0, position=None, intensity=None) -> "Scene":
-        """A copy with light `index` moved and/or re-scaled."""
+        """A copy with point light `index` (0 .. count − 1) moved and/or re-scaled."""
         lights = self.lights
+        count = lights.count
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < count:
+            allowed = f"0..{count - 1}" if count else "none: the scene has no point lights"
+            raise InputError(f"light {index!r}: no such point light; allowed indices: {allowed}")
         pos, inten = lights.position, lights.intensity
         if position is not None:
             pos = pos.at[index].set(check_vec3(position, f"light {index}: position"))
@@ -139,7 +145,30 @@ class Scene(eqx.Module):
         for k in values:
             if k not in names:
                 raise InputError(f"camera: unknown key {k!r}; allowed: {', '.join(names)}")
-        new = [jnp.asarray(values.get(k, getattr(cam, k)), jnp.float32) for k in names]
+        # the ranges of the scene file's [camera] table (jaxrt.scene.parse); traced values (inside
+        # jax.grad) are not checked
+        checked = {}
+        for k, v in values.items():
+            if isinstance(v, jax.core.Tracer):
+                checked[k] = v
+            elif k in ("position", "look_at", "up"):
+                checked[k] = check_vec3(v, f"camera: {k}")
+            elif k == "vfov":
+                checked[k] = check_range(v, 1e-6, 180.0 - 1e-6, "camera: vfov (degrees, open interval (0, 180))")
+            elif k == "focus_distance":
+                checked[k] = check_range(v, MIN_FOCUS_DISTANCE, math.inf, "camera: focus_distance")
+        pos, look, up = (np.asarray(checked.get(k, getattr(cam, k))) for k in ("position", "look_at", "up"))
+        if "aperture" in values and not isinstance(values["aperture"], jax.core.Tracer):
+            focus = float(np.asarray(checked.get("focus_distance", cam.focus_distance)))
+            checked["aperture"] = check_range(values["aperture"], 0.0, MAX_APERTURE_RATIO * focus,
+                                              f"camera: aperture (at most {MAX_APERTURE_RATIO:g} x focus_distance)")
+        if not any(isinstance(x, jax.core.Tracer) for x in checked.values()):
+            view = (look - pos).astype(np.float32)
+            if not np.any(view):
+                raise InputError(f"camera: look_at {look.tolist()} must differ from position {pos.tolist()}")
+            if np.linalg.norm(np.cross(view / np.linalg.norm(view), up)) <= 1e-6 * np.linalg.norm(up):
+                raise InputError(f"camera: up {up.tolist()} must not be zero or parallel to the view direction")
+        new = [jnp.asarray(checked.get(k, getattr(cam, k)), jnp.float32) for k in names]
         return eqx.tree_at(lambda s: tuple(getattr(s.camera, k) for k in names), self, tuple(new))
 
 

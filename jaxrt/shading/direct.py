@@ -3,8 +3,12 @@
 The Whitted model of Größler & Zettwitz ("An interactive ray tracing system based on Nvidia OptiX",
 2015), for a hit on an opaque material with mirror coefficient δ:
 
-    L(x, wo) = δ·L(x, ω_r) + (1 − δ)·Σ_lights f_r(wi, wo)·I·cosθ_i / d² · V(x, light)
+    L(x, wo) = L_e(x, wo) + δ·L(x, ω_r) + (1 − δ)·Σ_lights f_r(wi, wo)·I·cosθ_i / d² · V(x, light)
 
+where L_e is the emission of the hit material (scene-file `emission`; one-sided: towards the side
+the triangle's winding normal points to, as the path tracer's emitters), so emitters are seen
+directly and in mirrors and glass, as by the path tracer's camera rays and delta bounces. Whitted
+does not light other surfaces with emitters (point lights only); the path tracer does.
 `direct_lighting` is the sum over lights, `local_radiance` what one ray collects at its own hit
 before its path throughput. The path tracer's next-event estimation for point lights uses the same
 `direct_terms`.
@@ -23,11 +27,22 @@ from jaxrt.shading.surface import Surface, dot, local_frame, oriented, to_local
 
 
 def local_radiance(scene, s: Surface, d, visible, found, delta, glass) -> Float[Array, "B 3"]:
-    """Radiance a ray (B,) collects at its own hit, before its path throughput: (1 − δ)·direct on
-    opaque hits, 0 on glass (all of it is carried by the children), the escaped radiance on misses."""
-    direct = direct_lighting(scene, s, d, visible)
-    local = jnp.where(found[:, None], (1.0 - delta)[:, None] * direct, escaped_radiance(scene, d))
+    """Radiance a ray (B,) collects at its own hit, before its path throughput: L_e + (1 − δ)·direct
+    on opaque hits, 0 on glass (all of it is carried by the children), the escaped radiance on misses."""
+    direct = (1.0 - delta)[:, None] * direct_lighting(scene, s, d, visible)
+    direct = direct + emitted_radiance(scene, s, d)
+    local = jnp.where(found[:, None], direct, escaped_radiance(scene, d))
     return jnp.where(glass[:, None], 0.0, local)
+
+
+def emitted_radiance(scene, s: Surface, d: Float[Array, "B 3"]) -> Float[Array, "B 3"]:
+    """L_e of the hit surfaces seen along d: the material's emission on the side the geometric
+    normal (winding) points to, 0 behind it and for scenes without emitters, (B, 3)."""
+    al = scene.area_lights
+    if al is None or al.count == 0:
+        return jnp.zeros(s.p.shape)
+    front = dot(d, s.ng) < 0
+    return jnp.where(front[:, None], al.emission[s.material], 0.0)
 
 
 

@@ -42,9 +42,10 @@ def glass_split(materials, s: Surface, d, k: int):
     frame = glass_frame(s, d)
     wo = to_local(-d, frame)
     entering = wo[:, 2] > 0
-    r = glass.extras["fresnel"](p, jnp.abs(wo[:, 2]), entering)
-    wt, ok = glass.extras["refract"](p, wo)
-    wr = glass.extras["reflect"](wo)
+    d_ = glass.dielectric
+    r = d_.fresnel(p, jnp.abs(wo[:, 2]), entering)
+    wt, ok = d_.refract(p, wo)
+    wr = d_.reflect(wo)
     return r, from_local(wr, frame), from_local(wt, frame), ok & (r < 1.0)
 
 
@@ -72,16 +73,11 @@ def delta_and_glass(mats, s: Surface, found: Bool[Array, "B"]):
 
 
 def surface_albedo(materials, s: Surface) -> Float[Array, "B 3"]:
-    """The diffuse albedo of each hit's material (the albedo AOV): rho_d, Disney's base_color, 1 for
-    delta materials, 0 for models without a diffuse colour."""
+    """The diffuse colour of each hit's material (the albedo AOV): each model's `diffuse_albedo` hook
+    (rho_d, Disney's base_color, 1 for delta materials, 0 for models without a diffuse lobe)."""
     albedo = jnp.zeros(s.p.shape)
     for k, name in enumerate(materials.models):
         sel = materials.model_id[s.material] == k
         p = gather_params(materials, s.material, k, s.uv)
-        if brdfs.get(name).delta:
-            albedo = jnp.where(sel[:, None], 1.0, albedo)
-        elif "rho_d" in p:
-            albedo = jnp.where(sel[:, None], p["rho_d"], albedo)
-        elif "base_color" in p:
-            albedo = jnp.where(sel[:, None], p["base_color"], albedo)
+        albedo = jnp.where(sel[:, None], brdfs.get(name).diffuse_albedo(p).astype(albedo.dtype), albedo)
     return albedo

@@ -1,5 +1,7 @@
-"""The albedo estimator against independent float64 brute-force quadrature; lobe slices,
-reciprocity error, lobe plots and the `jaxrt brdf-report` command."""
+"""The albedo estimator against independent float64 quadrature (tensor Gauss-Legendre in the
+incident direction or in half-vector space, panels graded towards the features of each lobe, each
+converged by refinement), at every view angle up to 89.99 deg; lobe slices, reciprocity error, lobe
+plots and the `jaxrt brdf-report` command."""
 
 import math
 
@@ -79,47 +81,147 @@ def mirror_albedo(model, p, theta_o, width, nt=100, nph=256):
     return np.einsum("ijc,i->c", integrand, wt) * (2 * math.pi / nph)
 
 
+def _geo(lo, hi, ratio):
+    return np.geomspace(lo, hi, int(math.ceil(math.log(hi / lo) / math.log(ratio))) + 1)
+
+
+def _panels(edges, q):
+    edges = np.unique(edges)
+    pieces = [_gl(a, b, q) for a, b in zip(edges[:-1], edges[1:])]
+    return np.concatenate([x for x, _ in pieces]), np.concatenate([w for _, w in pieces])
+
+
+def graded_albedo(model, p, theta_o, q=12, ratio=2.0, floor=1e-9, mirror=False):
+    """float64 tensor composite Gauss-Legendre in (cos theta_i, phi_i) with panels halving towards
+    cos theta_i = 0 and cos theta_o (the lobes of a grazing view; both sides of cos theta_o when
+    `mirror`, for sharp lobes) and towards the mirror azimuth phi = pi, down to `floor`: accurate at
+    grazing views, where the lobes are squeezed against the horizon. Converges to < 1e-7 for the
+    smooth cases below (q = 12 against q = 16, ratio 1.5)."""
+    co = math.cos(theta_o)
+    g = _geo(floor, 1.0, ratio)
+    ce = [[0.0, 0.5, 0.9, 1.0, co], g]
+    if mirror:
+        ce += [co - g * co, co + g * (1 - co)]
+    c, wc = _panels(np.clip(np.concatenate([np.ravel(x) for x in ce]), 0, 1), q)
+    d = _geo(floor, math.pi, ratio)
+    ph, wph = _panels(np.concatenate([[0.0, math.pi, 2 * math.pi], math.pi - d, math.pi + d]), q)
+    C, P = np.meshgrid(c, ph, indexing="ij")
+    S = np.sqrt(1 - C**2)
+    wi = np.stack([S * np.cos(P), S * np.sin(P), C], -1)
+    with jax.enable_x64(True):
+        f = np.asarray(model.eval(_p64(p), jnp.asarray(wi), jnp.asarray(_wo(theta_o))))
+    return np.einsum("ijc,ij,i,j->c", f, C, wc, wph)
+
+
+def _assert_albedo(model, p, thetas, ref_fn, tol, **kw):
+    wo = np.stack([_wo(t) for t in thetas]).astype(np.float32)
+    got = np.asarray(brdfs.albedo(model, p, wo, **kw))
+    ref = np.stack([ref_fn(t) for t in thetas])
+    err = np.abs(got - ref) / np.maximum(1.0, ref)  # absolute, relative where the albedo exceeds 1
+    assert err.max() <= tol, {f"{math.degrees(t):.2f}": float(e) for t, e in zip(thetas, err.max(-1))}
+
+
 SMOOTH = [
     ("lambert", dict(rho_d=[0.3, 0.6, 0.9])),
     ("phong", dict(rho_d=0.3, rho_s=0.6, s=20)),
+    ("phong", dict(rho_d=0.0, rho_s=1.0, s=5)),
     ("blinn_phong", dict(rho_d=0.3, rho_s=0.6, s=30)),
     ("cook_torrance", dict(rho_d=0.3, rho_s=0.7, m=0.3, eta=1.8)),
+    ("cook_torrance", dict(rho_d=0.0, rho_s=1.0, m=0.5, eta=20.0)),
     ("ward", dict(rho_d=0.2, rho_s=0.7, alpha_x=0.3, alpha_y=0.15)),
     ("ashikhmin_shirley", dict(rho_d=0.6, rho_s=0.3, n_u=50, n_v=10)),
+    ("disney", dict()),
+    ("disney", dict(roughness=0.8, metallic=0.5, sheen=0.5, clearcoat=0.5, clearcoat_gloss=0.0)),
+    ("ward_1992", dict(rho_d=0.2, rho_s=0.7, alpha_x=0.5, alpha_y=0.3)),
+    ("ward_duer", dict(rho_d=0.2, rho_s=0.7, alpha_x=0.5, alpha_y=0.3)),
 ]
-THETAS = [0.0, 40 * DEG, 75 * DEG]
+# The grazing cases the estimator used to miss by 5e-4 to 9e-4 (Ward alpha = 0.5-1, A-S n = 10/100).
+GRAZING = [
+    ("ward", dict(rho_d=0.0, rho_s=1.0, alpha_x=0.5, alpha_y=0.5)),
+    ("ward", dict(rho_d=0.0, rho_s=1.0, alpha_x=1.0, alpha_y=1.0)),
+    ("ashikhmin_shirley", dict(rho_d=0.0, rho_s=1.0, n_u=10, n_v=10)),
+    ("ashikhmin_shirley", dict(rho_d=0.0, rho_s=1.0, n_u=100, n_v=100)),
+    ("ashikhmin_shirley", dict(rho_d=1.0, rho_s=0.0, n_u=100, n_v=100)),
+]
+THETAS = [0.0, 40 * DEG, 75 * DEG, 85 * DEG, 89 * DEG, 89.9 * DEG, 89.99 * DEG]
+GRAZING_THETAS = [88 * DEG, 89 * DEG, 89.5 * DEG, 89.9 * DEG, 89.99 * DEG]
+SMOOTH_TOL = 1e-4  # measured max 1.1e-5 over these cases and angles (see brdfs/analysis.py)
 
 
-@pytest.mark.parametrize("name,kw", SMOOTH, ids=[s[0] for s in SMOOTH])
-def test_albedo_smooth_lobes_within_1e4_of_quadrature(name, kw):
+@pytest.mark.parametrize("name,kw", GRAZING, ids=[f"{s[0]}-{i}" for i, s in enumerate(GRAZING)])
+def test_albedo_grazing_views_within_1e4_of_quadrature(name, kw):
     m = brdfs.get(name)
     p = m.params(**kw)
-    wo = np.stack([_wo(t) for t in THETAS]).astype(np.float32)
-    got = np.asarray(brdfs.albedo(m, p, wo))
-    ref = np.stack([brute_albedo(m, p, t) for t in THETAS])
-    np.testing.assert_allclose(got, ref, atol=1e-4, rtol=0)
+    _assert_albedo(m, p, GRAZING_THETAS, lambda t: graded_albedo(m, p, t), SMOOTH_TOL)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("name,kw", SMOOTH + GRAZING, ids=[f"{s[0]}-{i}" for i, s in enumerate(SMOOTH + GRAZING)])
+def test_albedo_smooth_lobes_within_1e4_at_every_view_angle(name, kw):
+    m = brdfs.get(name)
+    p = m.params(**kw)
+    _assert_albedo(m, p, THETAS + GRAZING_THETAS[::2], lambda t: graded_albedo(m, p, t), SMOOTH_TOL)
+
+
+@pytest.mark.parametrize("name,kw", SMOOTH[:9], ids=[f"{s[0]}-{i}" for i, s in enumerate(SMOOTH[:9])])
+def test_albedo_smooth_lobes_within_1e4_of_brute_force(name, kw):
+    """A second, ungraded reference at moderate view angles (where it is accurate)."""
+    m = brdfs.get(name)
+    p = m.params(**kw)
+    _assert_albedo(m, p, [0.0, 40 * DEG, 75 * DEG], lambda t: brute_albedo(m, p, t), SMOOTH_TOL)
+
+
+def test_albedo_estimator_converges_with_n():
+    """The estimator is a quadrature: at a smooth grazing case n = 256 (the default) is within 1e-5
+    of n = 512, and coarser grids converge towards it."""
+    m = brdfs.get("ward")
+    p = m.params(rho_d=0.0, rho_s=1.0, alpha_x=1.0, alpha_y=1.0)
+    wo = _wo(89.9 * DEG).astype(np.float32)
+    a = {n: float(brdfs.albedo(m, p, wo, n=n)[0]) for n in (64, 128, 256, 512)}
+    assert abs(a[256] - a[512]) < 1e-5 and abs(a[128] - a[512]) < 3e-4 and abs(a[64] - a[512]) < 5e-3, a
+
+
+# Sharp lobes at the bounds, at view angles where the mirror direction is >= 5 deg above the horizon
+# (reference: quadrature in half-vector space or around the mirror direction).
 SHARP = [
+    ("phong", dict(rho_d=0.0, rho_s=1.0, s=1e6), "mirror", 1e-3),
+    ("blinn_phong", dict(rho_d=0.0, rho_s=1.0, s=1e6), "half", 1e-3),
+    ("cook_torrance", dict(rho_d=0.0, rho_s=1.0, m=0.001, eta=1.5), "half", 0.001),
+    ("ward", dict(rho_d=0.0, rho_s=1.0, alpha_x=0.001, alpha_y=0.001), "half", 0.001),
+    ("ward_1992", dict(rho_d=0.0, rho_s=1.0, alpha_x=0.001, alpha_y=0.001), "half", 0.001),
+    ("ward_duer", dict(rho_d=0.0, rho_s=1.0, alpha_x=0.001, alpha_y=0.001), "half", 0.001),
+    ("ashikhmin_shirley", dict(rho_d=0.0, rho_s=1.0, n_u=1e6, n_v=1e6), "half", 1e-3),
+    ("disney", dict(roughness=0.0, metallic=1.0, base_color=1.0), "half", 0.001),
     ("phong", dict(rho_d=0.0, rho_s=1.0, s=1000), "mirror", 1 / math.sqrt(1000)),
-    ("blinn_phong", dict(rho_d=0.0, rho_s=1.0, s=1000), "half", 1 / math.sqrt(1000)),
     ("cook_torrance", dict(rho_d=0.0, rho_s=1.0, m=0.01, eta=1.5), "half", 0.01),
-    ("ward", dict(rho_d=0.0, rho_s=1.0, alpha_x=0.01, alpha_y=0.01), "half", 0.01),
-    ("ashikhmin_shirley", dict(rho_d=0.0, rho_s=1.0, n_u=10000, n_v=10000), "half", 0.01),
 ]
-SHARP_TOL = 1e-4  # measured ~2e-5; see brdfs/analysis.py
+SHARP_TOL = 2e-5  # measured <= 2e-6 up to 85 deg; see brdfs/analysis.py
 
 
-@pytest.mark.parametrize("name,kw,frame,width", SHARP, ids=[s[0] for s in SHARP])
+@pytest.mark.parametrize("name,kw,frame,width", SHARP, ids=[f"{s[0]}-{i}" for i, s in enumerate(SHARP)])
 def test_albedo_sharp_lobes_documented_accuracy(name, kw, frame, width):
     m = brdfs.get(name)
     p = m.params(**kw)
-    thetas = [0.0, 45 * DEG]
-    wo = np.stack([_wo(t) for t in thetas]).astype(np.float32)
-    got = np.asarray(brdfs.albedo(m, p, wo))
     ref_fn = mirror_albedo if frame == "mirror" else halfvector_albedo
-    ref = np.stack([ref_fn(m, p, t, width) for t in thetas])
-    np.testing.assert_allclose(got, ref, atol=SHARP_TOL, rtol=0)
+    _assert_albedo(m, p, [0.0, 45 * DEG, 80 * DEG, 85 * DEG], lambda t: ref_fn(m, p, t, width), SHARP_TOL)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,kw,frame,width", SHARP[:8], ids=[f"{s[0]}-{i}" for i, s in enumerate(SHARP[:8])])
+def test_albedo_sharp_lobes_at_grazing_views_documented_accuracy(name, kw, frame, width):
+    """Sharp lobes whose mirror direction is within 2 deg of the horizon: float32 as documented
+    (<= 2e-4 at 88-89 deg, <= 3e-2 beyond), and float64 within 1e-4 except Cook-Torrance's V-cavity
+    kink (1e-3)."""
+    m = brdfs.get(name)
+    p = m.params(**kw)
+    ref = lambda t: graded_albedo(m, p, t, q=16, floor=1e-10, mirror=True)
+    _assert_albedo(m, p, [88 * DEG, 89 * DEG], ref, 2e-4)
+    _assert_albedo(m, p, [89.5 * DEG, 89.9 * DEG, 89.99 * DEG], ref, 3e-2)
+    with jax.enable_x64(True):
+        wo = np.stack([_wo(t) for t in GRAZING_THETAS])
+        got = np.asarray(brdfs.albedo(m, _p64(p), jnp.asarray(wo)))
+    err = np.abs(got - np.stack([ref(t) for t in GRAZING_THETAS]))
+    assert err.max() <= (1e-3 if name == "cook_torrance" else 1e-4), err.max(-1)
 
 
 def test_glass_albedo_is_fresnel_reflectance():
@@ -158,7 +260,7 @@ def test_reciprocity_error_detects_the_2015_report_diffuse_term():
     def report_eval(p, wi, wo):
         ci = jnp.maximum(wi[..., 2], 0.0)
         return (28 / (23 * math.pi) * p["rho_d"] * (1 - p["rho_s"])
-                * ((1 - (1 - ci / 2) ** 5) ** 2 * (wo[..., 2] > 0))[..., None])
+                * ((1 - (1 - ci / 2) ** 5) ** 2 * jnp.where(wo[..., 2] > 0, 1.0, 0.0))[..., None])
 
     bad = dataclasses.replace(a_s, name="as_report", eval=report_eval)
     assert brdfs.reciprocity_error(bad, p) > 0.1

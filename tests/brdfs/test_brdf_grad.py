@@ -21,6 +21,8 @@ GRAD_PARAMS = {
     "cook_torrance": dict(rho_d=[0.3, 0.5, 0.7], rho_s=[0.4, 0.2, 0.6], m=0.35, eta=1.7),
     "ward": dict(rho_d=[0.3, 0.5, 0.7], rho_s=[0.4, 0.2, 0.6], alpha_x=0.3, alpha_y=0.15),
     "ashikhmin_shirley": dict(rho_d=[0.3, 0.5, 0.7], rho_s=[0.4, 0.2, 0.6], n_u=40.0, n_v=8.0),
+    "ward_1992": dict(rho_d=[0.3, 0.5, 0.7], rho_s=[0.4, 0.2, 0.6], alpha_x=0.3, alpha_y=0.15),
+    "ward_duer": dict(rho_d=[0.3, 0.5, 0.7], rho_s=[0.4, 0.2, 0.6], alpha_x=0.2, alpha_y=0.35),
     "disney": dict(base_color=[0.3, 0.5, 0.7], metallic=0.4, subsurface=0.3, specular=0.6, specular_tint=0.4,
                    roughness=0.45, anisotropic=0.5, sheen=0.7, sheen_tint=0.3, clearcoat=0.8, clearcoat_gloss=0.4),
 }
@@ -93,7 +95,7 @@ def test_grad_matches_float64_central_differences(name):
 
 def test_glass_grads_match_float64_central_differences():
     g = brdfs.get("glass")
-    fres, refract = g.extras["fresnel"], g.extras["refract"]
+    fres, refract = g.dielectric.fresnel, g.dielectric.refract
     with jax.enable_x64(True):
         n_t = jnp.float64(1.6)
         cos_i = jnp.asarray([0.9, 0.5, 0.2, 0.95, 0.9])
@@ -151,9 +153,13 @@ def _extreme_params(m):
     out.append({s.name: (s.hi if s.name in ("s", "n_u", "n_v") else s.lo) for s in m.spec if not s.rgb})
     out.append({s.name: (s.lo if s.name in ("s", "n_u", "n_v") else s.hi) for s in m.spec if not s.rgb})
     if m.name == "ashikhmin_shirley":
-        out += [dict(n_u=1.0, n_v=10000.0), dict(n_u=10000.0, n_v=1.0)]
-    if m.name == "ward":
-        out += [dict(alpha_x=0.01, alpha_y=1.0)]
+        hi = m.param("n_u").hi
+        out += [dict(n_u=1.0, n_v=hi), dict(n_u=hi, n_v=1.0)]
+    if m.name.startswith("ward"):
+        lo = m.param("alpha_x").lo
+        out += [dict(alpha_x=lo, alpha_y=1.0), dict(alpha_x=1.0, alpha_y=lo)]
+    if m.name == "cook_torrance":
+        out += [dict(m=m.param("m").lo, eta=m.param("eta").hi)]
     return m.stack([m.params(**kw) for kw in out])
 
 
@@ -194,9 +200,9 @@ def test_glass_no_nan_at_edge_cases():
 
     def total(n_t, wo):
         pp = {"n_t": n_t}
-        wt, ok = g.extras["refract"](pp, wo)
-        r = g.extras["fresnel"](pp, jnp.abs(wo[..., 2]), wo[..., 2] > 0)
-        re = g.extras["fresnel"](pp, jnp.abs(wo[..., 2]), wo[..., 2] > 0, exact=True)
+        wt, ok = g.dielectric.refract(pp, wo)
+        r = g.dielectric.fresnel(pp, jnp.abs(wo[..., 2]), wo[..., 2] > 0)
+        re = g.dielectric.fresnel(pp, jnp.abs(wo[..., 2]), wo[..., 2] > 0, exact=True)
         wi_s, weight, prob = g.sample(pp, wo, u)
         return jnp.sum(wt) + jnp.sum(r) + jnp.sum(re) + jnp.sum(wi_s) + jnp.sum(prob), (wt, r, re, prob)
 
@@ -205,3 +211,79 @@ def test_glass_no_nan_at_edge_cases():
         assert np.all(np.isfinite(np.asarray(a)))
     for a in (r, re, prob):
         assert np.all((np.asarray(a) >= 0) & (np.asarray(a) <= 1 + 1e-6))
+
+
+# ---- the sharp ends of the declared ranges ---------------------------------------------------
+# (parameters at the sharp bound, width of the wi-lobe around the mirror direction [rad])
+SHARP = {
+    "phong": (dict(rho_d=0.2, rho_s=0.8, s=1e6), math.sqrt(2 / 1e6)),
+    "blinn_phong": (dict(rho_d=0.2, rho_s=0.8, s=1e6), 2 * math.sqrt(2 / 1e6)),
+    "cook_torrance": (dict(rho_d=0.2, rho_s=0.8, m=0.001, eta=1000.0), 2e-3),
+    "ward": (dict(rho_d=0.2, rho_s=0.8, alpha_x=0.001, alpha_y=0.002), 2e-3),
+    "ward_1992": (dict(rho_d=0.2, rho_s=0.8, alpha_x=0.001, alpha_y=0.002), 2e-3),
+    "ward_duer": (dict(rho_d=0.2, rho_s=0.8, alpha_x=0.002, alpha_y=0.001), 2e-3),
+    "ashikhmin_shirley": (dict(rho_d=0.2, rho_s=0.8, n_u=1e6, n_v=3e5), 2 * math.sqrt(2 / 3e5)),
+    "disney": (dict(base_color=0.6, metallic=0.7, roughness=0.0, clearcoat=1.0, clearcoat_gloss=1.0), 2e-3),
+}
+
+
+def _lobe_pairs(width, n_per_view=12, seed=5):
+    """(wi, wo) float32 pairs with wi within 2 lobe widths of wo's mirror direction, at view angles
+    0-89 deg (float32, then used as exact inputs for both precisions)."""
+    rng = np.random.default_rng(seed)
+    wis, wos = [], []
+    for th in (0.0, 30.0, 60.0, 80.0, 89.0):
+        t = math.radians(th)
+        for _ in range(n_per_view):
+            f = rng.uniform(0, 2 * math.pi)
+            wo = np.array([math.sin(t) * math.cos(f), math.sin(t) * math.sin(f), math.cos(t)])
+            r = wo * np.array([-1, -1, 1])
+            a = np.cross(r, [0.3, 0.5, 0.8])
+            a /= np.linalg.norm(a)
+            b = np.cross(r, a)
+            d, psi = rng.uniform(0, 2) * width, rng.uniform(0, 2 * math.pi)
+            wi = math.cos(d) * r + math.sin(d) * (math.cos(psi) * a + math.sin(psi) * b)
+            wis.append(wi), wos.append(wo)
+    wi, wo = np.asarray(wis, np.float32), np.asarray(wos, np.float32)
+    keep = wi[:, 2] > 1e-3
+    return wi[keep], wo[keep]
+
+
+@pytest.mark.parametrize("name", list(SHARP))
+def test_sharp_bounds_values_and_grads_accurate_in_float32(name):
+    """At the sharp end of each range, inside the lobe: float32 values within 1e-3 and float32
+    parameter gradients within 1e-2 (of the largest) of the float64 ones on the same inputs, and the
+    float64 gradients equal float64 central differences."""
+    m = brdfs.get(name)
+    kw, width = SHARP[name]
+    wi, wo = _lobe_pairs(width)
+    p32 = m.params(**kw)
+
+    def loss(p, wi, wo):
+        return jnp.sum(m.eval(p, wi, wo), axis=-1)  # (pairs,)
+
+    f32 = np.asarray(loss(p32, jnp.asarray(wi), jnp.asarray(wo)))
+    g32 = jax.grad(lambda p: jnp.sum(loss(p, jnp.asarray(wi), jnp.asarray(wo)) / jnp.asarray(f32)))(p32)
+    with jax.enable_x64(True):
+        p64 = {k: jnp.asarray(np.asarray(v), jnp.float64) for k, v in p32.items()}
+        wi64, wo64 = jnp.asarray(wi, jnp.float64), jnp.asarray(wo, jnp.float64)
+        f64 = np.asarray(loss(p64, wi64, wo64))
+        assert np.all(f64 > 0) and f64.max() > 1e3  # really inside a sharp lobe
+        np.testing.assert_allclose(f32, f64, rtol=1e-3)
+        # relative loss: every pair counts equally however high its peak
+        per = lambda p: loss(p, wi64, wo64) / jnp.asarray(f64)
+        g64 = jax.grad(lambda p: jnp.sum(per(p)))(p64)
+        for k, v in p64.items():
+            v = np.asarray(v)
+            fd = np.zeros_like(v)
+            for idx in np.ndindex(v.shape or (1,)):
+                idx = idx if v.shape else ()
+                h = 1e-6 * abs(float(v[idx])) if m.param(k).scale == "log" else 1e-5
+                vp, vm = v.copy(), v.copy()
+                vp[idx] += h
+                vm[idx] -= h
+                # sum of per-pair differences (each ~1e-16 exact), not a difference of two sums
+                fd[idx] = float(jnp.sum(per({**p64, k: jnp.asarray(vp)}) - per({**p64, k: jnp.asarray(vm)}))) / (2 * h)
+            np.testing.assert_allclose(np.asarray(g64[k]), fd, rtol=1e-4, atol=1e-8 * len(f64), err_msg=k)
+            scale = max(np.abs(np.asarray(g64[k])).max(), 1e-12)
+            np.testing.assert_allclose(np.asarray(g32[k]), np.asarray(g64[k]), rtol=0, atol=1e-2 * scale, err_msg=k)

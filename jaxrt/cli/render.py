@@ -77,15 +77,17 @@ STOP_GRACE_S = 0.5
 
 
 def _render_in_thread(work, bar):
-    """Run `work()` in a daemon thread and wait for it in a way Ctrl-C can interrupt.
+    """Run `work(should_stop)` in a daemon thread and wait for it in a way Ctrl-C can interrupt.
 
     A compiled XLA call blocks the thread that waits for it and Python only runs signal handlers in
     the main thread between bytecodes, so waiting in the main thread would hold Ctrl-C until the
-    call returns. Here the main thread waits in short joins (refreshing the progress bar's clock);
-    on KeyboardInterrupt it asks the worker to stop at its next tile boundary and, if the worker is
-    inside a long compiled call or a compilation, exits the process at once with status 130.
+    call returns. Here the main thread waits in short joins (refreshing the progress bar's clock
+    on a terminal); on KeyboardInterrupt it asks the worker to stop at its next tile boundary and,
+    if the worker is inside a long compiled call or a compilation, exits the process at once with
+    status 130 (nothing has been written by then: outputs are written after the render).
     """
-    stop = threading.Event()
+    tick = bar is not None and sys.stderr.isatty()
+    stop, done = threading.Event(), threading.Event()
     box: dict = {}
 
     def target():
@@ -93,18 +95,19 @@ def _render_in_thread(work, bar):
             box["value"] = work(stop.is_set)
         except BaseException as e:  # re-raised in the main thread
             box["error"] = e
+        finally:
+            done.set()
 
-    t = threading.Thread(target=target, name="jaxrt-render", daemon=True)
-    t.start()
+    # (waiting on an Event, not Thread.join: a join interrupted by KeyboardInterrupt can mark a
+    # running thread as stopped in CPython 3.11, bpo-45274's fix)
+    threading.Thread(target=target, name="jaxrt-render", daemon=True).start()
     try:
-        while t.is_alive():
-            t.join(0.1)
-            if bar is not None:
+        while not done.wait(0.1):
+            if tick:
                 bar.refresh()
     except KeyboardInterrupt:
         stop.set()
-        t.join(STOP_GRACE_S)
-        if t.is_alive():
+        if not done.wait(STOP_GRACE_S):
             if bar is not None:
                 bar.close()
             print("jaxrt: interrupted", file=sys.stderr, flush=True)

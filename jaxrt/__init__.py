@@ -12,10 +12,11 @@ Packages (docs/ARCHITECTURE.md has the layout and data flow):
   shading      surfaces and frames, material gathering (textures), direct lighting, AOVs
   integrators  Whitted and path tracing behind one registry; the compiled `frame`
   cli          the `jaxrt` command, one module per subcommand
-Modules: camera, lights, envmap, image (EXR/PNG), sweep (parameter sweeps), viewer, fsutil, errors.
+Modules: camera, lights, envmap, image (EXR/PNG), render_tiles (rendering within a memory budget),
+sweep (parameter sweeps), viewer, fsutil, errors.
 """
 
-from jaxrt import accel, cache, geometry, integrators, scene, shading
+from jaxrt import accel, cache, geometry, integrators, render_tiles, scene, shading
 from jaxrt.api import gbuffer, render, reshade
 from jaxrt.errors import InputError
 from jaxrt.integrators import frame, shade, trace
@@ -30,5 +31,5 @@ cache.enable_compilation_cache()
 
 __all__ = [
     "InputError", "Scene", "accel", "cache", "frame", "gbuffer", "geometry", "integrators", "load_scene", "render",
-    "reshade", "scene", "shade", "shading", "trace",
+    "render_tiles", "reshade", "scene", "shade", "shading", "trace",
 ]

@@ -15,7 +15,7 @@ standard library and `jaxrt.errors`, so anything may import it without pulling i
 | JAXRT_CACHE_DIR | the per-user cache folder (compiled programs, meshes, BVHs) | a path ($XDG_CACHE_HOME/jaxrt, else ~/.cache/jaxrt) |
 | JAXRT_CACHE | whether the on-disk caches are used | on, off (on) |
 | JAXRT_CACHE_SIZE | the cache folder's size bound; least recently used entries go first | bytes, or a number with K/M/G/T (binary units) (2G) |
-| JAXRT_MEMORY | reserved: a memory budget for tiled rendering; parsed, not yet used | bytes, or a number with K/M/G/T (unset: derived from the device) |
+| JAXRT_MEMORY | the memory budget of `jaxrt render` and `jaxrt.render(memory="auto")` (`jaxrt.render_tiles`) | bytes, or a number with K/M/G/T (unset: derived from the device) |
 | JAXRT_CONFINE | refuse scene paths (meshes, textures, environment maps) outside the scene's folder and the data folder (`jaxrt.scene.parse`; the CLI's `--confine`) | as JAXRT_DEBUG (off) |
 
 Relative paths are taken relative to the current directory at the time of the call and returned
@@ -60,7 +60,7 @@ class Config:
     cache_dir:   the cache folder: JAXRT_CACHE_DIR, else `default_cache_dir()`; absolute
     cache:       JAXRT_CACHE is on
     cache_size:  JAXRT_CACHE_SIZE in bytes (0 stores nothing)
-    memory:      JAXRT_MEMORY in bytes, or None (reserved)
+    memory:      JAXRT_MEMORY in bytes, or None (the renderer's memory budget, `jaxrt.render_tiles`)
     confine:     JAXRT_CONFINE
     """
 

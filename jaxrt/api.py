@@ -8,7 +8,7 @@ from typing import Any
 
 from jaxtyping import Array, Float
 
-from jaxrt import integrators
+from jaxrt import integrators, render_tiles
 from jaxrt import scene as _scene
 
 
@@ -22,7 +22,8 @@ def _as_scene(scene: Any, overrides=None):
     raise TypeError(f"expected a Scene, a scene file path or a shipped scene name, got {type(scene).__name__}")
 
 
-def render(scene: Any, *, aovs: bool = False, overrides: dict | None = None):
+def render(scene: Any, *, aovs: bool = False, overrides: dict | None = None, memory: int | str | None = None,
+           progress: bool = False):
     """Render a scene with its integrator.
 
     Args:
@@ -30,13 +31,20 @@ def render(scene: Any, *, aovs: bool = False, overrides: dict | None = None):
         aovs: also return a dict of AOVs (depth, normal, albedo, object_id; see
             `jaxrt.shading.aovs`).
         overrides: for a path/name, values applied before validation, e.g. {"camera.width": 64}.
+        memory: None renders the whole image as one compiled call (`integrators.frame`). A budget
+            in bytes or as "2G", or "auto" (JAXRT_MEMORY, else the device's default), renders
+            within it, in tiles of pixels and samples when the image does not fit in one piece
+            (`jaxrt.render_tiles`; an InputError before any work when not even one tile fits).
+        progress: with `memory`, a progress bar over tiles on stderr.
 
     Returns:
-        (H, W, 3) float32 linear RGB radiance, or (image, aovs dict) with `aovs=True`.
-        Differentiable (reverse mode: jax.grad, jax.vjp) with respect to material parameters and light
-        positions/intensities.
+        (H, W, 3) float32 linear RGB radiance, or (image, aovs dict) with `aovs=True`. Without
+        `memory`: JAX arrays, differentiable (reverse mode: jax.grad, jax.vjp) with respect to material
+        parameters and light positions/intensities. With `memory`: numpy arrays, not differentiable.
     """
     scene = _as_scene(scene, overrides)
+    if memory is not None:
+        return render_tiles.render(scene, memory=memory, aovs=aovs, progress=progress)
     return integrators.frame(scene, aovs=aovs)
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 
@@ -47,8 +48,67 @@ def basis(camera: Camera) -> tuple[Float[Array, "3"], Float[Array, "3"], Float[A
     return r, u, f
 
 
+class Window(eqx.Module):
+    """A rectangle of an image's pixels and a run of each pixel's samples: the unit of tiled rendering.
+
+    Rows row0 .. row0 + height - 1, columns col0 .. col0 + width - 1 and samples sample0 ..
+    sample0 + spp - 1 of the image of `Camera.height` x `Camera.width` pixels; only the first `count`
+    samples of the run are in use (a last batch of samples may be shorter than the others). The
+    extents are static (they are a compiled program's shapes); the origin and count are traced, so
+    one compiled program renders every tile of an image.
+    """
+
+    row0: Int[Array, ""]
+    col0: Int[Array, ""]
+    sample0: Int[Array, ""]
+    count: Int[Array, ""]
+    height: int = eqx.field(static=True)
+    width: int = eqx.field(static=True)
+    spp: int = eqx.field(static=True)
+
+    @property
+    def num_pixels(self) -> int:
+        return self.height * self.width
+
+
+def uniform_at(key, index: Int[Array, "..."], size: int) -> Float[Array, "..."]:
+    """Elements `index` of ``jax.random.uniform(key, (size,), jnp.float32)``, computing only those.
+
+    `jax.random.uniform` draws element i of its output from a Threefry-2x32 block (Salmon et al.,
+    "Parallel random numbers: as easy as 1, 2, 3", SC 2011) whose counter is a function of i and the
+    array's size: the 64-bit index (0, i) with JAX's default ``jax_threefry_partitionable``, else the
+    pair (i, i + ⌈size/2⌉) of the original layout, which splits the counters into two halves. Both are
+    reproduced here bit for bit (the mantissa construction is `jax.random.uniform`'s), so a tile of an
+    image draws exactly the numbers the whole image's call gives its pixels. Other PRNG
+    implementations fall back to drawing the whole array and gathering from it.
+    """
+    from jax.extend.random import threefry2x32_p
+
+    index = jnp.asarray(index)
+    if str(jax.random.key_impl(key)) != "threefry2x32":  # pragma: no cover - a non-default PRNG
+        return jax.random.uniform(key, (size,), jnp.float32)[index]
+    k1, k2 = jax.random.key_data(key)
+    i = index.astype(jnp.uint32)
+    k1, k2 = (jnp.broadcast_to(k, i.shape) for k in (k1, k2))
+    if jax.config.jax_threefry_partitionable:
+        b1, b2 = threefry2x32_p.bind(k1, k2, jnp.zeros_like(i), i)
+        bits = b1 ^ b2
+    else:
+        half = (size + 1) // 2
+        low = i < half
+        x0 = jnp.where(low, i, i - half)
+        x1 = jnp.where(low, jnp.where(i + half < size, i + half, jnp.uint32(0)), i)
+        b1, b2 = threefry2x32_p.bind(k1, k2, x0, x1)
+        bits = jnp.where(low, b1, b2)
+    # 23 random mantissa bits under the exponent of 1.0, minus 1: uniform on [0, 1)
+    one = np.array(1.0, np.float32).view(np.uint32)
+    f = jax.lax.bitcast_convert_type((bits >> jnp.uint32(9)) | one, jnp.float32) - jnp.float32(1.0)
+    return jnp.maximum(jnp.float32(0.0), f * jnp.float32(1.0) + jnp.float32(0.0))
+
+
 def generate_rays(
-    camera: Camera, spp: int = 1, seed: Int[Array, ""] | int = 0, jitter: bool | None = None
+    camera: Camera, spp: int = 1, seed: Int[Array, ""] | int = 0, jitter: bool | None = None,
+    window: Window | None = None,
 ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
     """Primary rays for every pixel sample, N = height·width·spp, ordered (row, column, sample).
 
@@ -57,18 +117,35 @@ def generate_rays(
     Random numbers are counter-based (`jax.random` keyed by `seed`, folded with the sample index),
     so a render is reproducible from its seed.
 
+    With a `window` only the rays of its pixels and samples are made, N = window height·width·spp,
+    ordered (row, column, sample) inside the window; each is bit for bit the ray of the same pixel
+    and sample of the whole image (its random numbers come from the same counters, `uniform_at`).
+    Window pixels outside the image and samples ≥ spp are made as well (they are never used).
+
     Returns:
         origins (N, 3) and unit directions (N, 3), float32.
     """
     jitter = spp > 1 if jitter is None else jitter
     h, w = camera.height, camera.width
     key = jax.random.key(jnp.asarray(seed, jnp.uint32))
-    keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(jnp.arange(spp))
-    u = jax.vmap(lambda k: jax.random.uniform(k, (h, w, 4), jnp.float32))(keys)  # (spp, h, w, 4)
+    if window is None:
+        keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(jnp.arange(spp))
+        u = jax.vmap(lambda k: jax.random.uniform(k, (h, w, 4), jnp.float32))(keys)  # (spp, h, w, 4)
+        rows = jnp.arange(h, dtype=jnp.float32)[:, None, None]
+        cols = jnp.arange(w, dtype=jnp.float32)[None, :, None]
+        shape = (h, w, spp)
+    else:
+        ri = window.row0 + jnp.arange(window.height)
+        ci = window.col0 + jnp.arange(window.width)
+        # the flat index of (row, column, channel) in each sample's (h, w, 4) array of uniforms
+        flat = (ri[:, None, None] * w + ci[None, :, None]) * 4 + jnp.arange(4)[None, None, :]
+        keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(window.sample0 + jnp.arange(window.spp))
+        u = jax.vmap(lambda k: uniform_at(k, flat, h * w * 4))(keys)  # (spp, th, tw, 4)
+        rows = ri.astype(jnp.float32)[:, None, None]
+        cols = ci.astype(jnp.float32)[None, :, None]
+        shape = (window.height, window.width, window.spp)
     u = jnp.moveaxis(u, 0, 2)  # (h, w, spp, 4)
-    sub = u[..., :2] if jitter else jnp.full((h, w, spp, 2), 0.5, jnp.float32)
-    rows = jnp.arange(h, dtype=jnp.float32)[:, None, None]
-    cols = jnp.arange(w, dtype=jnp.float32)[None, :, None]
+    sub = u[..., :2] if jitter else jnp.full(shape + (2,), 0.5, jnp.float32)
     tan_half = jnp.tan(jnp.deg2rad(camera.vfov) * 0.5)
     aspect = w / h
     x = (2.0 * (cols + sub[..., 0]) / w - 1.0) * tan_half * aspect

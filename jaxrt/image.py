@@ -106,14 +106,23 @@ def check_exposure(exposure: float, flag: str = "exposure") -> float:
 
 
 def to_srgb8(image: Float[np.ndarray, "H W 3"], exposure: float = 0.0) -> np.ndarray:
-    """Linear RGB -> 8-bit sRGB: scale by 2^exposure, clip to [0, 1], sRGB transfer (colour-science)."""
+    """Linear RGB -> 8-bit sRGB: scale by 2^exposure, clip to [0, 1], sRGB transfer (colour-science).
+
+    Encoded in strips of about 2^18 pixels: colour-science computes in float64 with several
+    temporaries (about 150 bytes per pixel at once), which for a 16384² image would be 40 GB.
+    """
     check_exposure(exposure)
     import colour
 
     img = _finite_rgb(image, "image")
-    lin = np.clip(img * np.float32(2.0**exposure), 0.0, 1.0)
-    enc = colour.cctf_encoding(lin, function="sRGB")
-    return np.round(np.asarray(enc) * 255.0).astype(np.uint8)
+    out = np.empty(img.shape, np.uint8)
+    scale = np.float32(2.0**exposure)
+    rows = max(1, (1 << 18) // max(1, img.shape[1]))
+    for r in range(0, img.shape[0], rows):
+        lin = np.clip(img[r:r + rows] * scale, 0.0, 1.0)
+        enc = colour.cctf_encoding(lin, function="sRGB")
+        out[r:r + rows] = np.round(np.asarray(enc) * 255.0)
+    return out
 
 
 def write_png(path: str | os.PathLike, image: Float[np.ndarray, "H W 3"], exposure: float = 0.0) -> Path:

@@ -36,7 +36,10 @@ Random numbers are counter-based: the path of pixel i, sample j in pass P uses
 `fold_in(fold_in(key(seed), P), i·spp + j)`, then folds in the bounce and takes 8 uniforms for the
 8 purposes (light class, triangle, 2 for the light point, lobe/mirror/Fresnel choice, 2 for the
 BSDF direction, roulette). A path's numbers therefore do not depend on the batch around it. Camera
-jitter and lens samples come from `camera.generate_rays` with a per-pass seed.
+jitter and lens samples come from `camera.generate_rays` with a per-pass seed. A tile of tiled
+rendering (`camera.Window`) computes its paths' global i·spp + j, so its paths are the whole
+image's, bit for bit; where i·spp + j ≥ 2³² (only tiled renders reach it) the high word is folded
+in after the low one, so streams stay distinct instead of wrapping.
 
 Gradients. `jax.grad` of an image w.r.t. material parameters, emission, environment texels and
 light intensities is an unbiased estimate of the gradient of the expected image (away from
@@ -114,7 +117,29 @@ def _bsdf_models(mats):
     return [(k, brdfs.get(name)) for k, name in enumerate(mats.models) if not brdfs.get(name).delta]
 
 
-def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None = None, aovs: bool = False):
+def _path_keys(kpath, window: camera.Window, spp: int, width: int):
+    """The key of every path of a window: fold_in(kpath, i·spp + j) for global pixel i = row·width +
+    column and sample j, with i·spp + j computed in two 32-bit words (it reaches 2⁴⁰: 16384² pixels
+    by 4096 samples) and the high word folded in second where it is not 0."""
+    u32 = jnp.uint32
+    rows = (window.row0 + jnp.arange(window.height)).astype(u32)
+    cols = (window.col0 + jnp.arange(window.width)).astype(u32)
+    pix = (rows[:, None] * u32(width) + cols[None, :]).reshape(-1, 1)  # < 2^28
+    j = (window.sample0 + jnp.arange(window.spp)).astype(u32)[None, :]
+    hi16, lo16 = pix >> u32(16), pix & u32(0xFFFF)  # pix·spp = hi16·spp·2^16 + lo16·spp (exact: spp < 2^16)
+    a = (hi16 * u32(spp)) << u32(16)
+    b = lo16 * u32(spp) + j
+    lo = a + b
+    hi = ((hi16 * u32(spp)) >> u32(16)) + (lo < a).astype(u32)
+    lo, hi = lo.reshape(-1), hi.reshape(-1)
+    k_lo = jax.vmap(lambda i: jax.random.fold_in(kpath, i))(lo)
+    k_hi = jax.vmap(jax.random.fold_in)(k_lo, hi)
+    data = jnp.where((hi == 0)[:, None], jax.random.key_data(k_lo), jax.random.key_data(k_hi))
+    return jax.random.wrap_key_data(data, impl=jax.random.key_impl(kpath))
+
+
+def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None = None, aovs: bool = False,
+            window: camera.Window | None = None):
     """Radiance of every path of one pass.
 
     Args:
@@ -123,17 +148,20 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         jitter: jitter samples inside the pixel (default: spp > 1, as Whitted); progressive
             accumulation always jitters.
         aovs: also return the first-hit records (prim, u, v, t, direction) of every path.
+        window: None for every pixel and sample, else one tile (`camera.Window`): its pixels and
+            run of samples, each path with the random numbers of the same path of the whole image;
+            samples past the window's `count` are not traced (radiance 0).
 
     Returns:
-        (H·W, spp, 3) float32 linear radiance per path [W/(m²·sr)], finite; with `aovs` a pair
-        (radiance, first-hit dict).
+        (H·W, spp, 3) float32 linear radiance per path [W/(m²·sr)], finite (the window's pixels and
+        samples with a window); with `aovs` a pair (radiance, first-hit dict).
     """
     st, cam, mats = scene.settings, _sg(scene.camera), scene.materials
     geo = _sg(scene.geometry)
     D = st.max_depth
     spp = st.spp
-    npix = cam.num_pixels
-    B = npix * spp
+    npix, nsamp = (cam.num_pixels, spp) if window is None else (window.num_pixels, window.spp)
+    B = npix * nsamp
     p_tri, p_env = _light_classes(scene)
     env = scene.environment if p_env > 0 else None
     table = emitter_table(scene) if p_tri > 0 else None
@@ -144,9 +172,14 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     key = jax.random.fold_in(jax.random.key(jnp.asarray(st.seed, jnp.uint32)), jnp.asarray(pass_index, jnp.uint32))
     kcam, kpath = jax.random.split(key)
     cam_seed = jax.random.bits(kcam, (), jnp.uint32)
-    o0, d0 = camera.generate_rays(cam, spp, cam_seed, jitter)
+    o0, d0 = camera.generate_rays(cam, spp, cam_seed, jitter, window=window)
     d0 = normalize(d0)
-    path_keys = jax.vmap(lambda i: jax.random.fold_in(kpath, i))(jnp.arange(B, dtype=jnp.uint32))
+    if window is None:
+        path_keys = jax.vmap(lambda i: jax.random.fold_in(kpath, i))(jnp.arange(B, dtype=jnp.uint32))
+        alive0 = jnp.ones(B, bool)
+    else:
+        path_keys = _path_keys(kpath, window, spp, cam.width)
+        alive0 = jnp.broadcast_to(jnp.arange(nsamp) < window.count, (npix, nsamp)).reshape(-1)
 
     def uniforms(k):
         return jax.vmap(lambda pk: jax.random.uniform(jax.random.fold_in(pk, k), (_NU,)))(path_keys)
@@ -312,32 +345,42 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     first = dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
     # the throughput's dtype follows the material values so float64 tests stay float64
     one = jnp.ones((B, 3), jnp.result_type(float))
-    carry = (o0, d0, jnp.ones(B, bool), one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first)
+    carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first)
     carry = lax.fori_loop(0, D + 1, body, carry)
     L = carry[6]
-    L = jnp.where(jnp.isfinite(L), L, 0.0).reshape(npix, spp, 3)
+    L = jnp.where(jnp.isfinite(L), L, 0.0).reshape(npix, nsamp, 3)
     if aovs:
         return L, carry[7]
     return L
 
 
-def _aovs(scene, first: dict) -> dict:
+def _aovs(scene, first: dict, window: camera.Window | None = None) -> dict:
     # paths are pixel-major (H·W·spp, the spp samples of a pixel together): the first sample of
     # pixel i is path i·spp
-    idx = jnp.arange(scene.camera.num_pixels) * scene.settings.spp
-    return build_aovs(scene, *(first[k][idx] for k in ("prim", "u", "v", "t", "d")))
+    cam, spp = scene.camera, scene.settings.spp
+    shape, spp = ((cam.height, cam.width), spp) if window is None else ((window.height, window.width), window.spp)
+    idx = jnp.arange(shape[0] * shape[1]) * spp
+    return build_aovs(scene, *(first[k][idx] for k in ("prim", "u", "v", "t", "d")), shape=shape)
 
 
-def render(scene, pass_index: Int[Array, ""] | int = 0, *, aovs: bool = False, jitter: bool | None = None):
+def render(scene, pass_index: Int[Array, ""] | int = 0, *, aovs: bool = False, jitter: bool | None = None,
+           window: camera.Window | None = None):
     """One pass of `settings.spp` paths per pixel averaged into an (H, W, 3) image; with `aovs` a pair
-    (image, dict) with depth, normal, albedo and object_id of each pixel's first sample (as Whitted)."""
+    (image, dict) with depth, normal, albedo and object_id of each pixel's first sample (as Whitted).
+
+    With a `window` (`camera.Window`, one tile of tiled rendering) only its pixels and samples are
+    traced: the window's share of the pass, Σ over its samples / spp, (window height, width, 3); the
+    AOVs are those of the window's first sample."""
     cam = scene.camera
-    out = samples(scene, pass_index, jitter=jitter, aovs=aovs)
+    out = samples(scene, pass_index, jitter=jitter, aovs=aovs, window=window)
     L, first = out if aovs else (out, None)
-    img = jnp.mean(L, axis=1).reshape(cam.height, cam.width, 3)
+    if window is None:
+        img = jnp.mean(L, axis=1).reshape(cam.height, cam.width, 3)
+    else:
+        img = (jnp.sum(L, axis=1) / scene.settings.spp).reshape(window.height, window.width, 3)
     if not aovs:
         return img
-    return img, _aovs(scene, first)
+    return img, _aovs(scene, first, window)
 
 
 class Accumulation(eqx.Module):

@@ -96,7 +96,7 @@ class GBuffer(eqx.Module):
     dropped: Int[Array, ""]
 
 
-def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
+def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window: camera.Window | None = None):
     """The ray-tree loop shared by `trace` and the fused `whitted` forward pass.
 
     record: fill a GBuffer; image: accumulate each level's contribution (path throughput ·
@@ -104,29 +104,41 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
     pixel's first sample for `build_aovs`. The flags are static: a pass that does not record carries
     no GBuffer at all (not relying on XLA to drop dead loop state).
 
+    window: None for the whole image, else one tile (`camera.Window`): its pixels and its run of
+    samples, the rest of the loop unchanged (ray slots, budget and image are the tile's). Every
+    slot's arithmetic depends on its own ray only, and a pixel's samples and their children keep
+    their relative slot order, so a tile holding all spp samples of its pixels adds each pixel's
+    contributions in the whole image's order (the same floats wherever the compiler evaluates both
+    program shapes alike: `jaxrt.render_tiles`). Samples past the window's `count` start inactive.
+
     Returns:
-        (GBuffer or None, image (H, W, 3) or None, AOV dict or None). Not differentiable (the
-        whole scene is under stop_gradient); `whitted` supplies the gradients.
+        (GBuffer or None, image (H, W, 3) or None, AOV dict or None), with the window's (height,
+        width) for H, W; the image is divided by the scene's spp (a window's share of the pixel
+        mean). Not differentiable (the whole scene is under stop_gradient); `whitted` supplies the
+        gradients.
     """
     scene = jax.lax.stop_gradient(scene)
     geo, mats, cam, st = scene.geometry, scene.materials, scene.camera, scene.settings
     D = st.max_depth
-    npix = cam.num_pixels
-    n = npix * st.spp
+    th, tw, spp = (cam.height, cam.width, st.spp) if window is None else (window.height, window.width, window.spp)
+    npix = th * tw
+    n = npix * spp
     B = st.ray_budget * n
     L = scene.lights.count
     # the throughput's dtype follows the scene's values (float64 when a test asks for it)
     wdtype = jnp.result_type(mats.delta.dtype, jnp.float32)
 
-    order, first = sample_order(cam.height, cam.width, st.spp)
-    o0, d0 = camera.generate_rays(cam, st.spp, st.seed)
+    order, first = sample_order(th, tw, spp)
+    o0, d0 = camera.generate_rays(cam, st.spp, st.seed, window=window)
     o0, d0 = o0[order], d0[order]
     pad = B - n
     o0 = jnp.pad(o0, ((0, pad), (0, 0)))
     d0 = jnp.pad(d0, ((0, pad), (0, 0)), constant_values=1.0)
     d0 = normalize(d0)
     act0 = jnp.arange(B) < n
-    pix0 = jnp.pad(jnp.asarray(order // st.spp), (0, pad))
+    if window is not None:
+        act0 = act0 & (jnp.pad(jnp.asarray(order % spp), (0, pad)) < window.count)
+    pix0 = jnp.pad(jnp.asarray(order // spp), (0, pad))
 
     buf = None
     if record:
@@ -249,9 +261,9 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False):
 
     _, _, buf, img, rec = jax.lax.while_loop(cond, body, (jnp.asarray(0), ray0, buf, img, rec))
     if image:
-        img = (img / st.spp).reshape(cam.height, cam.width, 3)
+        img = (img / st.spp).reshape(th, tw, 3)
     if aovs:
-        rec = build_aovs(scene, **rec)
+        rec = build_aovs(scene, **rec, shape=(th, tw))
     return buf, img, rec
 
 
@@ -341,9 +353,13 @@ def _whitted_bwd(aovs, pullback, cotangent):
 _whitted.defvjp(_whitted_fwd, _whitted_bwd)
 
 
-def whitted(scene, aovs: bool = False):
+def whitted(scene, aovs: bool = False, window: camera.Window | None = None):
     """The Whitted image (H, W, 3), or (image, aovs) with `aovs=True`; equal to
     `shade(trace(scene), scene, aovs)`, computed in one pass.
+
+    With a `window` (`camera.Window`, one tile of tiled rendering) only its pixels and samples are
+    rendered: the window's share of the image, Σ over its samples / spp, (window height, width, 3).
+    Tiles are forward-only (no custom VJP): differentiate whole-image renders.
 
     The forward pass shades each level of the ray tree as it is traced (`_trace_loop`), so hit
     surfaces are evaluated once and no GBuffer is written. Under reverse-mode differentiation (a
@@ -351,4 +367,7 @@ def whitted(scene, aovs: bool = False):
     `shade`'s pullback: the same gradients, at the same cost, as before the fusion. Forward-mode
     (jax.jvp) is not defined through it; use `shade(trace(scene), scene)` for that.
     """
+    if window is not None:
+        _, img, aov = _trace_loop(scene, record=False, image=True, aovs=aovs, window=window)
+        return (img, aov) if aovs else img
     return _whitted(scene, aovs)

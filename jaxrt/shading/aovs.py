@@ -21,15 +21,16 @@ NAMES = ("depth", "normal", "albedo", "object_id")
 
 
 def build_aovs(scene, prim: Int[Array, " P"], u: Float[Array, " P"], v: Float[Array, " P"], t: Float[Array, " P"],
-               d: Float[Array, "P 3"]) -> dict[str, Array]:
+               d: Float[Array, "P 3"], shape: tuple[int, int] | None = None) -> dict[str, Array]:
     """The AOVs of every pixel from the camera-ray hit (prim, u, v, t along direction d) of its first
-    sample, each input (H·W, ...) in row-major pixel order. Every integrator returns these."""
+    sample, each input (H·W, ...) in row-major pixel order. Every integrator returns these.
+    `shape` is (H, W): the camera's resolution unless given (a tile's)."""
     cam = scene.camera
     found = prim >= 0
     s = scene.geometry.surface(prim, u, v)
     albedo = surface_albedo(scene.materials, s)
     _, ns, _ = oriented(s, d)
-    hw = (cam.height, cam.width)
+    hw = (cam.height, cam.width) if shape is None else tuple(shape)
     return {
         "depth": jnp.where(found, t, 0.0).reshape(hw),
         "normal": jnp.where(found[:, None], ns, 0.0).reshape(hw + (3,)),

@@ -1,0 +1,442 @@
+"""Tiled rendering: any allowed resolution and sample count within a memory budget.
+
+`render(scene, memory=...)` renders an image as a sequence of tiles, each a rectangle of pixels and
+a run of their samples (`jaxrt.camera.Window`), through one compiled program
+(`jaxrt.integrators.tile`: the tile's extents are static, its origin and sample count traced), and
+streams each tile into a host buffer. A job that fits the budget in one piece runs `integrators.frame`
+itself, the program an untiled render compiles, so small renders compile nothing new.
+
+This module sits above the integrators (it schedules any registered integrator's tiles and reads the
+device's memory and `JAXRT_MEMORY`, which light transport never needs) and below the API and CLI; it is
+also the unit that a multi-device renderer distributes: every tile is independent, the scene is the
+same argument for all of them, and a tile's origin is a traced value, so a device mesh can run the
+same program on a different list of origins per device (`Plan.steps` is that list) and gather the
+tiles once.
+
+Memory model
+------------
+The budget B is `memory` (bytes or "2G"), else JAXRT_MEMORY, else `default_budget()`: on a GPU 90 %
+of what the device's allocator can still hand out (``memory_stats()``: bytes_limit − bytes_in_use)
+plus the scene's arrays already there; on a CPU half the physical RAM (``os.sysconf``). It bounds
+the renderer's arrays: the scene (its device arrays), one tile's working set and outputs, and the
+host image buffers (H·W·12 bytes of RGB, 32 more per pixel with AOVs) plus the caller's `reserve`
+(the CLI's image writers); on a GPU the host buffers are checked against half the host's RAM
+instead. The Python/XLA runtime itself (about 0.5 GB) and compilation are not counted.
+
+A tile of p pixels × s samples needs p·(s·a + b) bytes, with (a, b) = `tile_cost(scene)` an upper
+bound of the compiled tile program's temporaries, outputs and code (`memory_analysis()`), fitted to
+measurements of the shipped scenes (see `tile_cost`). `plan` picks the largest tile within the
+budget; `compile_plan` compiles it and reads the compiled program's own `memory_analysis()`; should
+that exceed the budget the tile is shrunk in proportion and recompiled, so what runs has been
+measured to fit. A job whose scene and image alone leave no room for one ray sample is refused before any
+work with an `InputError` that names --memory / JAXRT_MEMORY.
+
+Tile shape
+----------
+All spp samples of a pixel stay in one tile when at least one 8×4 block of pixels (the integrators'
+ray order, `integrators.sample_order`) fits that way; otherwise the samples are split into equal
+batches (the last one shorter, its surplus slots inactive). Pixels go in full-width strips when a
+strip of four rows fits, else in blocks of four rows by a multiple of eight columns; tiles are
+balanced (equal sizes) and the last row and column of tiles are shifted back inside the image (their
+overlap with the previous tile is computed again and not written twice), so no ray leaves the
+image.
+
+Identity with the untiled render
+--------------------------------
+Every random number of a tile is the one the whole-image render gives the same pixel and sample
+(camera jitter and lens: `camera.uniform_at` at the pixel's global counter; path tracing: the path's
+global index i·spp + j), and a pixel's samples and their secondary rays keep their relative order, so
+the tile computes the same per-ray arithmetic. The image is then bit for bit the untiled render's
+wherever the compiler evaluates that arithmetic the same way for both program shapes. On XLA:CPU
+that holds with FMA contraction and YNNPACK reduction fusions off (``XLA_FLAGS=--xla_cpu_max_isa=AVX
+--xla_cpu_experimental_ynn_fusion_type=``): then the test scenes and the shipped spheres, showcase,
+cornell_area and dragon tile bit for bit (`tests/test_tiles.py` checks two scenes that way). With
+the default flags XLA fuses each program shape differently, contracts a·b + c into FMAs where it
+fuses, and YNNPACK associates small reductions by shape, so each ray's floats differ by a few ulps;
+mostly that stays at rounding level, but it can flip a discrete decision (a shadow ray grazing an
+edge, total internal reflection, a roulette draw). Measured at 96x72 against `frame`: spheres
+max |Δ| 1.9e-5 (0.01 % of pixels beyond 1e-4 relative), dragon 2.7e-5, cornell_area (path, 8 spp)
+5e-5 relative at most, showcase (glass) 0.4 % of pixels beyond 1 % (max |Δ| 0.04 on radiance up to
+1.7); `tests/test_tiles.py` holds 99 % of pixels to 1e-4 relative. When a pixel's samples are split
+into batches, the batches' partial means are added on the host in float32 in sample order: beyond
+the above, |Δ| ≤ (2·spp + batches)·2⁻²⁴ of the pixel (first order; tested). Whitted scenes whose
+ray tree overflows its slot budget (glass with a small ray_budget, see `integrators.whitted`) drop
+branches per tile rather than per image. Tiles are not differentiable; differentiate
+`integrators.frame`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrt import _config, integrators
+from jaxrt.camera import Window
+from jaxrt.errors import InputError
+
+__all__ = ["Plan", "compile_plan", "default_budget", "format_bytes", "plan", "render", "tile_cost"]
+
+BLOCK_PIXELS = 32  # one 8x4 block of `integrators.sample_order`: the smallest tile that keeps all spp
+# bytes per pixel of the host buffers: RGB float32; AOVs depth (f32), normal and albedo (3 f32), object_id (i32)
+RGB_BYTES = 12
+AOV_BYTES = 32
+
+
+def format_bytes(n: float) -> str:
+    """A size in binary units with three significant digits: 1.50 GiB, 812 MiB."""
+    for unit, scale in (("TiB", 1 << 40), ("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{int(n)} B"
+
+
+def _physical_ram() -> int:
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def default_budget(device=None, scene=None) -> tuple[int, str]:
+    """(bytes, where it comes from): the default memory budget for rendering on `device`.
+
+    GPU (a device with ``memory_stats``): 90 % of bytes_limit − bytes_in_use, plus the bytes of
+    `scene`'s arrays (already in use on the device when the scene is there). CPU: half the
+    physical RAM.
+    """
+    device = device or jax.devices()[0]
+    stats = None
+    if device.platform != "cpu":
+        try:
+            stats = device.memory_stats()
+        except Exception:  # a backend without allocator statistics
+            stats = None
+    if stats and "bytes_limit" in stats:
+        free = stats["bytes_limit"] - stats.get("bytes_in_use", 0)
+        return int(0.9 * free) + (_tree_bytes(scene) if scene is not None else 0), \
+            f"90% of the free memory of {device.device_kind}"
+    ram = _physical_ram()
+    return ram // 2, f"half of the {format_bytes(ram)} of RAM"
+
+
+def _tree_bytes(tree) -> int:
+    return sum(int(x.nbytes) for x in jax.tree.leaves(tree) if hasattr(x, "nbytes"))
+
+
+def tile_cost(scene, aovs: bool = False) -> tuple[int, int]:
+    """(bytes per ray sample, bytes per pixel): an upper bound of one tile's working memory, from the
+    static shapes; a tile of p pixels × s samples needs p·(s·per_sample + per_pixel).
+
+    Fitted to the compiled tile programs' `memory_analysis()` (temporaries + outputs + code) at two
+    tiles of 65536 ray samples (256² pixels × 1 sample and 128² × 4), which separate the two terms,
+    for the shipped scenes spheres, showcase, cornell_area, furnace, instances, dragon, textured and
+    bunnies with both integrators and with and without AOVs (0 to 2 point lights, ray_budget 1 and
+    2, triangle and two-level BVHs, area and environment lights). Measured per ray sample: Whitted
+    212 (cornell_area: ray_budget 1, no point light) to 1139 (showcase: ray_budget 2, two lights),
+    about ray_budget·(260 + 155·L) for L point lights (each slot carries its ray, two candidate
+    children and L shadow rays); path tracing 389 (cornell_area) to 942 (showcase with AOVs), about
+    400 + 250·L, 462 with furnace's environment light, and 37 to 170 more with AOVs (first-hit
+    records). Per pixel: at most 25, 75 with AOVs. The constants below are those fits with a margin
+    (every measurement is 10 to 95 % under its bound); `compile_plan` checks the compiled program
+    against the budget, so a scene the fit does not cover still cannot overrun it.
+    """
+    L = int(scene.lights.count)
+    if scene.settings.integrator == "path":
+        per_sample = _P0 + _P1 * L + (_P_AOV if aovs else 0)
+    else:
+        per_sample = scene.settings.ray_budget * (_W0 + _W1 * L)
+    return int(per_sample), int(_PIX + (_PIX_AOV if aovs else 0))
+
+
+# the constants of `tile_cost` [bytes]; see its docstring
+_W0, _W1 = 300, 180
+_P0, _P1, _P_AOV = 520, 290, 48
+_PIX, _PIX_AOV = 32, 64
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """How one image is rendered.
+
+    shape: (tile height, tile width, samples per tile), or None when the whole job runs as one
+    `integrators.frame` call. steps: the tiles in render order, each ((row, col) where the tile's
+    own pixels start, (row, col) of the window actually rendered, (first sample, sample count)).
+    budget: bytes; budget_source: where the budget came from; fixed: bytes of the scene and the
+    host buffers (those of the host only where the device is the CPU); cost: `tile_cost`'s (per
+    sample, per pixel) bound; tile_bytes: the compiled program's measured temporaries, outputs and
+    code (0 until `compile_plan`).
+    """
+
+    height: int
+    width: int
+    spp: int
+    shape: tuple[int, int, int] | None
+    steps: tuple
+    budget: int
+    budget_source: str
+    fixed: int
+    cost: tuple[int, int]
+    tile_bytes: int = 0
+
+    @property
+    def tiles(self) -> int:
+        return len(self.steps)
+
+
+def _balanced(total: int, most: int, align: int) -> int:
+    """A tile extent ≤ most that splits `total` into pieces of nearly equal size, a multiple of
+    `align` where most ≥ align."""
+    if most >= total:
+        return total
+    if most >= align:
+        step = most // align * align
+        n = -(-total // step)
+        return min(step, -(-(-(-total // n)) // align) * align)
+    return -(-total // -(-total // most))
+
+
+def _tile_shape(h: int, w: int, spp: int, room: int, cost: tuple[int, int], max_rays: int | None):
+    """The largest balanced tile (rows, columns, samples) of p pixels × s samples with
+    p·(s·per_sample + per_pixel) ≤ room and p·s ≤ max_rays; None when not even one ray sample fits."""
+    per_sample, per_pixel = cost
+    max_rays = max_rays or h * w * spp
+
+    def pixels(sb):
+        return min(room // (sb * per_sample + per_pixel), max_rays // sb)
+
+    block = min(h * w, BLOCK_PIXELS)
+    if pixels(spp) >= block:
+        sb = spp
+    else:  # the most samples that still fit a block, in equal batches
+        most = min((room // block - per_pixel) // per_sample, max_rays // block)
+        if most < 1:
+            most = 1
+            if pixels(1) < 1:
+                return None
+        batches = -(-spp // most)
+        sb = -(-spp // batches)
+    px = min(pixels(sb), h * w)
+    if px >= w * min(h, 4):
+        return _balanced(h, min(h, px // w), 4), w, sb
+    th = min(h, 4) if px >= min(h, 4) * min(w, 8) else 1
+    return th, _balanced(w, max(1, px // th), 8), sb
+
+
+def _steps(h: int, w: int, spp: int, shape) -> tuple:
+    th, tw, sb = shape
+    out = []
+    for r in range(0, h, th):
+        for c in range(0, w, tw):
+            for s in range(0, spp, sb):
+                out.append(((r, c), (min(r, h - th), min(c, w - tw)), (s, min(sb, spp - s))))
+    return tuple(out)
+
+
+def _resolve_budget(memory, scene) -> tuple[int, str]:
+    if memory is None or memory == "auto":
+        env = _config.config().memory
+        if env is not None:
+            return env, "JAXRT_MEMORY"
+        return default_budget(scene=scene)
+    if isinstance(memory, str):
+        b = _config.parse_size(memory, "memory")
+    else:
+        b = int(memory)
+    if b <= 0:
+        raise InputError(f"memory={memory!r}: must be a positive size, e.g. 8G")
+    return b, "the memory argument"
+
+
+def plan(scene, *, memory: int | str | None = None, aovs: bool = False, max_tile_rays: int | None = None,
+         reserve: int = 0, budget_source: str | None = None) -> Plan:
+    """The tiles for rendering `scene` within `memory` (see the module docstring), before any
+    compilation.
+
+    Args:
+        memory: the budget in bytes or as "2G"; None or "auto": JAXRT_MEMORY, else `default_budget`.
+        aovs: the AOV buffers are needed too.
+        max_tile_rays: also cap a tile at this many ray samples (the CLI's progress granularity).
+        reserve: bytes of host memory the caller needs besides the image buffers (writers).
+        budget_source: how to name the budget in errors (the CLI: "--memory").
+
+    Raises:
+        InputError: the scene and the image leave no room for a single ray sample.
+    """
+    budget, source = _resolve_budget(memory, scene)
+    source = budget_source or source
+    cam, st = scene.camera, scene.settings
+    h, w, spp = cam.height, cam.width, st.spp
+    scene_bytes = _tree_bytes(scene)
+    host = h * w * (RGB_BYTES + (AOV_BYTES if aovs else 0)) + int(reserve)
+    on_cpu = jax.devices()[0].platform == "cpu"
+    fixed = scene_bytes + (host if on_cpu else 0)
+    cost = tile_cost(scene, aovs)
+    what = f"{scene.source}: {w}x{h} at {spp} spp"
+    if not on_cpu and host > _physical_ram() // 2:
+        raise InputError(f"{what} needs {format_bytes(host)} of host memory for the image, more than half "
+                         f"of the {format_bytes(_physical_ram())} of RAM; render a smaller image")
+    room = budget - fixed
+    if max_tile_rays is not None:
+        max_tile_rays = max(1, int(max_tile_rays))
+    if h * w * (spp * cost[0] + cost[1]) <= room and (max_tile_rays is None or h * w * spp <= max_tile_rays):
+        return Plan(h, w, spp, None, (((0, 0), (0, 0), (0, spp)),), budget, source, fixed, cost)
+    shape = _tile_shape(h, w, spp, room, cost, max_tile_rays) if room > 0 else None
+    if shape is None:
+        raise InputError(
+            f"{what} needs at least {format_bytes(fixed + sum(cost))} ({format_bytes(scene_bytes)} for the scene, "
+            f"{format_bytes(host)} for the image{' on the host' if not on_cpu else ''} and its writers, "
+            f"{format_bytes(sum(cost))} for one ray sample) but the memory budget is {format_bytes(budget)} "
+            f"({source}); raise it with --memory or JAXRT_MEMORY")
+    return Plan(h, w, spp, shape, _steps(h, w, spp, shape), budget, source, fixed, cost)
+
+
+def _compiled_bytes(compiled) -> int:
+    """Temporaries, outputs and code/constants of a compiled program (its arguments, the scene, are
+    counted in `Plan.fixed`)."""
+    m = compiled.memory_analysis()
+    if m is None:  # a backend without memory analysis: trust the bound
+        return 0
+    return int(m.temp_size_in_bytes + m.output_size_in_bytes + m.generated_code_size_in_bytes)
+
+
+def _window(shape, origin, samples) -> Window:
+    th, tw, sb = shape
+    i32 = jnp.int32
+    return Window(i32(origin[0]), i32(origin[1]), i32(samples[0]), i32(samples[1]), th, tw, sb)
+
+
+def compile_plan(scene, p: Plan, aovs: bool = False) -> Plan:
+    """Compile the plan's program (`integrators.frame`, or `integrators.tile` at the plan's tile
+    shape) and measure it (`memory_analysis()`); while it exceeds the budget, shrink the tile in
+    proportion and compile again. Returns the plan that runs, with `tile_bytes` measured.
+
+    Ahead-of-time compilation shares JAX's cache with calls, so the render's own calls compile
+    nothing again, and a `frame` compiled before costs nothing here.
+
+    Raises:
+        InputError: not even a one-ray tile fits.
+    """
+    room = p.budget - p.fixed
+    h, w, spp = p.height, p.width, p.spp
+    if p.shape is None:
+        need = _compiled_bytes(integrators.frame.lower(scene, aovs=aovs).compile())
+        if need <= room:
+            return dataclasses.replace(p, tile_bytes=need)
+        # the bound under-estimated this scene: tiles sized by the measurement
+        scale = 0.9 * room / need
+        shape = _tile_shape(h, w, spp, room, tuple(int(c / scale) + 1 for c in p.cost), None)
+        p = dataclasses.replace(p, shape=shape, steps=_steps(h, w, spp, shape) if shape else ())
+    need = 0
+    for _ in range(4):
+        if p.shape is None:
+            break
+        th, tw, sb = p.shape
+        need = _compiled_bytes(integrators.tile.lower(scene, _window(p.shape, (0, 0), (0, sb)), aovs=aovs).compile())
+        if need <= room:
+            return dataclasses.replace(p, tile_bytes=need)
+        scale = 0.9 * room / need
+        if th * tw * sb <= 1:
+            break
+        cost = tuple(int(c / scale) + 1 for c in p.cost)
+        shape = _tile_shape(h, w, spp, room, cost, max(1, int(th * tw * sb * scale)))
+        p = dataclasses.replace(p, shape=shape, steps=_steps(h, w, spp, shape) if shape else (), cost=cost)
+    raise InputError(f"{p.width}x{p.height} at {p.spp} spp: the smallest tile tried needs {format_bytes(need)}, "
+                     f"more than the {format_bytes(max(room, 0))} the memory budget ({format_bytes(p.budget)}, "
+                     f"{p.budget_source}) leaves after the scene and image; raise it with --memory or JAXRT_MEMORY")
+
+
+def _check_finite(part: np.ndarray, where: str) -> None:
+    if not np.isfinite(part).all():  # a renderer bug, never bad input
+        raise RuntimeError(f"{where}: the render contains NaN/Inf pixels")
+
+
+def render(scene, *, memory: int | str | None = None, aovs: bool = False, progress: Any = False,
+           max_tile_rays: int | None = None, reserve: int = 0, budget_source: str | None = None,
+           should_stop: Callable[[], bool] | None = None, use_plan: Plan | None = None):
+    """Render `scene` within a memory budget, in tiles when it does not fit in one piece.
+
+    Args:
+        scene: a `jaxrt.scene.Scene`.
+        memory, aovs, max_tile_rays, reserve, budget_source: as for `plan`.
+        progress: False; True for a tqdm bar on stderr; or a tqdm-like object (``total``,
+            ``update(n)``, ``set_description_str``) that this call drives.
+        should_stop: called before each tile; when it returns True a KeyboardInterrupt is raised
+            there (a Ctrl-C caught by another thread, as the CLI does).
+        use_plan: a `Plan` from `plan` to use instead of planning again.
+
+    Returns:
+        (H, W, 3) float32 numpy image of linear radiance, or (image, AOV dict of numpy arrays) with
+        `aovs`: as `integrators.frame` (see the module docstring for how equal).
+
+    Raises:
+        InputError: the job cannot fit one tile in the budget (before any rendering).
+        KeyboardInterrupt: between tiles, from Ctrl-C or `should_stop`.
+    """
+    p = use_plan or plan(scene, memory=memory, aovs=aovs, max_tile_rays=max_tile_rays, reserve=reserve,
+                      budget_source=budget_source)
+    bar, own = progress, False
+    if progress is True:
+        from tqdm import tqdm
+
+        bar, own = tqdm(total=p.tiles, unit="tile", desc="compiling", leave=False, dynamic_ncols=True), True
+    elif progress is not False and progress is not None:
+        bar.total = p.tiles
+    try:
+        if bar:
+            bar.set_description_str("compiling")
+        p = compile_plan(scene, p, aovs)
+        if bar:
+            bar.total = p.tiles
+            bar.set_description_str("rendering")
+        where = f"{scene.source}"
+        if p.shape is None:
+            if should_stop is not None and should_stop():
+                raise KeyboardInterrupt
+            out = integrators.frame(scene, aovs=aovs)
+            img, aov = out if aovs else (out, None)
+            img = np.asarray(img)
+            _check_finite(img, where)
+            if bar:
+                bar.update(1)
+            if not aovs:
+                return img
+            return img, {k: np.asarray(v) for k, v in aov.items()}
+        return _render_tiles(scene, p, aovs, bar, should_stop, where)
+    finally:
+        if own:
+            bar.close()
+
+
+def _render_tiles(scene, p: Plan, aovs, bar, should_stop, where):
+    h, w = p.height, p.width
+    th, tw, _ = p.shape
+    img = np.empty((h, w, 3), np.float32)
+    aov_out: dict[str, np.ndarray] | None = None
+    for (r, c), (r0, c0), (s0, count) in p.steps:
+        if should_stop is not None and should_stop():
+            raise KeyboardInterrupt
+        # one tile at a time: the next is dispatched only after this one is on the host, so at most
+        # one tile's working set exists (asynchronous dispatch could otherwise queue several)
+        out = integrators.tile(scene, _window(p.shape, (r0, c0), (s0, count)), aovs=aovs)
+        part, part_aov = out if aovs else (out, None)
+        # the tile's own pixels: from its nominal origin to the next tile's (or the image's edge)
+        rows, cols = slice(r, min(r + th, h)), slice(c, min(c + tw, w))
+        local = (slice(r - r0, r - r0 + rows.stop - r), slice(c - c0, c - c0 + cols.stop - c))
+        part = np.asarray(part)[local]
+        _check_finite(part, where)
+        if s0 == 0:
+            img[rows, cols] = part
+        else:
+            img[rows, cols] += part
+        if aovs and s0 == 0:  # AOVs are those of each pixel's first sample
+            if aov_out is None:
+                aov_out = {k: np.empty((h, w) + v.shape[2:], v.dtype) for k, v in part_aov.items()}
+            for k, v in part_aov.items():
+                aov_out[k][rows, cols] = np.asarray(v)[local]
+        if bar:
+            bar.update(1)
+    return (img, aov_out) if aovs else img

@@ -7,7 +7,9 @@ stored beside the colour in the same EXR.
 
 from __future__ import annotations
 
+import functools
 import os
+import threading
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -105,23 +107,58 @@ def check_exposure(exposure: float, flag: str = "exposure") -> float:
     return ev
 
 
-def to_srgb8(image: Float[np.ndarray, "H W 3"], exposure: float = 0.0) -> np.ndarray:
-    """Linear RGB -> 8-bit sRGB: scale by 2^exposure, clip to [0, 1], sRGB transfer (colour-science).
+def prefetch() -> None:
+    """Start importing colour-science in a background thread (once per process).
 
-    Encoded in strips of about 2^18 pixels: colour-science computes in float64 with several
-    temporaries (about 150 bytes per pixel at once), which for a 16384² image would be 40 GB.
+    `import colour` also imports its plotting module and with it matplotlib.pyplot: 1.3 s on an
+    H200 host, 2-4 s on a busy 2-core CPU, most of a warm render's wait. A command that will write
+    a PNG calls this first, so the import overlaps the render (which mostly waits on compiled code,
+    outside the interpreter lock); `to_srgb8` then finds the module imported.
     """
-    check_exposure(exposure)
+    global _prefetch
+    with _prefetch_lock:
+        if _prefetch is None:
+            _prefetch = threading.Thread(target=_import_colour, name="jaxrt-import-colour", daemon=True)
+            _prefetch.start()
+
+
+def _import_colour():
+    try:
+        import colour  # noqa: F401
+    except Exception:  # noqa: BLE001 -- the import in to_srgb8 reports it
+        pass
+
+
+_prefetch: threading.Thread | None = None
+_prefetch_lock = threading.Lock()
+
+
+@functools.cache
+def _srgb_thresholds() -> np.ndarray:
+    """The 255 linear values at which the 8-bit sRGB code steps up: code k covers linear values in
+    [t[k-1], t[k]), t[k] = sRGB⁻¹((k + ½)/255) (IEC 61966-2-1, through colour-science's decoding curve).
+
+    Encoding by lookup in this table gives round(255 · sRGB(x)) (the sRGB curve is increasing), in
+    float32 and without colour-science's float64 temporaries; the tests compare it with the direct
+    encoding."""
     import colour
 
+    mid = (np.arange(255, dtype=np.float64) + 0.5) / 255.0
+    return np.asarray(colour.cctf_decoding(mid, function="sRGB"), np.float64).astype(np.float32)
+
+
+def to_srgb8(image: Float[np.ndarray, "H W 3"], exposure: float = 0.0) -> np.ndarray:
+    """Linear RGB -> 8-bit sRGB: scale by 2^exposure, clip to [0, 1], sRGB transfer (colour-science's
+    curve, applied as a 256-level lookup: `_srgb_thresholds`)."""
+    check_exposure(exposure)
     img = _finite_rgb(image, "image")
+    t = _srgb_thresholds()
     out = np.empty(img.shape, np.uint8)
     scale = np.float32(2.0**exposure)
-    rows = max(1, (1 << 18) // max(1, img.shape[1]))
+    rows = max(1, (1 << 20) // max(1, img.shape[1]))  # strips bound the float32 temporary
     for r in range(0, img.shape[0], rows):
         lin = np.clip(img[r:r + rows] * scale, 0.0, 1.0)
-        enc = colour.cctf_encoding(lin, function="sRGB")
-        out[r:r + rows] = np.round(np.asarray(enc) * 255.0)
+        out[r:r + rows] = np.searchsorted(t, lin, side="right")
     return out
 
 

@@ -31,6 +31,25 @@ def test_png_is_srgb_encoded_with_exposure(tmp_path):
     assert np.abs(got - np.round(srgb * 255)).max() <= 1
 
 
+def test_srgb_lookup_equals_the_direct_encoding_away_from_code_boundaries():
+    """The 256-level lookup of `to_srgb8` gives round(255 sRGB(x)) as colour-science's float64 curve
+    computes it, for every float32 value on a dense sweep, except within 1e-6 (relative) of the 255
+    code boundaries, where float rounding of the two computations may differ by one code."""
+    import colour
+
+    x = np.concatenate([np.linspace(0, 1, 400_003, dtype=np.float32),
+                        np.geomspace(1e-9, 1e-2, 20_000).astype(np.float32)])
+    got = image.to_srgb8(np.repeat(x[None, :, None], 3, -1))[0, :, 0].astype(np.int64)
+    ref = np.round(np.asarray(colour.cctf_encoding(x.astype(np.float64), function="sRGB")) * 255).astype(np.int64)
+    edges = np.asarray(colour.cctf_decoding((np.arange(255) + 0.5) / 255, function="sRGB"))
+    i = np.clip(np.searchsorted(edges, x), 1, 254)
+    gap = np.minimum(np.abs(x - edges[i - 1]) / edges[i - 1], np.abs(x - edges[i]) / edges[i])
+    near = gap < 1e-6
+    assert np.abs(got - ref).max() <= 1
+    assert np.array_equal(got[~near], ref[~near]) and near.mean() < 1e-3
+    assert got[0] == 0 and got[400_002] == 255  # 0 and 1 map to the end codes
+
+
 def test_non_finite_images_are_refused_and_nothing_is_written(tmp_path):
     img = np.zeros((2, 2, 3), np.float32)
     img[0, 0, 1] = np.nan

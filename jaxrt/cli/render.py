@@ -74,10 +74,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
 CPU_TILE_RAYS = 1 << 20
 # Host memory of the image writers besides the image, measured as the growth of peak RSS while
 # writing a 4096² image: EXR 3.1 bytes/pixel (+ 52 with the four AOVs, which are converted and
-# copied), PNG 12.4 bytes/pixel including its sRGB strips (`image.to_srgb8`: at most 2^18 pixels at
-# a time, about 150 bytes each in colour-science's float64).
+# copied), PNG 12.4 bytes/pixel, plus its sRGB strips (`image.to_srgb8`: at most 2^20 pixels at a
+# time, two float32 RGB temporaries and the int64 lookup indices, 48 bytes each).
 EXR_PIXEL, EXR_AOV_PIXEL, PNG_PIXEL = 4, 56, 13
-PNG_STRIP_PIXELS, PNG_STRIP_PIXEL = 1 << 18, 150
+PNG_STRIP_PIXELS, PNG_STRIP_PIXEL = 1 << 20, 48
 # How long Ctrl-C waits for the render thread to reach a tile boundary before the process exits
 # without waiting for the compiled call in flight (nothing has been written at that point).
 STOP_GRACE_S = 0.5
@@ -155,6 +155,8 @@ def run(args: argparse.Namespace) -> int:
 
     from jaxrt import image, render_tiles
 
+    if png is not None:
+        image.prefetch()  # colour-science's import overlaps the render
     c = spec.camera
     npix = c.width * c.height
     # the writers run one after the other, after the render

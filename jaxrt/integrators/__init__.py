@@ -21,6 +21,7 @@ from collections.abc import Callable
 
 import jax
 
+from jaxrt._programs import cached_jit
 from jaxrt.camera import Window
 from jaxrt.integrators import path, whitted
 from jaxrt.integrators.common import sample_order
@@ -50,15 +51,17 @@ def _tile(scene, window: Window, aovs: bool = False):
 
 
 # One compiled function per (scene structure, aovs); reused across calls.
-frame = jax.jit(_frame, static_argnames=("aovs",))
+# `frame`, `tile` and `shade` keep their traced programs on disk (`jaxrt._programs.cached_jit`): a new
+# process with the same scene structure skips tracing as well as compilation.
+frame = cached_jit(_frame, name="integrators.frame", static_argnames=("aovs",))
 #: One tile: `tile(scene, window, aovs=False)` -> the window's share of the image, Σ over the
 #: window's samples / spp, (window height, width, 3) (and with aovs the AOVs of those pixels), from
 #: the whole image's random numbers: `frame`'s pixels when the window holds all spp samples, up to
 #: how the compiler rounds the two program shapes (`jaxrt.render_tiles`); one compilation per
 #: (scene structure, window extents, aovs).
-tile = jax.jit(_tile, static_argnames=("aovs",))
+tile = cached_jit(_tile, name="integrators.tile", static_argnames=("aovs",))
 trace = jax.jit(whitted.trace)
-shade = jax.jit(whitted.shade, static_argnames=("aovs",))
+shade = cached_jit(whitted.shade, name="integrators.shade", static_argnames=("aovs",))
 
 __all__ = [
     "REGISTRY", "Accumulation", "GBuffer", "Window", "accumulate", "frame", "names", "path", "sample_order",

@@ -1,0 +1,247 @@
+"""Traced programs kept across processes: `cached_jit`, a `jax.jit` whose tracing is done once per machine.
+
+JAX's persistent compilation cache (`jaxrt.cache.enable_compilation_cache`) skips XLA compilation in
+a new process, but not tracing and lowering: every process still runs the Python of the whole
+integrator (a Whitted frame of the dragon traces and lowers for 5.5 s on an H200's host, most of a
+warm `jaxrt render`). `cached_jit(fun)` removes that step for calls that repeat a program structure:
+
+  1. The call's arguments are split into array leaves and their structure (the pytree definition,
+     which holds every static field of a `Scene`: resolution, spp, integrator, model set, ...).
+  2. The key is a hash of: `fun`'s name, the static arguments, the structure, every leaf's shape,
+     dtype and weak type, the target platform and device kind, the JAX/jaxlib versions, the JAX
+     options that change tracing (x64, promotion rules, matmul precision), the JAXRT_TRAVERSAL choice
+     and the source of every module of the `jaxrt` and `brdfs` packages (and the native kernel).
+  3. On a miss, `jax.export` traces and lowers `fun` for the concrete platform (so
+     `lax.platform_dependent` keeps one branch) and the serialized program (StableHLO plus its
+     calling convention) is stored as an array entry of `jaxrt.cache` (sha256-checked, atomic, under
+     the cache's size bound).
+  4. On a hit the program is deserialized (milliseconds) and called through `jax.jit`, whose small
+     wrapper module lowers in ~0.1 s and whose compilation comes from the persistent cache.
+
+Results are those of `jax.jit(fun)`: the same program runs (the tests compare bit for bit). Calls
+that cannot use a stored program fall back to `jax.jit(fun)` with identical semantics: under a JAX
+transformation (any argument is a tracer: `grad`, `vmap`, an outer `jit`), arguments on several
+devices or on a platform other than the default one, JAXRT_CACHE=off, and programs `jax.export`
+cannot serialize (host callbacks, outputs of unregistered pytree types). The exported program calls
+custom targets that `jax.export` does not list as stable (the Pallas/Triton traversal, the native
+CPU kernel); that is safe here because an entry is only ever read by the same JAX, jaxlib and jaxrt
+on the same platform, which the key guarantees.
+
+Within a process, each (key) keeps its compiled wrapper, so a repeated call costs a pytree flatten
+and a dictionary lookup beyond `jax.jit`'s own dispatch.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import threading
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxrt import _config
+
+__all__ = ["ProgramStats", "cached_jit", "program_stats", "source_digest"]
+
+# Custom-call targets in jaxrt's programs that `jax.export` does not list as stable: the Pallas GPU
+# traversal (Triton) and the native CPU traversal kernel (`jaxrt.accel.traverse_cpu.TARGET`).
+_UNLISTED_TARGETS = ("__gpu$xla.gpu.triton", "jaxrt_bvh_traverse")
+# JAX options that change what tracing produces (or whether it raises).
+_TRACE_OPTIONS = ("jax_enable_x64", "jax_numpy_rank_promotion", "jax_numpy_dtype_promotion",
+                  "jax_default_matmul_precision", "jax_default_prng_impl", "jax_threefry_partitionable")
+_PACKAGES = ("jaxrt", "brdfs")
+
+_lock = threading.Lock()
+_counts = {"hits": 0, "misses": 0, "exports": 0, "fallbacks": 0}
+
+
+class ProgramStats:
+    """This process's `cached_jit` counters: `hits` (a stored program was used), `misses` (traced and
+    stored), `fallbacks` (a call ran through plain `jax.jit`: under a transformation, on several
+    devices, cache off, or a program export cannot serialize)."""
+
+    __slots__ = ("hits", "misses", "fallbacks")
+
+    def __init__(self, hits: int, misses: int, fallbacks: int):
+        self.hits, self.misses, self.fallbacks = hits, misses, fallbacks
+
+    def __repr__(self) -> str:
+        return f"ProgramStats(hits={self.hits}, misses={self.misses}, fallbacks={self.fallbacks})"
+
+
+def program_stats() -> ProgramStats:
+    with _lock:
+        return ProgramStats(_counts["hits"], _counts["misses"], _counts["fallbacks"])
+
+
+def _count(name: str) -> None:
+    with _lock:
+        _counts[name] += 1
+
+
+@functools.cache
+def source_digest() -> str:
+    """sha256 over the source files of the `jaxrt` and `brdfs` packages (computed once per process)."""
+    import importlib
+
+    h = hashlib.sha256()
+    for pkg in _PACKAGES:
+        root = Path(importlib.import_module(pkg).__file__).parent
+        for p in sorted(root.rglob("*")):
+            if p.suffix in (".py", ".cc", ".h") and "__pycache__" not in p.parts:
+                h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+@functools.cache
+def _environment() -> dict:
+    import jaxlib
+
+    return {"jax": jax.__version__, "jaxlib": jaxlib.__version__, "source": source_digest()}
+
+
+def _platform(leaves: Sequence[Any]) -> str | None:
+    """The export platform of a call, or None where a stored program cannot serve it."""
+    default = jax.default_backend()
+    for x in leaves:
+        if isinstance(x, jax.Array):
+            devices = x.sharding.device_set
+            if len(devices) != 1 or next(iter(devices)).platform != default:
+                return None
+    return jax.export.default_export_platform()
+
+
+def _spec(x) -> tuple:
+    """(shape, dtype, weak type) of a leaf as `jax.jit` would see it."""
+    if hasattr(x, "dtype"):  # jax and numpy arrays, numpy scalars
+        return (tuple(np.shape(x)), str(jax.dtypes.canonicalize_dtype(x.dtype)), bool(getattr(x, "weak_type", False)))
+    # Python scalars are weakly typed
+    return ((), str(jax.dtypes.canonicalize_dtype(jax.dtypes.result_type(x))), True)
+
+
+class _CachedJit:
+    def __init__(self, fun: Callable, name: str, static_argnames: tuple[str, ...]):
+        self._fun = fun
+        self._name = name
+        self._static = static_argnames
+        self._jit = jax.jit(fun, static_argnames=static_argnames)
+        self._programs: dict[Any, Callable] = {}
+        functools.update_wrapper(self, fun)
+
+    def _cache_size(self) -> int:
+        """Distinct programs this function holds in this process (stored ones and `jax.jit`'s)."""
+        return len(self._programs) + self._jit._cache_size()
+
+    def _program(self, args, kwargs):
+        """(compiled program, leaves) for a call that a stored program can serve, else (None, statics)."""
+        statics = {k: kwargs.pop(k) for k in self._static if k in kwargs}
+        leaves, tree = jax.tree_util.tree_flatten((args, kwargs))
+        cfg = _config.config()
+        platform = None
+        if cfg.cache and not any(isinstance(x, jax.core.Tracer) for x in leaves):
+            platform = _platform(leaves)
+        if platform is None:
+            return None, statics
+        specs = tuple(_spec(x) for x in leaves)
+        memo = (tree, specs, tuple(sorted(statics.items())), platform, cfg.traversal)
+        try:
+            compiled = self._programs.get(memo)
+        except TypeError:  # an unhashable static argument: jax.jit refuses it with its own message
+            return None, statics
+        if compiled is None:
+            compiled = self._load(tree, specs, statics, platform, cfg, leaves)
+            if compiled is None:
+                return None, statics
+            self._programs[memo] = compiled
+        return compiled, leaves
+
+    def __call__(self, *args, **kwargs):
+        compiled, rest = self._program(args, kwargs)
+        if compiled is None:
+            _count("fallbacks")
+            return self._jit(*args, **kwargs, **rest)
+        return compiled(*rest)
+
+    def lower(self, *args, **kwargs):
+        """`jax.jit(fun).lower(...)`, through the stored program where there is one: its `compile()` is
+        the program later calls run (so compiling ahead of time never compiles twice)."""
+        compiled, rest = self._program(args, kwargs)
+        if compiled is None:
+            return self._jit.lower(*args, **kwargs, **rest)
+        return _Lowered(compiled)
+
+    def _load(self, tree, specs, statics, platform, cfg, leaves) -> Any:
+        from jax import export
+
+        from jaxrt import cache
+
+        device = jax.devices()[0]
+        key = {
+            "function": self._name, "statics": repr(sorted(statics.items())), "tree": str(tree),
+            "leaves": [list(s) for s in specs], "platform": platform, "device": device.device_kind,
+            "traversal": cfg.traversal, "options": {o: str(getattr(jax.config, o, None)) for o in _TRACE_OPTIONS},
+            **_environment(),
+        }
+        fun = self._fun
+
+        def flat(*xs):
+            a, k = jax.tree_util.tree_unflatten(tree, xs)
+            return fun(*a, **k, **statics)
+
+        exported: list = []
+
+        def build():
+            avals = [jax.ShapeDtypeStruct(s[0], s[1], weak_type=s[2]) for s in specs]
+            checks = [export.DisabledSafetyCheck.custom_call(t) for t in _UNLISTED_TARGETS]
+            exp = export.export(jax.jit(flat), platforms=[platform], disabled_checks=checks)(*avals)
+            exported.append(exp)
+            return {"program": np.frombuffer(exp.serialize(), np.uint8)}
+
+        try:
+            if platform == "cpu" and cfg.traversal in ("auto", "cpu"):
+                # a stored program may call the native kernel: register its FFI target first
+                from jaxrt.accel import traverse_cpu
+
+                traverse_cpu.available()
+            arrays = cache.cached_arrays("program", key, build)
+            if exported:
+                exp = exported[0]
+                _count("misses")
+            else:
+                exp = export.deserialize(bytearray(arrays["program"].tobytes()))
+                _count("hits")
+        except Exception as e:  # noqa: BLE001 -- anything export cannot do runs through jax.jit
+            if cfg.debug:
+                import warnings
+
+                warnings.warn(f"jaxrt: {self._name}: program not stored ({type(e).__name__}: {str(e)[:200]})",
+                              RuntimeWarning, stacklevel=3)
+            return None
+        return jax.jit(exp.call).lower(*leaves).compile()
+
+
+class _Lowered:
+    """What `_CachedJit.lower` returns for a stored program: `compile()` gives the program calls use."""
+
+    def __init__(self, compiled):
+        self._compiled = compiled
+
+    def compile(self):
+        return self._compiled
+
+
+def cached_jit(fun: Callable | None = None, *, name: str | None = None,
+               static_argnames: Sequence[str] = ()) -> Callable:
+    """`jax.jit(fun, static_argnames=...)` whose traced program is stored in the on-disk cache.
+
+    Static arguments must be passed by keyword. `name` (default: the function's module and
+    qualified name) joins the key. Use it as a decorator or call it on a function.
+    """
+    if fun is None:
+        return functools.partial(cached_jit, name=name, static_argnames=static_argnames)
+    label = name or f"{fun.__module__}.{fun.__qualname__}"
+    return _CachedJit(fun, label, tuple(static_argnames))

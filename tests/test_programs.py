@@ -1,0 +1,138 @@
+"""`jaxrt._programs.cached_jit`: traced programs stored on disk and reused by later processes.
+
+Checked: a stored program gives bit-identical results to `jax.jit`; a new function object (as in a
+new process) reuses it without tracing; every part of the key (static arguments, shapes, dtypes,
+structure) selects its own program; transformations and JAXRT_CACHE=off fall back to `jax.jit`; a
+second process renders a scene from the stored frame program (no tracing of the integrator) with
+the same pixels.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxrt import _programs
+
+from test_cache import _py
+
+
+@pytest.fixture
+def cdir(tmp_path, monkeypatch):
+    d = tmp_path / "cache"
+    monkeypatch.setenv("JAXRT_CACHE_DIR", str(d))
+    monkeypatch.delenv("JAXRT_CACHE", raising=False)
+    return d
+
+
+TRACES = []
+
+
+def _fun(p, x, *, power=2):
+    TRACES.append(1)  # runs once per trace
+    return {"y": p["a"] * x**power + jnp.sum(jnp.sin(p["b"])), "n": jnp.sum(x)}
+
+
+def _stats():
+    s = _programs.program_stats()
+    return np.array([s.hits, s.misses, s.fallbacks])
+
+
+def test_a_stored_program_serves_a_new_function_object_without_tracing(cdir):
+    p = {"a": np.float32(1.5), "b": np.arange(3, dtype=np.float32)}
+    x = np.linspace(0, 1, 3, dtype=np.float32)
+    ref = jax.jit(_fun, static_argnames=("power",))(p, x, power=3)
+    s0 = _stats()
+    f = _programs.cached_jit(_fun, name="test.fun", static_argnames=("power",))
+    out = f(p, x, power=3)
+    assert list(_stats() - s0) == [0, 1, 0]
+    for k in ref:
+        assert np.array_equal(np.asarray(out[k]), np.asarray(ref[k])) and out[k].dtype == ref[k].dtype
+    assert sorted((cdir / "arrays").glob("program-*.npz"))
+    TRACES.clear()
+    g = _programs.cached_jit(_fun, name="test.fun", static_argnames=("power",))  # as a new process has
+    out2 = g(p, {"a": 1, "b": 2}["a"] * x)  # another value, same structure
+    again = g(p, x, power=3)
+    assert TRACES == [1]  # only the first call (power=2 is a new program) traced
+    assert np.array_equal(np.asarray(again["y"]), np.asarray(ref["y"]))
+    assert np.array_equal(np.asarray(out2["y"]), np.asarray(jax.jit(_fun)(p, x)["y"]))
+    assert len(g._programs) == 2  # two stored programs in this process
+
+
+@pytest.mark.parametrize("change", ["static", "shape", "dtype", "structure", "name"])
+def test_each_part_of_the_key_selects_its_own_program(cdir, change):
+    p = {"a": np.float32(2.0), "b": np.zeros(2, np.float32)}
+    x = np.ones(4, np.float32)
+    f = _programs.cached_jit(_fun, name="test.key", static_argnames=("power",))
+    f(p, x)
+    s0 = _stats()
+    args, kw, name = (p, x), {}, "test.key"
+    if change == "static":
+        kw = {"power": 3}
+    elif change == "shape":
+        args = (p, np.ones(5, np.float32))
+    elif change == "dtype":
+        args = (p, np.ones(4, np.int32))
+    elif change == "structure":
+        args = ({"a": np.float32(2.0), "b": np.zeros(2, np.float32), "c": 1.0}, x)
+    else:
+        name = "test.key2"
+    g = _programs.cached_jit(_fun, name=name, static_argnames=("power",))
+    out = g(*args, **kw)
+    assert list(_stats() - s0) == [0, 1, 0]  # a miss, not the stored program of the first call
+    ref = jax.jit(_fun, static_argnames=("power",))(*args, **kw)
+    assert np.array_equal(np.asarray(out["y"]), np.asarray(ref["y"]))
+
+
+def test_transformations_and_cache_off_fall_back_to_jit(cdir, monkeypatch):
+    f = _programs.cached_jit(lambda a, x: jnp.sum(a * x**2), name="test.grad")
+    x = np.arange(3, dtype=np.float32)
+    s0 = _stats()
+    g = jax.grad(f)(np.float32(2.0), x)  # tracers: jax.jit's path
+    v = jax.vmap(f, in_axes=(0, None))(np.ones(2, np.float32), x)
+    assert list(_stats() - s0) == [0, 0, 2]
+    assert float(g) == pytest.approx(5.0) and np.allclose(v, 5.0)
+    monkeypatch.setenv("JAXRT_CACHE", "off")
+    assert float(f(np.float32(1.0), x)) == pytest.approx(5.0)
+    assert list(_stats() - s0) == [0, 0, 3] and not (cdir / "arrays").exists()
+
+
+def test_unserializable_outputs_fall_back_to_jit(cdir):
+    import equinox as eqx
+
+    class Out(eqx.Module):  # a pytree type jax.export cannot serialize
+        y: jax.Array
+
+    f = _programs.cached_jit(lambda x: Out(x + 1), name="test.module")
+    s0 = _stats()
+    out = f(np.float32(1.0))
+    assert isinstance(out, Out) and float(out.y) == 2.0
+    assert list(_stats() - s0) == [0, 0, 1]
+
+
+def test_a_second_process_renders_from_the_stored_frame_program(tmp_path):
+    code = """
+    import hashlib, json
+    import jax
+    import jaxrt
+    from jaxrt import _programs, integrators, scene
+    traced = []
+    whitted, doc = integrators.REGISTRY["whitted"]
+    def counting(*a, **k):  # runs each time the integrator is traced
+        traced.append(1)
+        return whitted(*a, **k)
+    integrators.REGISTRY["whitted"] = (counting, doc)
+    sc = scene.load("spheres", overrides={"camera.width": 24, "camera.height": 16})
+    img = jax.device_get(jaxrt.render(sc))
+    s = _programs.program_stats()
+    print(json.dumps(dict(hits=s.hits, misses=s.misses, traced=len(traced),
+                          image=hashlib.sha256(img.tobytes()).hexdigest())))
+    """
+    d = tmp_path / "cache"
+    first, second = _py(code, d), _py(code, d)
+    off = _py(code, tmp_path / "off", JAXRT_CACHE="off")
+    assert (first["misses"], first["hits"]) == (1, 0) and (second["misses"], second["hits"]) == (0, 1)
+    assert second["image"] == first["image"] == off["image"]
+    assert first["traced"] >= 1 and second["traced"] == 0  # the second process never traced the integrator

@@ -238,10 +238,15 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
     if impl == "cpu":
         return native(*args) if has_native else xla(*args)
     cpu = native if has_native else xla
-    if jax.default_backend() == "cpu":
+    backend = jax.default_backend()
+    if backend == "cpu":
         # a process without an accelerator lowers everything for the CPU: trace only that branch
         # (tracing the Pallas kernel and the XLA loop too took 1-2.5 s of every first frame)
         return cpu(*args)
+    if backend == "gpu" and jax.export.default_export_platform() == "cuda":
+        # likewise a process whose default device is an NVIDIA GPU traces only the Pallas kernel;
+        # a computation such a process places on its CPU device needs JAXRT_TRAVERSAL=cpu or xla
+        return pallas(*args)
     # auto: the Pallas (Triton) kernel where the computation is lowered for an NVIDIA GPU, the
     # native kernel for the CPU, the portable XLA loop elsewhere (decided at lowering, so one
     # jitted function serves all).
@@ -264,8 +269,9 @@ def intersect(
     lanes: rays in flight at once (default 1024 on CPU, 2**17 on GPU; finished lanes refill from
     the queue); steps_per_iter: traversal steps per loop iteration (default 2 on CPU, 16 on GPU).
     Both only affect speed, never results, and apply to the XLA loop only. impl: "auto" (default;
-    the Pallas kernel of `jaxrt.accel.traverse_pallas` when lowered for an NVIDIA GPU, the C++ kernel of
-    `jaxrt.accel.traverse_cpu` when lowered for the CPU, else the XLA loop), "xla" (the pure-JAX loop of
+    the default device's kernel: the Pallas kernel of `jaxrt.accel.traverse_pallas` where it is an
+    NVIDIA GPU, the C++ kernel of `jaxrt.accel.traverse_cpu` where it is the CPU, else the XLA loop;
+    a process that places work on a device other than its default one chooses with impl), "xla" (the pure-JAX loop of
     `jaxrt.accel.traverse_xla`), "cpu" (the C++ kernel; CPU only), "pallas" (GPU only) or
     "pallas-interpret" (the kernel in the Pallas interpreter, any backend, slow: for tests); the
     env var JAXRT_TRAVERSAL sets it when the argument is None. Where the C++ kernel cannot be

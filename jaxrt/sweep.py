@@ -54,23 +54,27 @@ def param_spec(model: str | Model, name: str) -> Param:
 
 
 def default_values(model: str | Model, name: str, steps: int = 7) -> np.ndarray:
-    """`steps` values spanning the parameter's declared range on its natural (log/linear) scale."""
+    """`steps` values spanning the parameter's typical range (`Param.typical_range`: ordinary
+    materials; the whole declared range where none is given) on its natural (log/linear) scale."""
     if steps < 1:
         raise InputError(f"steps: expected a positive integer, got {steps}")
     p = param_spec(model, name)
-    return np.clip(log_or_linear_grid(p, steps), p.lo, p.hi)  # exp(log(hi)) may round past hi
+    lo, hi = p.typical_range
+    grid = np.exp(np.linspace(math.log(lo), math.log(hi), steps)) if p.scale == "log" else np.linspace(lo, hi, steps)
+    return np.clip(grid, p.lo, p.hi)  # exp(log(hi)) may round past hi
 
 
 def span(model: str | Model, name: str, start: float | None = None, stop: float | None = None,
          steps: int = 7) -> np.ndarray:
-    """`steps` values from `start` to `stop` (defaults: the declared bounds) on the parameter's natural
-    scale (geometric for log-scale parameters); InputError naming --from/--to for out-of-range ends."""
+    """`steps` values from `start` to `stop` (defaults: the ends of the typical range) on the parameter's
+    natural scale (geometric for log-scale parameters); InputError naming --from/--to for ends outside
+    the declared bounds."""
     m = _model(model)
     p = param_spec(m, name)
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
         raise InputError(f"steps: expected a positive integer, got {steps!r}")
-    a = p.lo if start is None else float(start)
-    b = p.hi if stop is None else float(stop)
+    a = p.typical_range[0] if start is None else float(start)
+    b = p.typical_range[1] if stop is None else float(stop)
     for flag, v in (("--from", a), ("--to", b)):
         if not math.isfinite(v) or v < p.lo or v > p.hi:
             raise InputError(f"{flag} {v:g}: {m.name}.{name} must lie in [{p.lo:g}, {p.hi:g}]")

@@ -48,7 +48,8 @@ def test_other_models_delta_and_glass_reuse_the_compiled_frame(rho_sweep):
 
 def test_default_values_follow_the_declared_scale():
     s = brdfs.get("phong").param("s")
-    np.testing.assert_allclose(sweep.default_values("phong", "s", 4), np.geomspace(s.lo, s.hi, 4), rtol=1e-9)
+    np.testing.assert_allclose(sweep.default_values("phong", "s", 4), np.geomspace(*s.typical_range, 4), rtol=1e-9)
+    assert s.typical_range == (1.0, 1000.0) and s.hi == 1e6  # the typical span, not the whole range
     np.testing.assert_allclose(sweep.default_values("phong", "rho_s", 3), [0.0, 0.5, 1.0])
     np.testing.assert_allclose(sweep.default_values("phong", "delta", 3), [0.0, 0.5, 1.0])
     v = sweep.default_values("ashikhmin_shirley", "n_u", 5)
@@ -58,7 +59,7 @@ def test_default_values_follow_the_declared_scale():
 @pytest.mark.parametrize("model,param,values,match", [
     ("nope", "s", [1.0], "unknown BRDF model"),
     ("phong", "eta", [1.0], "allowed: rho_d, rho_s, s, delta"),
-    ("phong", "s", [0.5], r"outside the allowed range \[1, 1000\]"),
+    ("phong", "s", [0.5], r"outside the allowed range \[1, 1e\+06\]"),
     ("glass", "delta", [0.5], "allowed: n_t"),
     ("cook_torrance", "m", [float("nan")], "outside the allowed range"),
 ])
@@ -89,8 +90,8 @@ def test_cli_sweep_writes_a_strip(tmp_path, capsys, rho_sweep):
 @pytest.mark.parametrize("argv,match", [
     (["sweep", "phong", "zz"], "unknown parameter 'zz'"),
     (["sweep", "nope", "s"], "unknown BRDF model"),
-    (["sweep", "phong", "s", "--from", "0.5"], r"--from 0.5: phong.s must lie in \[1, 1000\]"),
-    (["sweep", "cook_torrance", "eta", "--to", "11"], r"must lie in \[1, 10\]"),
+    (["sweep", "phong", "s", "--from", "0.5"], r"--from 0.5: phong.s must lie in \[1, 1e\+06\]"),
+    (["sweep", "cook_torrance", "eta", "--to", "2000"], r"must lie in \[1, 1000\]"),
     (["sweep", "phong", "s", "--steps", "0"], "--steps"),
     (["sweep", "phong", "s", "-o", "x.jpg"], "must end in .png"),
 ])

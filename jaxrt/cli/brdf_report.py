@@ -50,7 +50,7 @@ def albedo_table(angles_deg, samples: int = 256) -> dict[str, np.ndarray]:
 
 
 def lobe_figure(lobe_angles_deg):
-    """A 2 x 4 grid of polar lobe slices (plane of incidence), one panel per model, as a Figure.
+    """A grid of polar lobe slices (plane of incidence), one panel per model, four per row, as a Figure.
 
     Each opaque panel is scaled to its own maximum of f·cos θo (the panel's title gives that value,
     in 1/sr); glass draws R and 1 − R as lengths. One legend for all panels, under the grid, and two
@@ -62,10 +62,11 @@ def lobe_figure(lobe_angles_deg):
 
     th = [math.radians(a) for a in lobe_angles_deg]
     names = brdfs.names()
-    fig = Figure(figsize=(16, 8.2))
+    rows = -(-len(names) // 4)
+    fig = Figure(figsize=(16, 4.1 * rows))
     handles = None
     for k, name in enumerate(names):
-        ax = fig.add_subplot(2, 4, k + 1, projection="polar")
+        ax = fig.add_subplot(rows, 4, k + 1, projection="polar")
         m = brdfs.get(name)
         p = m.params()
         draw_lobe(ax, m, p, th)

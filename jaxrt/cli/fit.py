@@ -215,16 +215,24 @@ def _as_params(model, result):
 
 
 def hidden_params(model, seed: int) -> dict:
-    """Deterministic 'unknown' parameters inside each range (away from the bounds) for demos and tests."""
-    from fitting.transforms import denormalise
-
+    """Deterministic 'unknown' parameters for demos and tests: uniform on each parameter's natural
+    scale over the middle 70 % of its typical range (`Param.typical_range`: ordinary materials;
+    a draw from the whole declared range, say a Phong exponent of 2e4, would make an unresolvable
+    target)."""
     rng = np.random.default_rng(seed)
+
+    def draw(p, t):
+        lo, hi = p.typical_range
+        if p.scale == "log":
+            return float(np.clip(np.exp(np.log(lo) + t * (np.log(hi) - np.log(lo))), p.lo, p.hi))
+        return float(lo + t * (hi - lo))
+
     out = {}
     for p in model.spec:
         if p.rgb:
-            out[p.name] = [float(denormalise(p, t)) for t in rng.uniform(0.15, 0.85, 3)]
+            out[p.name] = [draw(p, t) for t in rng.uniform(0.15, 0.85, 3)]
         else:
-            out[p.name] = float(denormalise(p, rng.uniform(0.15, 0.85)))
+            out[p.name] = draw(p, rng.uniform(0.15, 0.85))
     return out
 
 

@@ -115,6 +115,7 @@ def plane_distance(tri9, o, d):
     return np.sum(nrm * (v0 - o), 1) / np.sum(nrm * d, 1)
 
 
+@pytest.mark.slow  # (the Pallas interpreter on a CPU: ~140 s; the default suite keeps test_pallas_matches_xla_and_brute_force)
 def test_pallas_layout_variants_agree():
     """The kernel's speed options (node-row layouts, exact signs always on, the triangle test in every
     warp) give the default's hits, on rays aimed at vertices and edges (where the exact signs

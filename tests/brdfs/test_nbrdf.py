@@ -250,6 +250,7 @@ def test_real_network_matches_numpy_forward_pass(brdf_data):
 
 
 @pytest.mark.data
+@pytest.mark.slow  # (all 159 materials, ~65 s; the default suite checks a few in the other tests)
 def test_all_materials_finite_albedo_at_most_about_one_and_nearly_reciprocal(brdf_data):
     """Every one of the 159 networks: finite and >= 0 on a direction grid reaching the horizon, albedo
     (brdfs.albedo with the tabulated sampler) at most 1.15 (the RGL scans reach 1.10 at 80°,

@@ -56,6 +56,7 @@ def fns():
     return jax.jit(bi.intersect), jax.jit(bi.occluded)
 
 
+@pytest.mark.slow  # (~60 s; the default suite keeps test_instanced_render_equals_copied_objects)
 def test_two_level_matches_brute_force(fns):
     rng = np.random.default_rng(7)
     protos = [shapes.sphere(0.6, 2), shapes.box((1.0, 0.4, 0.7)), shapes.plane((1.5, 1.0))]

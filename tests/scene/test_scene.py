@@ -68,7 +68,7 @@ def test_valid_lab_parses_with_defaults():
         (("lights", 0, "colour"), 1.0, ["[[lights] #1] colour", "unknown key"]),
         (("materials", "floor", "model"), "oren_nayar", ["[materials.floor] model", "lambert", "glass"]),
         (("materials", "floor", "rho_d"), 1.5, ["[materials.floor] rho_d", "[0, 1]"]),
-        (("materials", "plastic", "s"), 0.5, ["[materials.plastic] s", "[1, 1000]"]),
+        (("materials", "plastic", "s"), 0.5, ["[materials.plastic] s", "[1, 1e+06]"]),
         (("materials", "floor", "roughness"), 0.5, ["[materials.floor] roughness", "unknown key", "rho_d"]),
         (("materials", "floor", "delta"), 2.0, ["[materials.floor] delta", "[0, 1]"]),
         (("materials", "glass", "delta"), 0.5, ["[materials.glass] delta", "unknown key"]),

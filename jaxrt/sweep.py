@@ -61,7 +61,7 @@ def default_values(model: str | Model, name: str, steps: int = 7) -> np.ndarray:
     p = param_spec(model, name)
     lo, hi = p.typical_range
     grid = np.exp(np.linspace(math.log(lo), math.log(hi), steps)) if p.scale == "log" else np.linspace(lo, hi, steps)
-    return np.clip(grid, p.lo, p.hi)  # exp(log(hi)) may round past hi
+    return np.clip(grid, lo, hi)  # exp(log(hi)) may round past hi
 
 
 def span(model: str | Model, name: str, start: float | None = None, stop: float | None = None,

@@ -172,7 +172,7 @@ class _CachedJit:
         compiled, rest = self._program(args, kwargs)
         if compiled is None:
             return self._jit.lower(*args, **kwargs, **rest)
-        return _Lowered(compiled)
+        return _Lowered(compiled, self._static)
 
     def _load(self, tree, specs, statics, platform, cfg, leaves) -> Any:
         from jax import export
@@ -225,13 +225,31 @@ class _CachedJit:
 
 
 class _Lowered:
-    """What `_CachedJit.lower` returns for a stored program: `compile()` gives the program calls use."""
+    """What `_CachedJit.lower` returns for a stored program: `compile()` gives the program calls use,
+    called with the original (unflattened) arguments."""
 
-    def __init__(self, compiled):
-        self._compiled = compiled
+    def __init__(self, compiled, static: tuple[str, ...]):
+        self._compiled, self._static = compiled, static
 
     def compile(self):
-        return self._compiled
+        return _Compiled(self._compiled, self._static)
+
+
+class _Compiled:
+    """A stored program's compiled executable taking the function's own arguments (static ones are
+    accepted and ignored: they are part of the program); other attributes (`memory_analysis`,
+    `cost_analysis`, ...) are the executable's."""
+
+    def __init__(self, compiled, static: tuple[str, ...]):
+        self._compiled, self._static = compiled, static
+
+    def __call__(self, *args, **kwargs):
+        for k in self._static:
+            kwargs.pop(k, None)
+        return self._compiled(*jax.tree_util.tree_leaves((args, kwargs)))
+
+    def __getattr__(self, name):
+        return getattr(self._compiled, name)
 
 
 def cached_jit(fun: Callable | None = None, *, name: str | None = None,

@@ -136,3 +136,17 @@ def test_a_second_process_renders_from_the_stored_frame_program(tmp_path):
     assert (first["misses"], first["hits"]) == (1, 0) and (second["misses"], second["hits"]) == (0, 1)
     assert second["image"] == first["image"] == off["image"]
     assert first["traced"] >= 1 and second["traced"] == 0  # the second process never traced the integrator
+
+
+def test_ahead_of_time_lowering_returns_the_stored_program(cdir):
+    f = _programs.cached_jit(_fun, name="test.aot", static_argnames=("power",))
+    p = {"a": np.float32(3.0), "b": np.ones(2, np.float32)}
+    x = np.arange(4, dtype=np.float32)
+    c = f.lower(p, x, power=3).compile()
+    assert c.memory_analysis() is not None or jax.default_backend() != "cpu"
+    s0 = _stats()
+    out = c(p, x, power=3)
+    again = f(p, x, power=3)  # the call runs the program compiled ahead of time: nothing new
+    assert list(_stats() - s0) == [0, 0, 0] and len(f._programs) == 1
+    ref = jax.jit(_fun, static_argnames=("power",))(p, x, power=3)
+    assert np.array_equal(np.asarray(out["y"]), np.asarray(ref["y"])) and np.array_equal(again["y"], out["y"])

@@ -159,3 +159,14 @@ def mixture(
 
     return sample, pdf
 
+
+# cos(alpha) below this contributes < 1e-6 * (s+2)/(2 pi) even for s = 1; treating it as 0 keeps
+# log(cos) finite for the gradient.
+COS_MIN = 1e-6
+
+
+def cos_power(cos_a: Float[Array, "..."], s: Float[Array, "..."]) -> Float[Array, "..."]:
+    """max(0, cos_a)^s with finite value and gradient everywhere (the Phong and Blinn-Phong lobes)."""
+    ok = cos_a > COS_MIN
+    c = jnp.where(ok, cos_a, 1.0)
+    return jnp.where(ok, jnp.exp(s * jnp.log(c)), 0.0)

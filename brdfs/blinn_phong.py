@@ -32,7 +32,6 @@ from jaxtyping import Array, Float
 
 from brdfs import _common as C
 from brdfs.base import Model, Param, Params
-from brdfs.phong import _lobe
 
 SPEC = (
     Param("rho_d", 0.5, 0.0, 1.0, rgb=True, doc="diffuse albedo"),
@@ -45,7 +44,7 @@ def eval(p: Params, wi: Float[Array, "... 3"], wo: Float[Array, "... 3"]) -> Flo
     """BRDF value [1/sr], (..., 3); 0 when either direction is at or below the horizon."""
     s = p["s"]
     h = C.normalize(wi + wo)
-    spec = (s + 8.0) / (8.0 * math.pi) * _lobe(h[..., 2], s)
+    spec = (s + 8.0) / (8.0 * math.pi) * C.cos_power(h[..., 2], s)
     f = p["rho_d"] * C.INV_PI + p["rho_s"] * C.rgb(spec)
     return jnp.where(C.upper(wi, wo)[..., None], f, 0.0)
 
@@ -59,7 +58,7 @@ def _spec_sample(p: Params, wo, u):
 def _spec_pdf(p: Params, wo, wi):
     s = p["s"]
     h = C.normalize(wi + wo)
-    return (s + 1.0) / (2.0 * math.pi) * _lobe(h[..., 2], s) * C.half_jacobian(wo, h)
+    return (s + 1.0) / (2.0 * math.pi) * C.cos_power(h[..., 2], s) * C.half_jacobian(wo, h)
 
 
 _ps = C.rho_lobe_prob

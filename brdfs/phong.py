@@ -38,23 +38,12 @@ SPEC = (
     Param("s", 50.0, 1.0, 1000.0, scale="log", doc="Phong exponent (sharpness)"),
 )
 
-# cos(alpha) below this contributes < 1e-6 * (s+2)/(2 pi) even for s = 1; treating it as 0 keeps
-# log(cos) finite for the gradient.
-_COS_MIN = 1e-6
-
-
-def _lobe(cos_a: Float[Array, "..."], s: Float[Array, "..."]) -> Float[Array, "..."]:
-    """max(0, cos_a)^s with finite value and gradient everywhere."""
-    ok = cos_a > _COS_MIN
-    c = jnp.where(ok, cos_a, 1.0)
-    return jnp.where(ok, jnp.exp(s * jnp.log(c)), 0.0)
-
 
 def eval(p: Params, wi: Float[Array, "... 3"], wo: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
     """BRDF value [1/sr], (..., 3); 0 when either direction is at or below the horizon."""
     s = p["s"]
     cos_a = C.dot(wi, C.reflect_z(wo))
-    spec = (s + 2.0) / (2.0 * math.pi) * _lobe(cos_a, s)
+    spec = (s + 2.0) / (2.0 * math.pi) * C.cos_power(cos_a, s)
     f = p["rho_d"] * C.INV_PI + p["rho_s"] * C.rgb(spec)
     return jnp.where(C.upper(wi, wo)[..., None], f, 0.0)
 
@@ -80,7 +69,7 @@ def _spec_sample(p: Params, wo, u):
 
 def _spec_pdf(p: Params, wo, wi):
     s = p["s"]
-    return (s + 1.0) / (2.0 * math.pi) * _lobe(C.dot(wi, C.reflect_z(wo)), s)
+    return (s + 1.0) / (2.0 * math.pi) * C.cos_power(C.dot(wi, C.reflect_z(wo)), s)
 
 
 _ps = C.rho_lobe_prob

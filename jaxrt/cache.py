@@ -83,6 +83,7 @@ __all__ = [
     "CacheStats",
     "CacheWarning",
     "build_bvh",
+    "cached_meshes",
     "cache_dir",
     "cached_arrays",
     "clear",
@@ -556,6 +557,58 @@ def load_mesh(path: str | os.PathLike, flat: bool = False, *, name: str | None =
         warnings.warn(message.replace(_SOURCE, src), cat, stacklevel=2)
     return _mesh.Mesh(vertices=a["vertices"], faces=a["faces"], normals=a["normals"], uvs=a.get("uvs"),
                       tangents=a["tangents"], object_id=a["object_id"], names=tuple(_from_json_array(a["names"])))
+
+
+def cached_meshes(kind: str, key: Mapping, build: Callable[[], list[tuple[Any, Mesh]]],
+                  sources: tuple = ()) -> list[tuple[Any, Mesh]]:
+    """[(label, Mesh)] from `build()` through the array cache (bit-identical meshes; a label is any
+    JSON value).
+
+    For derived geometry (e.g. a scene object's transformed meshes): `key` must hold everything the
+    result depends on besides code; the source of `jaxrt.geometry.mesh` and of `sources` (modules),
+    numpy's and trimesh's versions are added. Warnings `build()` gave are given again on a hit, with
+    every path in `key["files"]` (a list of str) restored.
+    """
+    from jaxrt.geometry import mesh as _mesh
+
+    files = [str(f) for f in key.get("files", ())]
+    key = {**key, "files": [Path(f).name for f in files],
+           "sha256": [_file_sha256(f) for f in files], "code": _source_hash(_mesh, *sources),
+           "numpy": np.__version__, "trimesh": _version("trimesh")}
+    fields = ("vertices", "faces", "normals", "tangents", "object_id", "uvs")
+
+    def store():
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            pieces = build()
+        said = []
+        for w in caught:
+            msg = str(w.message)
+            for i, f in enumerate(files):
+                msg = msg.replace(f, f"\0file{i}\0")
+            said.append((w.category.__name__, msg))
+        out = {"labels": _json_array([lab for lab, _ in pieces]), "warnings": _json_array(said),
+               "names": _json_array([list(m.names) for _, m in pieces])}
+        for i, (_, m) in enumerate(pieces):
+            out.update({f"m{i}_{k}": getattr(m, k) for k in fields if getattr(m, k) is not None})
+        return out
+
+    a = cached_arrays(kind, key, store)
+    for category, message in _from_json_array(a["warnings"]):
+        for i, f in enumerate(files):
+            message = message.replace(f"\0file{i}\0", f)
+        cat = getattr(builtins, category, None)
+        warnings.warn(message, cat if isinstance(cat, type) and issubclass(cat, Warning) else UserWarning,
+                      stacklevel=2)
+    names = _from_json_array(a["names"])
+    return [(lab, _mesh.Mesh(**{k: a.get(f"m{i}_{k}") for k in fields}, names=tuple(names[i])))
+            for i, lab in enumerate(_from_json_array(a["labels"]))]
+
+
+def _file_sha256(path: str) -> str:
+    from jaxrt.geometry import data as _data
+
+    return _data.sha256_of(path)
 
 
 def build_bvh(vertices, faces, *, leaf_size: int = 1, builder: str = "lbvh", layout: str = "bfs",

@@ -18,6 +18,7 @@ import textwrap
 import warnings
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -687,3 +688,34 @@ def test_compilation_cache_follows_the_folder_and_leaves_a_users_setting(tmp_pat
         print(json.dumps(dict(on=cache.enable_compilation_cache(), dir=jax.config.jax_compilation_cache_dir)))
     """, tmp_path / "c", JAX_COMPILATION_CACHE_DIR=tmp_path / "mine")
     assert mine == dict(mine, on=True, dir=str(tmp_path / "mine")) and not (tmp_path / "c").exists()
+
+
+def test_scene_objects_come_from_the_cache_bit_identical(cdir, tmp_path):
+    """A scene's objects (loaded, split and transformed meshes) are cached whole: the second build
+    reads them (no mesh load, no trimesh), gives the same arrays and repeats the load's warnings; a
+    changed file or transform is a miss."""
+    from jaxrt import scene as S
+
+    path = _obj(tmp_path / "ball.obj", degenerate=True)
+    doc = {"camera": {"position": [0, 0, 4], "look_at": [0, 0, 0], "width": 8, "height": 8},
+           "lights": [{"position": [1, 2, 3], "intensity": 5.0}],
+           "materials": {"m": {"model": "lambert"}},
+           "objects": [{"mesh": str(path), "material": "m", "scale": 0.5, "rotate": [10, 20, 30]},
+                       {"primitive": "sphere", "material": "m", "translate": [1, 0, 0]}]}
+    with pytest.warns(UserWarning, match="zero-area"):
+        first = S.load(doc)
+    before = cache.stats()
+    with pytest.warns(UserWarning, match=f"{path}: removed 1 zero-area"):
+        second = S.load(doc)
+    d = _delta(before)
+    assert d["hits"] >= 3 and d["misses"] == 0  # two objects and the BVH
+    for a, b in zip(jax.tree.leaves(first.geometry), jax.tree.leaves(second.geometry)):
+        assert np.asarray(a).dtype == np.asarray(b).dtype and np.array_equal(np.asarray(a), np.asarray(b))
+    doc["objects"][1]["translate"] = [1, 0, 1e-3]
+    before = cache.stats()
+    S.load(doc)
+    assert _delta(before)["misses"] == 2  # the moved sphere and the new BVH
+    _obj(path, degenerate=False)
+    before = cache.stats()
+    S.load(doc)
+    assert _delta(before)["misses"] >= 2  # the changed file's object (and its mesh) and the BVH

@@ -237,10 +237,15 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
     has_native = (impl == "cpu" or (impl == "auto" and jax.default_backend() == "cpu")) and traverse_cpu.available()
     if impl == "cpu":
         return native(*args) if has_native else xla(*args)
+    cpu = native if has_native else xla
+    if jax.default_backend() == "cpu":
+        # a process without an accelerator lowers everything for the CPU: trace only that branch
+        # (tracing the Pallas kernel and the XLA loop too took 1-2.5 s of every first frame)
+        return cpu(*args)
     # auto: the Pallas (Triton) kernel where the computation is lowered for an NVIDIA GPU, the
     # native kernel for the CPU, the portable XLA loop elsewhere (decided at lowering, so one
     # jitted function serves all).
-    return lax.platform_dependent(*args, cuda=pallas, cpu=native if has_native else xla, default=xla)
+    return lax.platform_dependent(*args, cuda=pallas, cpu=cpu, default=xla)
 
 
 def intersect(

@@ -14,7 +14,7 @@ distance to within an ulp may be chosen differently; `bvh.intersect` refines t o
 triangle in double-float for both paths.
 
 No build step at install: the first call of `available()` compiles the shipped source with the
-system C++ compiler ($CXX, else `c++`) into $XDG_CACHE_HOME/jaxrt (default ~/.cache/jaxrt), keyed
+system C++ compiler ($CXX, else `c++`) into <cache folder>/native (`jaxrt.cache.cache_dir()`), keyed
 by a hash of the source, compiler, flags and jaxlib version, written to a temporary file and
 renamed into place (two processes compiling at once both succeed), loads it with ctypes and
 registers the FFI target once per process. Where there is no compiler or compilation fails,

@@ -4,8 +4,10 @@ groups materials by model into stacked parameter tables.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
+import sys
 from collections.abc import Mapping
 from typing import Any
 
@@ -36,7 +38,20 @@ def _put(x, dtype=None):
 
 
 def object_meshes(o: ObjectSpec, cache: dict):
-    """[(scene-object name, mesh, material name)] for one [[objects]] entry, transformed to world."""
+    """[(scene-object name, mesh, material name)] for one [[objects]] entry, transformed to world.
+
+    Through `jaxrt.cache`: a later process with the same object (mesh file contents, parts,
+    primitive, transform) reads the result instead of loading, splitting and transforming again.
+    `cache` shares loaded mesh files between the objects of one build.
+    """
+    spec = {k: v for k, v in dataclasses.asdict(o).items() if k != "mesh"}
+    key = {"object": spec, "files": [] if o.mesh is None else [str(o.mesh)]}
+    pieces = _cache.cached_meshes("object", key, lambda: [([n, mat], m) for n, m, mat in _object_meshes(o, cache)],
+                                  sources=(shapes, sys.modules[__name__]))
+    return [(n, m, mat) for (n, mat), m in pieces]
+
+
+def _object_meshes(o: ObjectSpec, cache: dict):
     if o.primitive is not None:
         m = shapes.PRIMITIVES[o.primitive](**o.primitive_args, name=o.name)
         pieces = [(o.name, m, o.material)]

@@ -167,7 +167,7 @@ def test_zero_rays_jit_and_vmap():
 
 def test_fallback_without_compiler(monkeypatch, tmp_path):
     """No compiler: one warning, then the XLA loop's results (never an error)."""
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # nothing cached there
+    monkeypatch.setenv("JAXRT_CACHE_DIR", str(tmp_path))  # nothing cached there
     monkeypatch.setattr(bvh_cpu, "_compiler", str(tmp_path / "no-such-c++"))
     bvh_cpu._reset_for_tests()
     try:
@@ -192,7 +192,7 @@ def test_concurrent_compiles_into_an_empty_cache(tmp_path, monkeypatch):
     """Two compiles of the same key at once (pytest-xdist workers) both return a loadable library."""
     import ctypes
 
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setenv("JAXRT_CACHE_DIR", str(tmp_path))  # the kernel goes to <cache>/native
     src = bvh_cpu._source()
     out, errors = [], []
 
@@ -208,7 +208,7 @@ def test_concurrent_compiles_into_an_empty_cache(tmp_path, monkeypatch):
     for th in threads:
         th.join()
     assert not errors and len(out) == 2 and out[0] == out[1]
-    assert [p.name for p in (tmp_path / "jaxrt").iterdir()] == [out[0].name]  # no temporary left behind
+    assert [p.name for p in (tmp_path / "native").iterdir()] == [out[0].name]  # no temporary left behind
     assert hasattr(ctypes.CDLL(str(out[0])), "JaxrtBvhTraverse")
 
 

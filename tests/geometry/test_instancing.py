@@ -27,7 +27,7 @@ from jaxrt import scene as S
 from jaxrt.errors import InputError
 from test_bvh import brute_force, check_against_reference, ray_mix
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCENE = REPO / "scenes" / "instances.toml"
 SMALL = {"camera.width": 40, "camera.height": 30}
 

@@ -208,7 +208,7 @@ def study_errors_png(path: str | os.PathLike, materials: Sequence[str], models: 
     ax.set_xlabel("material, sorted by the lowest error of any model")
     ax.grid(True, which="both", axis="y", lw=0.4, alpha=0.5)
     ax.legend(fontsize=8)
-    ax.set_title(f"BRDF-space fits of {n} measured materials (after Ngan, Durand & Matusik 2005, Fig. 3)",
+    ax.set_title(f"BRDF-space fits of {n} measured materials (after Ngan, Durand & Matusik 2005)",
                  fontsize=10)
     fig.tight_layout()
     with atomic_path(path) as tmp:
@@ -240,7 +240,7 @@ def study_spheres_png(path: str | os.PathLike, materials: Sequence[str], models:
             img = sphere_image(brdfs.get(m), as_params(f), size)
             axes[i, 1 + j].imshow(_display(img, white))
             _outline(axes[i, 1 + j], size)
-            axes[i, 1 + j].set_title(f"{m}\nE = {f.error:.3g}", fontsize=7)
+            axes[i, 1 + j].set_title(f"{m}\nE = {f.error:.3g} {f.unit}", fontsize=7)
     for ax in axes.ravel():
         ax.set_axis_off()
     fig.text(0.5, 0.005, SPHERE_CAPTION, ha="center", va="bottom", fontsize=6.5, color="0.3")

@@ -418,6 +418,7 @@ def solve_batch(
         z0 = jax.tree.map(lambda v: jnp.broadcast_to(v, (b,) + v.shape), z_starts)
         zs, losses, steps, oks = solve(z0, gbuffer, idx, jax.device_put(chunk), sqrt_w, fixed)
         losses, steps, oks = np.asarray(losses), np.asarray(steps), np.asarray(oks)
+        zs = jax.tree.map(np.asarray, zs)  # one transfer; slicing B × S device arrays would dispatch each
         bests = []
         for i in range(m):
             finals = [(float(losses[i, k]), jax.tree.map(lambda v, i=i, k=k: v[i, k], zs), int(steps[i, k]),

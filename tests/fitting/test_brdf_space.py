@@ -1,7 +1,8 @@
 """BRDF-space fitting (fitting.brdf_space), the study (fitting.study) and their commands.
 
 References are independent of the code under test: the sampling's weights against closed-form
-integrals, the metrics against float64 numpy written out here, closed loops against known parameters,
+integrals, every metric between two Lambertian materials against a 1-D Gauss–Legendre quadrature of
+its definition over the 80° cap, the metrics against float64 numpy written out here, closed loops against known parameters,
 and the batched solve against the one-target-set path (fitting.solve.fit_images). Every fit here uses
 one small grid, 4 starts and the same solver settings, so the compiled solves are shared across tests.
 """
@@ -44,6 +45,31 @@ def test_sampling_weights_integrate_the_hemispheres():
     # every pair is a reflection about its half vector at θh from the normal (MERL's square-root scale)
     h = c.wi + c.wo
     assert np.min(np.arccos(np.clip(h[:, 2] / np.linalg.norm(h, axis=-1), -1, 1))) < math.radians(0.05)
+
+
+@pytest.mark.parametrize("res, rel", [(bs.FIT_RESOLUTION, 3e-3), (bs.EVAL_RESOLUTION, 5e-4)])
+def test_metrics_between_lambertians_match_quadrature_over_the_cap(res, rel):
+    """E between two Lambertians f = ρ/π reduces to a 1-D integral over μ = cos θi on the cap
+    μ ≥ cos 80° (the ωo integral and the φ integrals cancel against Σ w):
+
+        E² = Σ_ch ∫_c^1 (g(ρa μ/π) − g(ρb μ/π))² dμ / (3 (1 − c)),
+
+    which Gauss–Legendre quadrature computes to float64 precision; for "ngan" it is also the closed
+    form |Δρ|_rms/π · √((1 − c³) / (3 (1 − c))). This checks the weights, the cosine factor, the
+    cutoff and the channel average of the grid the fits and the study's errors use."""
+    ra, rb = np.array([0.8, 0.5, 0.2]), np.array([0.3, 0.45, 0.05])
+    s = bs.sampling(*res)
+    e = bs.errors(np.broadcast_to(ra / math.pi, (s.size, 3)), np.broadcast_to(rb / math.pi, (s.size, 3)), s)
+    c = math.cos(math.radians(bs.CUTOFF_DEG))
+    x, wq = np.polynomial.legendre.leggauss(64)
+    mu, w = c + (1 - c) * (x + 1) / 2, wq * (1 - c) / 2
+    g = {"ngan": lambda v: v, "cuberoot": lambda v: np.cbrt(v + bs.CBRT_EPS), "log": np.log1p}
+    for m in bs.METRICS:
+        d = g[m](ra[None] * mu[:, None] / math.pi) - g[m](rb[None] * mu[:, None] / math.pi)
+        ref = math.sqrt(np.sum(w[:, None] * d**2) / (3 * (1 - c)))
+        assert e[m] == pytest.approx(ref, rel=rel), m
+    closed = math.sqrt(np.mean((ra - rb) ** 2)) / math.pi * math.sqrt((1 - c**3) / (3 * (1 - c)))
+    assert e["ngan"] == pytest.approx(closed, rel=rel)
 
 
 def _blinn_phong_np(rho_d, rho_s, s, wi, wo):
@@ -120,6 +146,7 @@ def two_materials(brdf_data, samp):
     return bs.measured_samples(TWO, samp)
 
 
+@pytest.mark.slow  # ~20 s on a 2-core CPU: compiles fit_images' solver beside the batched one
 def test_batched_solve_equals_the_per_material_solve(two_materials, samp):
     model = brdfs.get("cook_torrance")
     batched = bs.fit_samples(two_materials, model, names=TWO, samp=samp, starts=STARTS)

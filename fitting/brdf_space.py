@@ -69,12 +69,20 @@ from collections.abc import Mapping, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Float
 
 import brdfs
 from brdfs.base import Model, Params
 from brdfs.errors import InputError
 from brdfs.halfdiff import directions
 from fitting.solve import solve_batch
+
+__all__ = [
+    "CBRT_EPS", "CUTOFF_DEG", "EVAL_RESOLUTION", "FIT_RESOLUTION", "ISOTROPIC_TIES", "METRICS", "METRIC_DOC",
+    "SOLVER", "SPHERE_LIGHT", "UNITS", "BrdfFit", "Sampling", "as_params", "check_metric", "device_data",
+    "errors", "evaluate", "fit_measured", "fit_model", "fit_samples", "measured_samples", "sampling", "shader",
+    "sphere_directions", "sphere_image", "ties", "transform",
+]
 
 METRICS = ("ngan", "cuberoot", "log")
 UNITS = {"ngan": "1/sr", "cuberoot": "sr^-1/3", "log": "1"}
@@ -166,7 +174,8 @@ def transform(metric: str, x, xp=jnp):
     raise InputError(f"unknown metric {metric!r}; allowed: {', '.join(METRICS)}")
 
 
-def errors(f_fit: np.ndarray, f_meas: np.ndarray, samp: Sampling) -> dict[str, np.ndarray]:
+def errors(f_fit: Float[np.ndarray, "*B N 3"], f_meas: Float[np.ndarray, "*B N 3"],
+           samp: Sampling) -> dict[str, Float[np.ndarray, "*B"]]:
     """E of every metric (float64) between BRDF values (..., N, 3) [1/sr] on the sampling `samp`."""
     c = samp.wi[:, 2][:, None]
     a = np.asarray(f_fit, np.float64) * c
@@ -251,7 +260,8 @@ def _evaluator(model: Model):
     return ev
 
 
-def evaluate(model: Model, params: Params | Sequence[Params], samp: Sampling, batch: int = 16) -> np.ndarray:
+def evaluate(model: Model, params: Params | Sequence[Params], samp: Sampling,
+             batch: int = 16) -> Float[np.ndarray, "B N 3"]:
     """BRDF values (B, N, 3) [1/sr] of B parameter sets (a list, or a pytree with a leading axis) on the
     sampling, in chunks of `batch` (one compilation per model and chunk size)."""
     if not isinstance(params, Mapping):
@@ -270,7 +280,7 @@ def evaluate(model: Model, params: Params | Sequence[Params], samp: Sampling, ba
     return np.concatenate(out)
 
 
-def measured_samples(names: Sequence[str], samp: Sampling, batch: int = 16) -> np.ndarray:
+def measured_samples(names: Sequence[str], samp: Sampling, batch: int = 16) -> Float[np.ndarray, "B N 3"]:
     """(B, N, 3) values [1/sr] of measured materials (names or files, `brdfs.measured.load`) on `samp`."""
     from brdfs import measured
 
@@ -288,7 +298,7 @@ def measured_samples(names: Sequence[str], samp: Sampling, batch: int = 16) -> n
 
 
 def fit_samples(
-    f_meas: np.ndarray,
+    f_meas: Float[np.ndarray, "B N 3"],
     model: Model | str,
     *,
     names: Sequence[str] | None = None,
@@ -303,7 +313,7 @@ def fit_samples(
     rtol: float = 1e-5,
     atol: float = 1e-8,
     batch: int | None = None,
-    f_eval: np.ndarray | None = None,
+    f_eval: Float[np.ndarray, "B M 3"] | None = None,
     eval_samp: Sampling | None = None,
     progress: bool = False,
 ) -> list[BrdfFit]:
@@ -411,7 +421,8 @@ def sphere_directions(size: int, light=SPHERE_LIGHT):
     return local(lt), local(v), np.nonzero(inside.reshape(-1))[0], n @ lt
 
 
-def sphere_image(model: Model, params: Params, size: int = 96, light=SPHERE_LIGHT) -> np.ndarray:
+def sphere_image(model: Model, params: Params, size: int = 96,
+                 light=SPHERE_LIGHT) -> Float[np.ndarray, "size size 3"]:
     """(size, size, 3) radiance of a unit sphere of this material under a unit-irradiance distant light,
     shaded in closed form per pixel: L = f(wi, wo) max(cos θi, 0) (no shadows, no interreflection);
     0 outside the sphere."""

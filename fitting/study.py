@@ -44,6 +44,12 @@ import brdfs
 from brdfs.errors import InputError
 from fitting import brdf_space as bs
 
+__all__ = [
+    "COLLECTIONS", "EVAL_RESOLUTION", "EXCLUDED", "FIT_RESOLUTION", "GRID_ROWS", "OUTPUTS", "Study",
+    "check_output_dir", "csv_text", "default_batch", "grid_materials", "json_obj", "parse_materials",
+    "parse_models", "parse_resolution", "rows", "run", "study_models", "summary", "summary_markdown", "write",
+]
+
 EXCLUDED = {"lambert": "no specular lobe", "disney": "three lobes, not a diffuse + one lobe form"}
 COLLECTIONS = ("merl", "rgl", "nielsen")
 EVAL_RESOLUTION = bs.EVAL_RESOLUTION

@@ -1,10 +1,12 @@
-"""fitting: recover BRDF parameters from target renders with optimistix.
+"""fitting: recover BRDF parameters from target renders or measured BRDFs with optimistix.
 
-`fit_images(shade, gbuffer, targets, model, ...)` is the renderer-independent core (see
-`fitting.solve`); parameters move in an unconstrained space built from each model's declared bounds
-(`fitting.transforms`); error metrics are in `fitting.metrics`.
+`fit_images(shade, gbuffer, targets, model, ...)` is the renderer-independent core and
+`solve_batch(...)` the same solve vmapped over many target sets (see `fitting.solve`); parameters
+move in an unconstrained space built from each model's declared bounds (`fitting.transforms`); error
+metrics are in `fitting.metrics`. `fitting.brdf_space` fits analytic models to measured materials in
+BRDF space and `fitting.study` runs Ngan et al. 2005's study over the measured databases.
 """
 
-from fitting.solve import SOLVERS, FitResult, fit_images
+from fitting.solve import SOLVERS, FitResult, Solution, fit_images, solve_batch
 
-__all__ = ["SOLVERS", "FitResult", "fit_images"]
+__all__ = ["SOLVERS", "FitResult", "Solution", "fit_images", "solve_batch"]

@@ -1,4 +1,5 @@
-"""Pictures and tables of fit results: target | fit | error heat map, and the cross-model matrix."""
+"""Pictures and tables of fit results: target | fit | error heat map, the cross-model matrix, and the
+BRDF-space pictures (measured vs fitted lobe slices and spheres, the study's error curves and sphere grid)."""
 
 from __future__ import annotations
 
@@ -110,6 +111,8 @@ def format_result(r: FitResult, truth: dict | None = None) -> str:
         lines.append(f"  note: cond(JᵀJ) = {r.condition_number:.3g}: the least determined combination of the "
                      f"(scaled) parameters is known {math.sqrt(r.condition_number):.3g}x less precisely than the "
                      "best; the ± errors above say how well each parameter is determined")
+    if r.at_bound:
+        lines.append("  at a bound of the declared range: " + ", ".join(f"{k} ({v})" for k, v in r.at_bound.items()))
     lines += [f"  warning: {w}" for w in r.warnings]
     return "\n".join(lines)
 
@@ -157,3 +160,165 @@ def matrix_png(path: str | os.PathLike, names: Sequence[str], matrix: np.ndarray
     fig = matrix_figure(names, matrix, title)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100)
+
+
+# --- BRDF-space fits and the study (fitting.brdf_space, fitting.study) ------------------------------------
+
+# Lobe-slice light angles of the BRDF-space pictures [degrees]
+SLICE_THETA_I = (0.0, 30.0, 60.0, 75.0)
+SPHERE_CAPTION = ("spheres shaded in closed form per pixel (orthographic view, one distant light, "
+                  "L = f cos θi; no ray tracing, shadows or interreflection)")
+
+
+def _outline(ax, size: int) -> None:
+    """The sphere's silhouette as a thin grey circle (its unlit part is as dark as the background)."""
+    from matplotlib.patches import Circle
+
+    ax.add_patch(Circle(((size - 1) / 2, (size - 1) / 2), size / 2, fill=False, lw=0.6, ec="0.45"))
+
+
+def _sphere_white(img: np.ndarray) -> float:
+    """Display white of a sphere row: the 99.5th percentile of the measured sphere's channel values."""
+    v = np.asarray(img)[np.asarray(img).max(-1) > 0]
+    w = float(np.percentile(v, 99.5)) if v.size else 1.0
+    return w if w > 0 else 1.0
+
+
+def brdf_fit_png(path: str | os.PathLike, fit, model, params, measured_model, measured_params,
+                 sphere_size: int = 160) -> None:
+    """Measured vs fitted lobe slices (incidence plane, θi in SLICE_THETA_I, log scale, channel mean)
+    and closed-form spheres of each side by side, for one `fitting.brdf_space.BrdfFit`."""
+    import math
+
+    from matplotlib.figure import Figure
+
+    from brdfs.analysis import lobe_slice
+    from fitting.brdf_space import CUTOFF_DEG, sphere_image
+
+    fig = Figure(figsize=(12.5, 4.4))
+    gs = fig.add_gridspec(1, 3, width_ratios=[1.5, 1, 1])
+    ax = fig.add_subplot(gs[0])
+    colors = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple"]
+    lo = np.inf
+    for k, th in enumerate(SLICE_THETA_I):
+        t, fm = lobe_slice(measured_model, measured_params, math.radians(th), n=721)
+        _, ff = lobe_slice(model, params, math.radians(th), n=721)
+        deg = np.degrees(t)
+        ym, yf = np.asarray(fm).mean(-1), np.asarray(ff).mean(-1)
+        pos = ym[ym > 0]
+        lo = min(lo, float(pos.min()) if pos.size else lo)
+        ax.plot(deg, np.where(ym > 0, ym, np.nan), color=colors[k], lw=1.6, label=f"θi = {th:g}°: measured")
+        ax.plot(deg, np.where(yf > 0, yf, np.nan), color=colors[k], lw=1.2, ls="--", label="fit")
+    ax.set_yscale("log")
+    if np.isfinite(lo):
+        ax.set_ylim(bottom=0.5 * lo)
+    for x in (-CUTOFF_DEG, CUTOFF_DEG):
+        ax.axvline(x, color="0.6", lw=0.8, ls=":")
+    ax.set_xlim(-90, 90)
+    ax.set_xlabel("θo in the plane of incidence [°] (mirror direction at +θi; dotted: the fit's 80° cutoff)")
+    ax.set_ylabel("f, mean of R, G, B [1/sr]")
+    ax.legend(fontsize=7, ncol=2, loc="upper left")
+    ax.set_title(f"{fit.material}: {fit.model} fit ({fit.metric} metric), E = {fit.error:.4g} {fit.unit}",
+                 fontsize=9)
+    meas = sphere_image(measured_model, measured_params, sphere_size)
+    fitted = sphere_image(model, params, sphere_size)
+    white = _sphere_white(meas)
+    for j, (img, label) in enumerate(((meas, "measured"), (fitted, f"fit: {fit.model}"))):
+        a = fig.add_subplot(gs[1 + j])
+        a.imshow(_display(img, white))
+        _outline(a, sphere_size)
+        a.set_title(label, fontsize=9)
+        a.set_axis_off()
+    fig.text(0.99, 0.01, SPHERE_CAPTION, ha="right", va="bottom", fontsize=7, color="0.3")
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+
+
+def study_errors_png(path: str | os.PathLike, materials: Sequence[str], models: Sequence[str],
+                     table: np.ndarray, metric: str, unit: str) -> None:
+    """Ngan et al. 2005's figure: materials sorted by error (the lowest error any model reaches),
+    one curve per model, log scale; every material labelled."""
+    from matplotlib.figure import Figure
+
+    e = np.asarray(table, np.float64)
+    order = np.argsort(e.min(axis=1), kind="stable")
+    n = len(materials)
+    fig = Figure(figsize=(max(8.0, 0.16 * n + 3.0), 6.0))
+    ax = fig.subplots()
+    markers = "os^vD<>ph*"
+    for j, m in enumerate(models):
+        ax.plot(np.arange(n), e[order, j], marker=markers[j % len(markers)], ms=3.5, lw=1.0, label=m)
+    ax.set_yscale("log")
+    ax.set_xticks(np.arange(n), [materials[i].split("/", 1)[-1] for i in order], rotation=90,
+                  fontsize=7 if n > 40 else 9)
+    ax.set_xlim(-0.5, n - 0.5)
+    ax.set_ylabel(f"fitting error E ({metric} metric) [{unit}]")
+    ax.set_xlabel("material, sorted by the lowest error of any model")
+    ax.grid(True, which="both", axis="y", lw=0.4, alpha=0.5)
+    ax.legend(fontsize=8)
+    ax.set_title(f"BRDF-space fits of {n} measured materials (after Ngan, Durand & Matusik 2005)",
+                 fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+
+
+def study_spheres_png(path: str | os.PathLike, materials: Sequence[str], models: Sequence[str], fits: dict,
+                      size: int = 112) -> None:
+    """Rows of spheres: the measured material | each model's fit (`fits[(material, model)]`), one
+    display white per row (the measured sphere's)."""
+    from matplotlib.figure import Figure
+
+    import brdfs
+    from brdfs import measured
+    from fitting.brdf_space import as_params, sphere_image
+
+    rows, cols = len(materials), 1 + len(models)
+    fig = Figure(figsize=(1.6 * cols + 0.4, 1.75 * rows + 0.6))
+    axes = fig.subplots(rows, cols, squeeze=False)
+    for i, a in enumerate(materials):
+        mm, mp = measured.load(a)
+        meas = sphere_image(mm, mp, size)
+        white = _sphere_white(meas)
+        axes[i, 0].imshow(_display(meas, white))
+        _outline(axes[i, 0], size)
+        axes[i, 0].set_title(f"{a.split('/', 1)[-1]}\nmeasured", fontsize=7)
+        for j, m in enumerate(models):
+            f = fits[(a, m)]
+            img = sphere_image(brdfs.get(m), as_params(f), size)
+            axes[i, 1 + j].imshow(_display(img, white))
+            _outline(axes[i, 1 + j], size)
+            axes[i, 1 + j].set_title(f"{m}\nE = {f.error:.3g} {f.unit}", fontsize=7)
+    for ax in axes.ravel():
+        ax.set_axis_off()
+    fig.text(0.5, 0.005, SPHERE_CAPTION, ha="center", va="bottom", fontsize=6.5, color="0.3")
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+
+
+def format_brdf_fit(fit) -> str:
+    """A table of one BRDF-space fit: parameters ± standard errors, bounds, errors in the study's units."""
+    lines = [f"{fit.material}: {fit.model}, {fit.metric} metric — "
+             f"{'converged' if fit.converged else 'NOT converged'} after {fit.iterations} iterations "
+             f"(best of {fit.starts} starts, {fit.starts_at_best} reached it; {fit.samples} direction pairs)",
+             f"  {'parameter':<10} {'fitted':>26} {'± std. error':>26}"]
+    for name, v in fit.params.items():
+        if name in fit.fixed:
+            se = "(fixed)"
+        elif name in fit.tied:
+            se = f"(= {fit.tied[name]})"
+        else:
+            se = _fmt(fit.stderr.get(name, float("nan")))
+        lines.append(f"  {name:<10} {_fmt(v):>26} {se:>26}")
+    errs = ", ".join(f"{k} {v:.4g}" for k, v in fit.errors.items())
+    lines.append(f"  E = {fit.error:.4g} {fit.unit} ({fit.eval_samples} pairs; on the fit's own {fit.samples}: "
+                 f"{fit.fit_error:.4g}); every metric: {errs}")
+    if fit.at_bound:
+        lines.append("  at a bound of the declared range: "
+                     + ", ".join(f"{k} ({v})" for k, v in fit.at_bound.items()))
+    if fit.ill_conditioned:
+        pairs = ", ".join(f"{a}~{b} ({c:+.3f})" for a, b, c in fit.correlated) or "large condition number"
+        lines.append(f"  warning: ill-conditioned — parameters trade off: {pairs}")
+    return "\n".join(lines)

@@ -25,6 +25,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "view": ("jaxrt.cli.view", "open an interactive window with sliders for materials, light and camera"),
     "fit": ("jaxrt.cli.fit", "recover a BRDF's parameters from target renders (--demo for a self-contained run)"),
     "fit-matrix": ("jaxrt.cli.fit_matrix", "fit every model to every other model's renders; table and heat map"),
+    "fit-brdf": ("jaxrt.cli.fit_brdf", "fit an analytic model to a measured material in BRDF space"),
+    "study": ("jaxrt.cli.study", "fit every analytic model to every measured material (Ngan et al. 2005)"),
     "cache": ("jaxrt.cli.cache", "show or clear the on-disk caches (compiled programs, meshes, BVHs)"),
     "brdf-report": ("jaxrt.cli.brdf_report", "print each BRDF model's albedo table and write a lobe plot PNG"),
 }

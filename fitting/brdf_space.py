@@ -242,6 +242,7 @@ def shader(model: Model, metric: str, tie: tuple[tuple[str, str], ...] = ()):
         p = {**p, **{t: p[s] for t, s in tie}}
         return transform(metric, model.eval(p, d["wi"], d["wo"]) * d["cos"])
 
+    shade.program_key = f"fitting.brdf_space.shader({model.name!r}, {metric!r}, {tie!r})"  # stable across processes
     return shade
 
 

@@ -125,4 +125,5 @@ def shader(model_name: str):
     def shade(params, fb: FitBuffer):
         return fb.constant + contribution(model, params, fb)
 
+    shade.program_key = f"fitting.compact.shader({model_name!r})"  # stable across processes
     return shade

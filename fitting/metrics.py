@@ -10,6 +10,14 @@ import numpy as np
 WHITE_PERCENTILE = 99.0
 
 
+def prefetch() -> None:
+    """Start importing colour-science in the background (`jaxrt.image.prefetch`), so the ΔE at the
+    end of a fit does not wait for it."""
+    from jaxrt.image import prefetch as _prefetch
+
+    _prefetch()
+
+
 def rmse(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Root-mean-square difference over the (masked) pixels and channels of (…, 3) images."""
     d = np.asarray(a, np.float64) - np.asarray(b, np.float64)

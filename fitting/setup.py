@@ -203,6 +203,7 @@ def shader(model_index: int, row: int):
             integrators.shade(gb, edit.set_material_row(sc, model_index, row, params)) for gb, sc in zip(gbuffers, scenes)
         ])
 
+    shade.program_key = f"fitting.setup.shader({model_index}, {row})"  # stable across processes
     return shade
 
 

@@ -207,10 +207,23 @@ def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: 
     return solve
 
 
+def _jit(fn: Callable, what: str, shade: Callable, *parts) -> Callable:
+    """`jax.jit(fn)`, with its traced program kept across processes (`jaxrt.cache.cached_jit`) where
+    `shade` names itself stably (a `program_key` attribute: the shader factories of `fitting.setup`,
+    `fitting.compact` and `fitting.brdf_space`); `parts` are the other values `fn` closes over."""
+    key = getattr(shade, "program_key", None)
+    if key is None:
+        return jax.jit(fn)
+    from jaxrt.cache import cached_jit
+
+    return cached_jit(fn, name=f"fitting.solve.{what}[{key}|{'|'.join(map(repr, parts))}]")
+
+
 @functools.lru_cache(maxsize=32)
 def _compiled_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
     """A jitted single-start solve; cached so repeated fits with new targets/starts never recompile."""
-    return jax.jit(_solve_one(shade, free, solver, rtol, atol, max_steps))
+    return _jit(_solve_one(shade, free, solver, rtol, atol, max_steps), "solve", shade, free, solver, rtol, atol,
+                max_steps)
 
 
 @functools.lru_cache(maxsize=32)
@@ -224,14 +237,13 @@ def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver:
     """
     one = _solve_one(shade, free, solver, rtol, atol, max_steps)
 
-    @jax.jit
     def solve(z0, gbuffer, idx, targets, sqrt_w, fixed):
         def per_target(z_s, target):
             return jax.vmap(lambda z: one(z, gbuffer, (idx, target, sqrt_w), fixed))(z_s)
 
         return jax.vmap(per_target)(z0, targets)
 
-    return solve
+    return _jit(solve, "batch_solve", shade, free, solver, rtol, atol, max_steps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -315,6 +327,7 @@ def fit_images(
     Returns: FitResult with the best start's parameters, standard errors, error metrics and the
     parameters that end at a bound of their declared range (`at_bound`).
     """
+    metrics.prefetch()  # colour-science for the ΔE at the end, imported while the solver runs
     prob = _problem(shade, model, fix, init, rgb, solver, starts)
     free, fixed = prob.free, prob.fixed
     targets = np.asarray(targets, np.float32)
@@ -416,6 +429,7 @@ def solve_batch(
 
     Returns: one `Solution` per target set, in order.
     """
+    metrics.prefetch()  # colour-science for the ΔE at the end, imported while the solver runs
     prob = _problem(shade, model, fix, init, rgb, solver, starts)
     free, fixed = prob.free, prob.fixed
     targets = np.asarray(targets, np.float32)
@@ -566,12 +580,11 @@ def _compiled_jacobian(shade: Callable, free: tuple[FreeParam, ...]):
     """Residuals and their Jacobian w.r.t. the free parameters in their own units (jitted, cached)."""
     resid = _resid_theta(shade, free)
 
-    @jax.jit
     def both(theta, params, gbuffer, pixels):
         args = (params, gbuffer, pixels)
         return resid(theta, *args), jax.jacfwd(resid)(theta, *args)
 
-    return both
+    return _jit(both, "jacobian", shade, free)
 
 
 @functools.lru_cache(maxsize=32)
@@ -579,7 +592,6 @@ def _compiled_batch_jacobian(shade: Callable, free: tuple[FreeParam, ...]):
     """`_compiled_jacobian` vmapped over (θ, params, targets) with a shared gbuffer, indices and weights."""
     resid = _resid_theta(shade, free)
 
-    @jax.jit
     def both(theta, params, gbuffer, idx, targets, sqrt_w):
         def one(th, p, t):
             args = (p, gbuffer, (idx, t, sqrt_w))
@@ -587,7 +599,7 @@ def _compiled_batch_jacobian(shade: Callable, free: tuple[FreeParam, ...]):
 
         return jax.vmap(one)(theta, params, targets)
 
-    return both
+    return _jit(both, "batch_jacobian", shade, free)
 
 
 def _standard_errors(shade, gbuffer, pixels, free, params):

@@ -10,7 +10,7 @@ warm `jaxrt render`). `cached_jit(fun)` removes that step for calls that repeat 
   2. The key is a hash of: `fun`'s name, the static arguments, the structure, every leaf's shape,
      dtype and weak type, the target platform and device kind, the JAX/jaxlib versions, the JAX
      options that change tracing (x64, promotion rules, matmul precision), the JAXRT_TRAVERSAL choice
-     and the source of every module of the `jaxrt` and `brdfs` packages (and the native kernel).
+     and the source of every module of the `jaxrt`, `brdfs` and `fitting` packages (and the native kernel).
   3. On a miss, `jax.export` traces and lowers `fun` for the concrete platform (so
      `lax.platform_dependent` keeps one branch) and the serialized program (StableHLO plus its
      calling convention) is stored as an array entry of `jaxrt.cache` (sha256-checked, atomic, under
@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import re
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -53,7 +54,8 @@ _UNLISTED_TARGETS = ("__gpu$xla.gpu.triton", "jaxrt_bvh_traverse")
 # JAX options that change what tracing produces (or whether it raises).
 _TRACE_OPTIONS = ("jax_enable_x64", "jax_numpy_rank_promotion", "jax_numpy_dtype_promotion",
                   "jax_default_matmul_precision", "jax_default_prng_impl", "jax_threefry_partitionable")
-_PACKAGES = ("jaxrt", "brdfs")
+_PACKAGES = ("jaxrt", "brdfs", "fitting")
+_CUSTOM_CALL = re.compile(r"custom_call @([\w$.\-]+)")
 
 _lock = threading.Lock()
 _counts = {"hits": 0, "misses": 0, "exports": 0, "fallbacks": 0}
@@ -85,7 +87,7 @@ def _count(name: str) -> None:
 
 @functools.cache
 def source_digest() -> str:
-    """sha256 over the source files of the `jaxrt` and `brdfs` packages (computed once per process)."""
+    """sha256 over the source files of the `jaxrt`, `brdfs` and `fitting` packages (once per process)."""
     import importlib
 
     h = hashlib.sha256()
@@ -196,8 +198,22 @@ class _CachedJit:
 
         def build():
             avals = [jax.ShapeDtypeStruct(s[0], s[1], weak_type=s[2]) for s in specs]
-            checks = [export.DisabledSafetyCheck.custom_call(t) for t in _UNLISTED_TARGETS]
-            exp = export.export(jax.jit(flat), platforms=[platform], disabled_checks=checks)(*avals)
+            jitted = jax.jit(flat)
+            targets = set(_UNLISTED_TARGETS)
+            for _ in range(2):
+                checks = [export.DisabledSafetyCheck.custom_call(t) for t in sorted(targets)]
+                try:
+                    exp = export.export(jitted, platforms=[platform], disabled_checks=checks)(*avals)
+                    break
+                except ValueError as e:
+                    if "custom calls" not in str(e):
+                        raise
+                    # other unlisted targets (LAPACK/cuSOLVER kernels of a linear solve, say): the
+                    # program's own list, from its lowering (the trace itself is cached by jax.jit)
+                    text = jitted.trace(*avals).lower(lowering_platforms=(platform,)).as_text()
+                    targets |= set(_CUSTOM_CALL.findall(text))
+            else:
+                raise RuntimeError("custom-call targets could not be listed")
             exported.append(exp)
             return {"program": np.frombuffer(exp.serialize(), np.uint8)}
 
@@ -218,7 +234,7 @@ class _CachedJit:
             if cfg.debug:
                 import warnings
 
-                warnings.warn(f"jaxrt: {self._name}: program not stored ({type(e).__name__}: {str(e)[:200]})",
+                warnings.warn(f"jaxrt: {self._name[:80]}: program not stored ({type(e).__name__}: {str(e)[:400]})",
                               RuntimeWarning, stacklevel=3)
             return None
         return jax.jit(exp.call).lower(*leaves).compile()

@@ -130,6 +130,7 @@ def prepare(
     object: str | None = None,
     overrides: Sequence[Mapping[str, Any] | None] | None = None,
     confine: bool | None = None,
+    progress: bool = False,
 ) -> Setup:
     """Build and trace the scene(s) for fitting `model` on `object`'s material.
 
@@ -141,6 +142,7 @@ def prepare(
         overrides: per-scene override dicts ({"camera.position": [...]}), same length as scenes.
         confine: refuse scene paths outside each scene's folder and the data folder (default:
             JAXRT_CONFINE; `jaxrt.scene.parse`).
+        progress: a progress bar on stderr over the views (build, trace) and the fit buffer.
     """
     model = brdfs.get(model) if isinstance(model, str) else model
     if isinstance(scenes, (str, os.PathLike, Mapping, _scene.SceneSpec)):
@@ -150,33 +152,43 @@ def prepare(
         raise InputError(f"got {len(scenes)} scenes but {len(overrides)} override sets")
     built, gbs, masks = [], [], []
     obj_name = None
-    for src, ov in zip(scenes, overrides):
-        original = _spec(src, ov, confine)
-        spec, mat_name, obj_name = _substitute(original, model, object)
-        sc = _scene.build(spec)
-        # The ray tree depends on geometry, δ and which materials are glass, not on the opaque
-        # model: trace the scene as given (one compilation per scene, whatever model is fitted)
-        # unless the object was glass, whose branches the substituted model no longer has.
-        was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
-        gb = integrators.trace(sc if was_glass else _scene.build(original))
-        built.append(sc)
-        gbs.append(gb)
-    shapes = {(s.camera.height, s.camera.width, s.settings.spp) for s in built}
-    if len(shapes) != 1:
-        raise InputError(f"all fitting scenes need the same resolution and spp, got {sorted(shapes)}")
-    sc = built[0]
-    mi = sc.materials.index(mat_name)
-    for s, gb in zip(built, gbs):
-        npix = s.camera.num_pixels
-        first = integrators.sample_order(s.camera.height, s.camera.width, s.settings.spp)[1]
-        prim = np.asarray(gb.prim)[0, first]
-        hit_mat = np.where(prim >= 0, np.asarray(compact.face_material(s.geometry, prim)), -1)
-        masks.append(np.asarray(hit_mat == mi, np.float32).reshape(s.camera.height, s.camera.width))
-    mask = np.stack(masks)
-    if not mask.any():
-        raise InputError(f"object {obj_name!r} is not visible in any view; nothing to fit")
-    model_index, row = int(sc.materials.model_id[mi]), int(sc.materials.row[mi])
-    fb = compact.build(gbs, built, model_index, row, mi, model.params())
+    from tqdm import tqdm
+
+    # one step per view (build and trace) and one for the fit buffer
+    bar = tqdm(total=len(scenes) + 1, desc="preparing views", unit="step", leave=False, disable=not progress,
+               delay=0.5)
+    try:
+        for src, ov in zip(scenes, overrides):
+            original = _spec(src, ov, confine)
+            spec, mat_name, obj_name = _substitute(original, model, object)
+            sc = _scene.build(spec)
+            # The ray tree depends on geometry, δ and which materials are glass, not on the opaque
+            # model: trace the scene as given (one compilation per scene, whatever model is fitted)
+            # unless the object was glass, whose branches the substituted model no longer has.
+            was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
+            gb = integrators.trace(sc if was_glass else _scene.build(original))
+            built.append(sc)
+            gbs.append(gb)
+            bar.update(1)
+        shapes = {(s.camera.height, s.camera.width, s.settings.spp) for s in built}
+        if len(shapes) != 1:
+            raise InputError(f"all fitting scenes need the same resolution and spp, got {sorted(shapes)}")
+        sc = built[0]
+        mi = sc.materials.index(mat_name)
+        for s, gb in zip(built, gbs):
+            npix = s.camera.num_pixels
+            first = integrators.sample_order(s.camera.height, s.camera.width, s.settings.spp)[1]
+            prim = np.asarray(gb.prim)[0, first]
+            hit_mat = np.where(prim >= 0, np.asarray(compact.face_material(s.geometry, prim)), -1)
+            masks.append(np.asarray(hit_mat == mi, np.float32).reshape(s.camera.height, s.camera.width))
+        mask = np.stack(masks)
+        if not mask.any():
+            raise InputError(f"object {obj_name!r} is not visible in any view; nothing to fit")
+        model_index, row = int(sc.materials.model_id[mi]), int(sc.materials.row[mi])
+        fb = compact.build(gbs, built, model_index, row, mi, model.params())
+        bar.update(1)
+    finally:
+        bar.close()
     return Setup(
         scenes=tuple(built),
         gbuffers=tuple(gbs),

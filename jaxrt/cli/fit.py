@@ -187,7 +187,8 @@ def run(args: argparse.Namespace) -> int:
     if len(scenes) == 1:
         scenes = scenes * len(args.targets)
     targets = _read_targets(args.targets)
-    setup = fit_setup.prepare(scenes, model, object=args.object, confine=args.confine or None)
+    setup = fit_setup.prepare(scenes, model, object=args.object, confine=args.confine or None,
+                              progress=not args.quiet)
     expect = setup.mask.shape[1:]
     for p, t in zip(args.targets, targets):
         if t.shape[:2] != expect:
@@ -246,7 +247,8 @@ def _demo(args, outs) -> int:
     targets, fits, titles, summary = [], [], [], []
     for i, name in enumerate(DEMO_MODELS):
         model = brdfs.get(name)
-        setup = fit_setup.prepare(demo_views(), model, object=DEMO_OBJECT, overrides=[DEMO_OVERRIDES] * 2)
+        setup = fit_setup.prepare(demo_views(), model, object=DEMO_OBJECT, overrides=[DEMO_OVERRIDES] * 2,
+                                  progress=not args.quiet)
         truth = hidden_params(model, seed=100 + i)
         target = fit_setup.render_with(setup, model.params(**truth))
         result, _ = fit_setup.fit(None, target, model, setup=setup, rgb=not args.grey, solver=args.solver,

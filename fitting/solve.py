@@ -36,7 +36,7 @@ from jaxtyping import Array, Float, PyTree
 
 from brdfs.base import Model, Param, Params
 from fitting import metrics
-from fitting.transforms import from_unconstrained, normalise, to_unconstrained, denormalise
+from fitting.transforms import from_unconstrained, normalise, to_unconstrained, typical_point
 
 SOLVERS: dict[str, Callable[[float, float], object]] = {
     "lm": lambda rtol, atol: optx.LevenbergMarquardt(rtol=rtol, atol=atol),
@@ -249,7 +249,7 @@ def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver:
 @dataclasses.dataclass(frozen=True)
 class _Problem:
     """What every fit of one model with one fix/init/rgb choice shares: the free parameters, the fixed
-    values and the start points (init/defaults first, then Halton points on the natural scale)."""
+    values and the start points (init/defaults first, then Halton points over each typical range on the natural scale)."""
 
     free: tuple[FreeParam, ...]
     fixed: Params
@@ -321,7 +321,7 @@ def fit_images(
         solver: one of SOLVERS ("lm" Levenberg–Marquardt, "lm_normal" the same on the normal
             equations, "gauss_newton", "dogleg", "bfgs").
         starts: number of starts: the first from `init`/defaults, the rest Halton points spread
-            over each free parameter's natural scale.
+            over each free parameter's typical range (`Param.typical_range`) on its natural scale.
         progress: show a progress bar over starts.
 
     Returns: FitResult with the best start's parameters, standard errors, error metrics and the
@@ -532,7 +532,7 @@ def _compiled_helpers(shade: Callable, free: tuple[FreeParam, ...]):
 
     @jax.jit
     def z_of_unit(row):
-        return {fp.param.name: to_unconstrained(fp.param, _shaped(denormalise(fp.param, t), fp))
+        return {fp.param.name: to_unconstrained(fp.param, _shaped(typical_point(fp.param, t), fp))
                 for fp, t in zip(free, row)}
 
     @jax.jit

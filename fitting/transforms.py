@@ -37,6 +37,20 @@ def normalise(p: Param, x) -> Float[Array, "..."]:
     return (v - lo) / (hi - lo)
 
 
+def typical_point(p: Param, t) -> Float[Array, "..."]:
+    """Position t in [0, 1] along the natural scale of the parameter's typical range
+    (`Param.typical_range`) -> parameter value: where multi-start fits put their starts, since a
+    start far outside ordinary materials (a Phong exponent of 1e5, say) sits where the image hardly
+    changes with any parameter and the solver stalls."""
+    lo, hi = p.typical_range
+    t = jnp.asarray(t, jnp.float32)
+    if p.scale == "log":
+        v = jnp.exp(np.log(lo) + (np.log(hi) - np.log(lo)) * t)
+    else:
+        v = lo + (hi - lo) * t
+    return jnp.clip(v, p.lo, p.hi)
+
+
 def denormalise(p: Param, t) -> Float[Array, "..."]:
     """Position in [0, 1] along the natural scale -> parameter value."""
     lo, hi = _span(p)

@@ -18,7 +18,6 @@ import sys
 import textwrap
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from jaxrt import render_tiles
@@ -31,7 +30,6 @@ TESTS = ROOT / "tests"
 _MULTI = r"""
 import contextlib, io, json, sys, tempfile
 from pathlib import Path
-import numpy as np
 import jax
 sys.path.insert(0, sys.argv[1])
 import test_tiles as T
@@ -117,7 +115,7 @@ def multi():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
                PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
     r = subprocess.run([sys.executable, "-c", textwrap.dedent(_MULTI), str(TESTS)], cwd=ROOT, env=env,
-                       capture_output=True, text=True, timeout=600)
+                       capture_output=True, text=True, timeout=600, check=False)
     assert r.returncode == 0, r.stderr[-3000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["devices"] == 4

@@ -30,6 +30,7 @@ TESTS = ROOT / "tests"
 _MULTI = r"""
 import contextlib, io, json, sys, tempfile
 from pathlib import Path
+import numpy as np
 import jax
 sys.path.insert(0, sys.argv[1])
 import test_tiles as T

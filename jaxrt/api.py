@@ -23,7 +23,7 @@ def _as_scene(scene: Any, overrides=None):
 
 
 def render(scene: Any, *, aovs: bool = False, overrides: dict | None = None, memory: int | str | None = None,
-           progress: bool = False):
+           progress: bool = False, devices: Any = None):
     """Render a scene with its integrator.
 
     Args:
@@ -35,16 +35,23 @@ def render(scene: Any, *, aovs: bool = False, overrides: dict | None = None, mem
             in bytes or as "2G", or "auto" (JAXRT_MEMORY, else the device's default), renders
             within it, in tiles of pixels and samples when the image does not fit in one piece
             (`jaxrt.render_tiles`; an InputError before any work when not even one tile fits).
-        progress: with `memory`, a progress bar over tiles on stderr.
+        progress: with `memory` or `devices`, a progress bar over tiles on stderr.
+        devices: the devices the tiles are spread over when rendering with `memory`: None (default)
+            or "all" every device of `jax.devices()`, an int N the first N, or a list of devices
+            (`jaxrt.render_tiles.plan`; the same pixels on any number of devices ≥ 2, within a few
+            ulps of one device's, see `jaxrt._devices`). Given without `memory`, the render is tiled
+            within the default budget ("auto"). A bad value is an InputError.
 
     Returns:
         (H, W, 3) float32 linear RGB radiance, or (image, aovs dict) with `aovs=True`. Without
-        `memory`: JAX arrays, differentiable (reverse mode: jax.grad, jax.vjp) with respect to material
-        parameters and light positions/intensities. With `memory`: numpy arrays, not differentiable.
+        `memory` and `devices`: JAX arrays from one device, differentiable (reverse mode: jax.grad,
+        jax.vjp) with respect to material parameters and light positions/intensities. With `memory`
+        or `devices`: numpy arrays, not differentiable.
     """
     scene = _as_scene(scene, overrides)
-    if memory is not None:
-        return render_tiles.render(scene, memory=memory, aovs=aovs, progress=progress)
+    if memory is not None or devices is not None:
+        return render_tiles.render(scene, memory="auto" if memory is None else memory, aovs=aovs,
+                                   progress=progress, devices=devices)
     return integrators.frame(scene, aovs=aovs)
 
 

@@ -8,10 +8,12 @@ itself, the program an untiled render compiles, so small renders compile nothing
 
 This module sits above the integrators (it schedules any registered integrator's tiles and reads the
 device's memory and `JAXRT_MEMORY`, which light transport never needs) and below the API and CLI; it is
-also the unit that a multi-device renderer distributes: every tile is independent, the scene is the
-same argument for all of them, and a tile's origin is a traced value, so a device mesh can run the
-same program on a different list of origins per device (`Plan.steps` is that list) and gather the
-tiles once.
+also the unit that several devices share: every tile is independent, the scene is the same argument
+for all of them, and a tile's origin is a traced value, so on a device mesh (`jaxrt._devices`, the
+`devices` argument, all of `jax.devices()` by default) each call runs the same program on one
+origin per device, `Plan.steps` taken N at a time, and the host gathers each call's tiles. The
+budget then applies to each device (on a CPU, whose virtual devices share the RAM, it is split
+between them), and the image has at least max(32, 4·N) tiles for load balance.
 
 Memory model
 ------------
@@ -77,7 +79,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt import _config, integrators
+from jaxrt import _config, _devices, integrators
 from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
@@ -165,10 +167,12 @@ class Plan:
     shape: (tile height, tile width, samples per tile), or None when the whole job runs as one
     `integrators.frame` call. steps: the tiles in render order, each ((row, col) where the tile's
     own pixels start, (row, col) of the window actually rendered, (first sample, sample count)).
-    budget: bytes; budget_source: where the budget came from; fixed: bytes of the scene and the
-    host buffers (those of the host only where the device is the CPU); cost: `tile_cost`'s (per
-    sample, per pixel) bound; tile_bytes: the compiled program's measured temporaries, outputs and
-    code (0 until `compile_plan`).
+    budget: bytes (per device); budget_source: where the budget came from; fixed: bytes of the scene
+    and the host buffers (those of the host only where the devices are the CPU; there the scene once
+    per device); cost: `tile_cost`'s (per sample, per pixel) bound; tile_bytes: the compiled
+    program's measured temporaries, outputs and code, per device (0 until `compile_plan`). devices:
+    the devices that share the steps (each call renders one step on each of them, in order:
+    `jaxrt._devices`), or () for the default device alone (the one-device renderer).
     """
 
     height: int
@@ -181,10 +185,22 @@ class Plan:
     fixed: int
     cost: tuple[int, int]
     tile_bytes: int = 0
+    devices: tuple = ()
 
     @property
     def tiles(self) -> int:
         return len(self.steps)
+
+    @property
+    def device_count(self) -> int:
+        return max(1, len(self.devices))
+
+    @property
+    def tile_room(self) -> int:
+        """Bytes one tile's program may use: the budget less the fixed part, split between the
+        devices where they share the host's RAM (virtual CPU devices)."""
+        room = self.budget - self.fixed
+        return room // self.device_count if _on_cpu(self.devices) else room
 
 
 def _balanced(total: int, most: int, align: int) -> int:
@@ -236,12 +252,18 @@ def _steps(h: int, w: int, spp: int, shape) -> tuple:
     return tuple(out)
 
 
-def _resolve_budget(memory, scene) -> tuple[int, str]:
+def _on_cpu(devices) -> bool:
+    return (devices[0] if devices else jax.devices()[0]).platform == "cpu"
+
+
+def _resolve_budget(memory, scene, devices=()) -> tuple[int, str]:
     if memory is None or memory == "auto":
         env = _config.config().memory
         if env is not None:
             return env, "JAXRT_MEMORY"
-        return default_budget(scene=scene)
+        if len(devices) > 1 and not _on_cpu(devices):  # per device: the one with the least free memory
+            return min((default_budget(d, scene) for d in devices), key=lambda b: b[0])
+        return default_budget(devices[0] if devices else None, scene=scene)
     if isinstance(memory, str):
         b = _config.parse_size(memory, "memory")
     else:
@@ -252,46 +274,64 @@ def _resolve_budget(memory, scene) -> tuple[int, str]:
 
 
 def plan(scene, *, memory: int | str | None = None, aovs: bool = False, max_tile_rays: int | None = None,
-         reserve: int = 0, budget_source: str | None = None) -> Plan:
+         reserve: int = 0, budget_source: str | None = None, devices: Any = None,
+         devices_source: str = "devices=") -> Plan:
     """The tiles for rendering `scene` within `memory` (see the module docstring), before any
     compilation.
 
     Args:
-        memory: the budget in bytes or as "2G"; None or "auto": JAXRT_MEMORY, else `default_budget`.
+        memory: the budget in bytes or as "2G"; None or "auto": JAXRT_MEMORY, else `default_budget`
+            (on several GPUs that of the one with the least free memory). The budget is per device.
         aovs: the AOV buffers are needed too.
         max_tile_rays: also cap a tile at this many ray samples (the CLI's progress granularity).
         reserve: bytes of host memory the caller needs besides the image buffers (writers).
         budget_source: how to name the budget in errors (the CLI: "--memory").
+        devices: the devices to spread the tiles over (`jaxrt._devices.select`): None or "all" every
+            device of `jax.devices()`, an int N the first N, or a list of devices. On more than one
+            device the image is always tiled, into at least max(32, 4·N) tiles (load balance).
+        devices_source: how to name `devices` in errors (the CLI: "--devices ").
 
     Raises:
-        InputError: the scene and the image leave no room for a single ray sample.
+        InputError: the scene and the image leave no room for a single ray sample; bad `devices`.
     """
-    budget, source = _resolve_budget(memory, scene)
+    devs = _devices.select(devices, devices_source)
+    devs = devs if _devices.sharded(devs) else ()
+    n_dev = max(1, len(devs))
+    budget, source = _resolve_budget(memory, scene, devs)
     source = budget_source or source
     cam, st = scene.camera, scene.settings
     h, w, spp = cam.height, cam.width, st.spp
     scene_bytes = _tree_bytes(scene)
     host = h * w * (RGB_BYTES + (AOV_BYTES if aovs else 0)) + int(reserve)
-    on_cpu = jax.devices()[0].platform == "cpu"
-    fixed = scene_bytes + (host if on_cpu else 0)
+    on_cpu = _on_cpu(devs)
+    # virtual CPU devices share the host's RAM: the scene is there once per device, and the image once
+    fixed = scene_bytes * (n_dev if on_cpu else 1) + (host if on_cpu else 0)
     cost = tile_cost(scene, aovs)
     what = f"{scene.source}: {w}x{h} at {spp} spp"
     if not on_cpu and host > _physical_ram() // 2:
         raise InputError(f"{what} needs {format_bytes(host)} of host memory for the image, more than half "
                          f"of the {format_bytes(_physical_ram())} of RAM; render a smaller image")
     room = budget - fixed
+    tile_room = room // n_dev if on_cpu else room
     if max_tile_rays is not None:
         max_tile_rays = max(1, int(max_tile_rays))
-    if h * w * (spp * cost[0] + cost[1]) <= room and (max_tile_rays is None or h * w * spp <= max_tile_rays):
+    if devs:
+        # enough tiles that every device gets several, spread over the image (`_render_tiles`)
+        # (not below one 8x4 block of all spp: a small image keeps its samples together)
+        cap = -(-h * w * spp // max(_devices.MIN_TILES, _devices.TILES_PER_DEVICE * n_dev))
+        cap = max(cap, min(h * w, BLOCK_PIXELS) * spp)
+        max_tile_rays = min(max_tile_rays or cap, cap)
+    elif h * w * (spp * cost[0] + cost[1]) <= room and (max_tile_rays is None or h * w * spp <= max_tile_rays):
         return Plan(h, w, spp, None, (((0, 0), (0, 0), (0, spp)),), budget, source, fixed, cost)
-    shape = _tile_shape(h, w, spp, room, cost, max_tile_rays) if room > 0 else None
+    shape = _tile_shape(h, w, spp, tile_room, cost, max_tile_rays) if tile_room > 0 else None
     if shape is None:
+        each = f" on each of {n_dev} devices" if devs else ""
         raise InputError(
-            f"{what} needs at least {format_bytes(fixed + sum(cost))} ({format_bytes(scene_bytes)} for the scene, "
-            f"{format_bytes(host)} for the image{' on the host' if not on_cpu else ''} and its writers, "
-            f"{format_bytes(sum(cost))} for one ray sample) but the memory budget is {format_bytes(budget)} "
-            f"({source}); raise it with --memory or JAXRT_MEMORY")
-    return Plan(h, w, spp, shape, _steps(h, w, spp, shape), budget, source, fixed, cost)
+            f"{what} needs at least {format_bytes(fixed + sum(cost) * (n_dev if on_cpu else 1))} ({format_bytes(scene_bytes)} for the "
+            f"scene{each}, {format_bytes(host)} for the image{' on the host' if not on_cpu else ''} and its "
+            f"writers, {format_bytes(sum(cost))} for one ray sample{each}) but the memory budget is "
+            f"{format_bytes(budget)} ({source}); raise it with --memory or JAXRT_MEMORY")
+    return Plan(h, w, spp, shape, _steps(h, w, spp, shape), budget, source, fixed, cost, devices=devs)
 
 
 def _compiled_bytes(compiled) -> int:
@@ -309,18 +349,27 @@ def _window(shape, origin, samples) -> Window:
     return Window(i32(origin[0]), i32(origin[1]), i32(samples[0]), i32(samples[1]), th, tw, sb)
 
 
+def _compile_tile(scene, p: Plan, aovs: bool):
+    if p.devices:  # the sharded program: its memory analysis is that of one device's share
+        zeros = np.zeros((len(p.devices), 2), np.int32)
+        return _devices.program(p.devices, p.shape, aovs).lower(scene, zeros, zeros).compile()
+    return integrators.tile.lower(scene, _window(p.shape, (0, 0), (0, p.shape[2])), aovs=aovs).compile()
+
+
 def compile_plan(scene, p: Plan, aovs: bool = False) -> Plan:
     """Compile the plan's program (`integrators.frame`, or `integrators.tile` at the plan's tile
-    shape) and measure it (`memory_analysis()`); while it exceeds the budget, shrink the tile in
-    proportion and compile again. Returns the plan that runs, with `tile_bytes` measured.
+    shape, or on several devices the sharded tile program of `jaxrt._devices`) and measure it
+    (`memory_analysis()`); while it exceeds the budget, shrink the tile in proportion and compile
+    again. Returns the plan that runs, with `tile_bytes` measured.
 
     Ahead-of-time compilation shares JAX's cache with calls, so the render's own calls compile
-    nothing again, and a `frame` compiled before costs nothing here.
+    nothing again, and a `frame` compiled before costs nothing here. For a plan on several devices
+    `scene` should be already replicated over them (`_devices.replicate`), as `render` does.
 
     Raises:
         InputError: not even a one-ray tile fits.
     """
-    room = p.budget - p.fixed
+    room = p.tile_room
     h, w, spp = p.height, p.width, p.spp
     if p.shape is None:
         need = _compiled_bytes(integrators.frame.lower(scene, aovs=aovs).compile())
@@ -335,7 +384,7 @@ def compile_plan(scene, p: Plan, aovs: bool = False) -> Plan:
         if p.shape is None:
             break
         th, tw, sb = p.shape
-        need = _compiled_bytes(integrators.tile.lower(scene, _window(p.shape, (0, 0), (0, sb)), aovs=aovs).compile())
+        need = _compiled_bytes(_compile_tile(scene, p, aovs))
         if need <= room:
             return dataclasses.replace(p, tile_bytes=need)
         scale = 0.9 * room / need
@@ -356,12 +405,15 @@ def _check_finite(part: np.ndarray, where: str) -> None:
 
 def render(scene, *, memory: int | str | None = None, aovs: bool = False, progress: Any = False,
            max_tile_rays: int | None = None, reserve: int = 0, budget_source: str | None = None,
-           should_stop: Callable[[], bool] | None = None, use_plan: Plan | None = None):
-    """Render `scene` within a memory budget, in tiles when it does not fit in one piece.
+           should_stop: Callable[[], bool] | None = None, use_plan: Plan | None = None, devices: Any = None,
+           devices_source: str = "devices="):
+    """Render `scene` within a memory budget, in tiles when it does not fit in one piece, spread
+    over `devices` (default: every device of `jax.devices()`).
 
     Args:
         scene: a `jaxrt.scene.Scene`.
-        memory, aovs, max_tile_rays, reserve, budget_source: as for `plan`.
+        memory, aovs, max_tile_rays, reserve, budget_source, devices, devices_source: as for `plan`
+            (`devices` is ignored with `use_plan`, which names its own).
         progress: False; True for a tqdm bar on stderr; or a tqdm-like object (``total``,
             ``update(n)``, ``set_description_str``) that this call drives.
         should_stop: called before each tile; when it returns True a KeyboardInterrupt is raised
@@ -377,7 +429,7 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
         KeyboardInterrupt: between tiles, from Ctrl-C or `should_stop`.
     """
     p = use_plan or plan(scene, memory=memory, aovs=aovs, max_tile_rays=max_tile_rays, reserve=reserve,
-                      budget_source=budget_source)
+                         budget_source=budget_source, devices=devices, devices_source=devices_source)
     bar, own = progress, False
     if progress is True:
         from tqdm import tqdm
@@ -388,11 +440,13 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
     try:
         if bar:
             bar.set_description_str("compiling")
+        where = f"{scene.source}"
+        if p.devices:  # every device holds the whole scene
+            scene = _devices.replicate(scene, p.devices)
         p = compile_plan(scene, p, aovs)
         if bar:
             bar.total = p.tiles
             bar.set_description_str("rendering")
-        where = f"{scene.source}"
         if p.shape is None:
             if should_stop is not None and should_stop():
                 raise KeyboardInterrupt
@@ -412,31 +466,51 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
 
 
 def _render_tiles(scene, p: Plan, aovs, bar, should_stop, where):
+    """The plan's steps, one call at a time: on one device one tile a call (`integrators.tile`); on
+    D devices D consecutive steps a call, step k·D + d on device d (`_devices.program`), so each
+    device's tiles are interleaved with the others' over the whole image and the tiles of one call
+    are neighbours, of similar cost (glass, sky), which keeps a call's slowest device close to the
+    others. The host writes the tiles into the image in step order either way, so sample batches
+    are added in the same order as on one device."""
     h, w = p.height, p.width
     th, tw, _ = p.shape
     img = np.empty((h, w, 3), np.float32)
     aov_out: dict[str, np.ndarray] | None = None
-    for (r, c), (r0, c0), (s0, count) in p.steps:
+    n = len(p.devices) if p.devices else 1
+    run = _devices.program(p.devices, p.shape, aovs) if p.devices else None
+    for k in range(0, p.tiles, n):
         if should_stop is not None and should_stop():
             raise KeyboardInterrupt
-        # one tile at a time: the next is dispatched only after this one is on the host, so at most
-        # one tile's working set exists (asynchronous dispatch could otherwise queue several)
-        out = integrators.tile(scene, _window(p.shape, (r0, c0), (s0, count)), aovs=aovs)
-        part, part_aov = out if aovs else (out, None)
-        # the tile's own pixels: from its nominal origin to the next tile's (or the image's edge)
-        rows, cols = slice(r, min(r + th, h)), slice(c, min(c + tw, w))
-        local = (slice(r - r0, r - r0 + rows.stop - r), slice(c - c0, c - c0 + cols.stop - c))
-        part = np.asarray(part)[local]
-        _check_finite(part, where)
-        if s0 == 0:
-            img[rows, cols] = part
+        steps = p.steps[k:k + n]
+        # one call at a time: the next is dispatched only after this one is on the host, so at most
+        # one tile's working set exists per device (asynchronous dispatch could otherwise queue several)
+        if run is None:
+            (_, (r0, c0), (s0, count)), = steps
+            out = integrators.tile(scene, _window(p.shape, (r0, c0), (s0, count)), aovs=aovs)
+            parts = [out if aovs else (out, None)]
         else:
-            img[rows, cols] += part
-        if aovs and s0 == 0:  # AOVs are those of each pixel's first sample
-            if aov_out is None:
-                aov_out = {k: np.empty((h, w) + v.shape[2:], v.dtype) for k, v in part_aov.items()}
-            for k, v in part_aov.items():
-                aov_out[k][rows, cols] = np.asarray(v)[local]
+            out = run(scene, *_devices.round_arrays(steps, n))
+            # the one gather of this call's tiles: each device's shard comes to the host
+            img_d, aov_d = out if aovs else (out, None)
+            img_d = np.asarray(img_d)
+            aov_d = {key: np.asarray(v) for key, v in aov_d.items()} if aovs else None
+            parts = [(img_d[j], {key: v[j] for key, v in aov_d.items()} if aovs else None)
+                     for j in range(len(steps))]
+        for ((r, c), (r0, c0), (s0, _)), (part, part_aov) in zip(steps, parts):
+            # the tile's own pixels: from its nominal origin to the next tile's (or the image's edge)
+            rows, cols = slice(r, min(r + th, h)), slice(c, min(c + tw, w))
+            local = (slice(r - r0, r - r0 + rows.stop - r), slice(c - c0, c - c0 + cols.stop - c))
+            part = np.asarray(part)[local]
+            _check_finite(part, where)
+            if s0 == 0:
+                img[rows, cols] = part
+            else:
+                img[rows, cols] += part
+            if aovs and s0 == 0:  # AOVs are those of each pixel's first sample
+                if aov_out is None:
+                    aov_out = {key: np.empty((h, w) + v.shape[2:], v.dtype) for key, v in part_aov.items()}
+                for key, v in part_aov.items():
+                    aov_out[key][rows, cols] = np.asarray(v)[local]
         if bar:
-            bar.update(1)
+            bar.update(len(steps))
     return (img, aov_out) if aovs else img

@@ -32,6 +32,10 @@ JAXRT_MEMORY, else half the RAM on a CPU (90% of the free memory on a GPU); an i
 in one piece is rendered in tiles of pixels and batches of samples, with a progress bar on stderr
 (not with -q). A job that cannot fit one tile stops before rendering, naming the memory it needs.
 
+Devices: the tiles are spread over every device JAX sees (all GPUs of the host; a CPU is one
+device unless XLA_FLAGS=--xla_force_host_platform_device_count=N), each device rendering its own
+tiles with the whole scene; --devices N uses the first N. The memory budget applies to each device.
+
 Exit codes: 0 success, 2 bad input (unreadable or invalid scene, bad option, missing mesh, a memory
 budget too small), 130 interrupted (Ctrl-C stops within a fraction of a second and writes nothing).
 Errors are one line; set JAXRT_DEBUG=1 for a traceback.
@@ -66,6 +70,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--memory", metavar="SIZE",
                         help="memory budget for the render, e.g. 2G or 512M (binary units; default: JAXRT_MEMORY, "
                              "else half the RAM on a CPU, 90%% of the free memory on a GPU)")
+    parser.add_argument("--devices", metavar="N", default="all",
+                        help="spread the render's tiles over the first N devices of jax.devices() (default: all; "
+                             "1 renders on the default device alone)")
     parser.add_argument("-q", "--quiet", action="store_true", help="print nothing on success (no progress bar)")
 
 
@@ -135,6 +142,9 @@ def run(args: argparse.Namespace) -> int:
         memory = _config.parse_size(args.memory, "--memory")
         if memory <= 0:
             raise InputError(f"--memory {args.memory}: must be a positive size, e.g. 8G")
+    from jaxrt import _devices
+
+    devices = _devices.parse(args.devices, "--devices")  # the range is checked against the host's devices later
     outs = Outputs()
     outs.add(args.output, ".exr", "-o")
     outs.add(args.png, ".png", "--png")
@@ -180,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
         out = render_tiles.render(scn, memory=memory, aovs=args.aovs, progress=bar if bar is not None else False,
                                   max_tile_rays=CPU_TILE_RAYS if cpu else None, reserve=reserve,
                                   budget_source="--memory" if memory is not None else None,
-                                  should_stop=should_stop)
+                                  should_stop=should_stop, devices=devices, devices_source="--devices")
         times["render"] = time.perf_counter() - t0 - times["scene"]
         return scn, out
 

@@ -1,0 +1,165 @@
+"""Several devices of one host for one render: the device choice, the mesh and the sharded tile program.
+
+`jaxrt.render_tiles` renders an image as independent tiles (`camera.Window`: a rectangle of pixels
+and a run of their samples, its origin traced, its extents static). On a mesh of D devices the same
+tile program runs under `shard_map`: the scene pytree is replicated (every device holds the BVH,
+materials, textures and lights), each call gives every device the origin of its own tile, and each
+device runs its own traversal loop on its tile. Nothing in the body communicates: there is no
+collective, so no device waits for another inside a loop, which is what auto-sharding a
+`while_loop` over a sharded ray batch would do (one device's early exit is held back by the
+longest-running device at every iteration, with an all-reduce of the loop condition in between).
+
+Equality with one device
+------------------------
+A tile's random numbers and per-ray work do not depend on the device that runs it, so the sharded
+render computes the same arithmetic as the one-device tiled render. It is still a different XLA
+module: a program partitioned over D > 1 devices goes through the SPMD pipeline, after which XLA
+simplifies and fuses it differently (in the optimized XLA:CPU modules, for instance, a division by
+a square root stays a division where the one-device module turns it into a product with rsqrt,
+and a few adds and multiplies are fused differently; `jax.pmap`, itself a `shard_map` now, gives
+the same). So against one device the pixels differ by a few ulps per ray, as tiled and untiled
+renders do (`jaxrt.render_tiles` gives the measurements), and that remains with the XLA flags
+that make tiled renders exact (no FMA contraction, no YNNPACK fusions). The partitioned program
+does not depend on D, so renders on any D ≥ 2 devices are equal to each other bit for bit
+wherever the tile shape is the same, which it is up to MIN_TILES / TILES_PER_DEVICE = 8 devices
+unless the memory budget shrinks the tiles (on a CPU the budget is split between the devices).
+A mesh of one device compiles the one-device module and equals `integrators.tile` bit for bit.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import Int
+
+from jaxrt import integrators
+from jaxrt.camera import Window
+from jaxrt.errors import InputError
+
+__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "mesh", "parse", "program", "replicate", "round_arrays", "select",
+           "sharded"]
+
+AXIS = "devices"
+# A render on several devices is split into at least max(MIN_TILES, TILES_PER_DEVICE·D) tiles, so
+# that tiles of unequal cost (glass, sky) even out within each device's share; the first term keeps
+# the tile shape (and so the compiled arithmetic) the same for every device count up to
+# MIN_TILES / TILES_PER_DEVICE.
+MIN_TILES = 32
+TILES_PER_DEVICE = 4
+
+try:  # jax >= 0.7
+    _shard_map = jax.shard_map
+    _UNCHECKED = {"check_vma": False}
+except AttributeError:  # pragma: no cover - older JAX
+    from jax.experimental.shard_map import shard_map as _shard_map
+
+    _UNCHECKED = {"check_rep": False}
+
+
+def _what(label: str, value: Any) -> str:
+    # "--devices 9" for a flag, "devices=9" for an argument
+    return f"{label}{value!r}" if label.endswith("=") else f"{label} {value}"
+
+
+def parse(text: str, label: str = "--devices") -> int | None:
+    """A `--devices` value without asking JAX: "all" -> None, else a positive integer."""
+    t = str(text).strip().lower()
+    if t == "all":
+        return None
+    try:
+        n = int(t)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise InputError(f"{_what(label, text)}: must be 'all' or a number of devices, 1 or more")
+    return n
+
+
+def select(devices: Any = None, label: str = "devices=") -> tuple[jax.Device, ...]:
+    """The devices of a render: None or "all": every device of the default backend (`jax.devices()`);
+    an int N: the first N of them; a sequence of those devices: these, in this order.
+
+    Raises:
+        InputError: one line naming `label` (the argument or the flag) and what is allowed.
+    """
+    avail = tuple(jax.devices())
+    n = len(avail)
+    allowed = (f"'all' or a number from 1 to {n} (this host has {n} {avail[0].platform} "
+               f"device{'s' if n > 1 else ''})")
+    if devices is None or (isinstance(devices, str) and devices.strip().lower() == "all"):
+        return avail
+    if isinstance(devices, str):
+        devices = parse(devices, label)
+        return avail if devices is None else select(devices, label)
+    if isinstance(devices, bool) or not isinstance(devices, (int, np.integer, Sequence)):
+        raise InputError(f"{_what(label, devices)}: must be {allowed}, or a list of jax.devices()")
+    if isinstance(devices, (int, np.integer)):
+        if not 1 <= int(devices) <= n:
+            raise InputError(f"{_what(label, devices)}: must be {allowed}")
+        return avail[:int(devices)]
+    chosen = tuple(devices)
+    if not chosen or any(d not in avail for d in chosen) or len(set(chosen)) != len(chosen):
+        raise InputError(f"{_what(label, list(devices))}: a list of devices must name distinct devices of "
+                         f"jax.devices() ({', '.join(str(d) for d in avail)}), at least one")
+    return chosen
+
+
+def sharded(devices: Sequence[jax.Device]) -> bool:
+    """Whether a render on `devices` takes the sharded path: several devices, or one that is not the
+    default device (the one-device renderer runs on the default device)."""
+    return len(devices) > 1 or devices[0] != jax.devices()[0]
+
+
+def mesh(devices: Sequence[jax.Device]) -> Mesh:
+    """A one-axis mesh (`AXIS`) over `devices`."""
+    return Mesh(np.array(list(devices), dtype=object), (AXIS,))
+
+
+def replicate(tree, devices: Sequence[jax.Device]):
+    """`tree` (a scene) with every array on every device of `devices`."""
+    return jax.device_put(tree, NamedSharding(mesh(devices), PartitionSpec()))
+
+
+def _device_tile(scene, origin, samples, *, shape, aovs: bool):
+    # one device's share of a call: its tile, its own traversal loop; the leading axis of length one
+    # is the device axis that out_specs concatenates
+    th, tw, sb = shape
+    o, s = jax.lax.squeeze(origin, [0]), jax.lax.squeeze(samples, [0])
+    window = Window(o[0], o[1], s[0], s[1], th, tw, sb)
+    out = integrators.REGISTRY[scene.settings.integrator][0](scene, aovs=aovs, window=window)
+    return jax.tree.map(lambda x: jax.lax.expand_dims(x, [0]), out)
+
+
+@functools.lru_cache(maxsize=32)
+def program(devices: tuple[jax.Device, ...], shape: tuple[int, int, int], aovs: bool = False):
+    """The compiled-on-first-call tile program of a mesh: ``f(scene, origins, samples)`` with the
+    scene replicated (`replicate`), origins (D, 2) int32 (row, column) and samples (D, 2) int32
+    (first sample, count), one row per device; returns each device's tile, (D, th, tw, 3) (and with
+    `aovs` the AOV dict, each (D, th, tw, ...)), sharded over the devices.
+
+    One function object per (devices, tile shape, aovs), so `jax.jit` compiles it once per render
+    plan. (`jaxrt._programs.cached_jit` does not store programs on several devices; this one is
+    traced in each process.)
+    """
+    m = mesh(devices)
+    rows = PartitionSpec(AXIS)
+    body = functools.partial(_device_tile, shape=shape, aovs=aovs)
+    smap = _shard_map(body, mesh=m, in_specs=(PartitionSpec(), rows, rows), out_specs=rows, **_UNCHECKED)
+    rep, split = NamedSharding(m, PartitionSpec()), NamedSharding(m, rows)
+    return jax.jit(smap, in_shardings=(rep, split, split), out_shardings=split)
+
+
+def round_arrays(steps: Sequence, n: int) -> tuple[Int[np.ndarray, "D 2"], Int[np.ndarray, "D 2"]]:
+    """(origins, samples) of one call: the windows of `steps` (at most `n`, `Plan.steps` entries),
+    padded to `n` rows with the last window at a sample count of 0 (its rays start inactive, so a
+    device without a tile in the last call exits its loops at once; its output is dropped)."""
+    pad = n - len(steps)
+    origins = np.array([s[1] for s in steps] + [steps[-1][1]] * pad, np.int32)
+    samples = np.array([s[2] for s in steps] + [(steps[-1][2][0], 0)] * pad, np.int32)
+    return origins, samples
+

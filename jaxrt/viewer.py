@@ -11,7 +11,8 @@ from the object's own material where parameter names agree, so a model switch is
 (which material the object's faces wear) just like a parameter, light or camera change: the scene
 structure never changes and every update re-runs the one compiled `jaxrt.frame`. Slider
 ranges and log/linear scales come from each model's `Param` declarations; a log-scale parameter's
-slider moves over log10(value) and its label shows the value itself. RGB parameters are set grey.
+slider moves over log10(value) and its label shows the value itself. RGB parameters get one slider
+per channel (`rho_d.r`, `rho_d.g`, `rho_d.b`), so moving one keeps the material's colour.
 
 Path-traced scenes (`[render] integrator = "path"`, or `integrator="path"` / `jaxrt view --integrator
 path`) render progressively: every change starts a new `jaxrt.integrators.path.Accumulation` with pass 0, each
@@ -79,7 +80,8 @@ class Viewer:
     Attributes:
         image: (H, W, 3) float32 linear RGB of the current state; frame_time: seconds of the last
             render (of the last pass when progressive).
-        model: current model name; values: {param: value} of the current model (RGB shown as channel mean).
+        model: current model name; values: {param: value} of the current model (RGB as the channel
+            mean); channels: {RGB param: [r, g, b]}.
         progressive: True for a path-traced scene; accumulation: its `jaxrt.integrators.path.Accumulation`
             (None otherwise); samples: samples per pixel in `image` (settings.spp for Whitted).
     """
@@ -126,6 +128,15 @@ class Viewer:
         if not brdfs.get(self.model).delta:
             out["delta"] = float(mats.delta[i])
         return out
+
+    @property
+    def channels(self) -> dict[str, list[float]]:
+        """{RGB parameter: [r, g, b]} of the current model."""
+        mats = self.scene.materials
+        i = mats.index(_sweep.material_name(self.model))
+        table, row = mats.params[int(mats.model_id[i])], int(mats.row[i])
+        rgb = {p.name for p in brdfs.get(self.model).spec if p.rgb}
+        return {k: [float(x) for x in np.asarray(v[row]).reshape(-1)] for k, v in table.items() if k in rgb}
 
     @property
     def compiles(self) -> int:
@@ -178,10 +189,18 @@ class Viewer:
         self.image = np.nan_to_num(np.asarray(img), nan=0.0, posinf=0.0, neginf=0.0)
         self._refresh()
 
-    def set_param(self, name: str, value: float) -> None:
-        """Set a parameter of the current model (or "delta") and re-render; InputError if out of range."""
-        _sweep.param_spec(self.model, name)
-        self.scene = self.scene.with_material(_sweep.material_name(self.model), **{name: float(value)})
+    def set_param(self, name: str, value: float, channel: int | None = None) -> None:
+        """Set a parameter of the current model (or "delta") and re-render; InputError if out of range.
+        `channel` (0, 1, 2) sets one channel of an RGB parameter and keeps the other two."""
+        p = _sweep.param_spec(self.model, name)
+        if channel is None:
+            new: float | list[float] = float(value)
+        else:
+            if not p.rgb or channel not in (0, 1, 2):
+                raise InputError(f"{self.model}.{name}: channel {channel!r} needs an RGB parameter and 0, 1 or 2")
+            new = list(self.channels[name])
+            new[channel] = float(value)
+        self.scene = self.scene.with_material(_sweep.material_name(self.model), **{name: new})
         self.render()
 
     def set_model(self, name: str) -> None:
@@ -247,7 +266,13 @@ class Viewer:
         fig = plt.figure(figsize=(10, 6))
         self._fig = fig
         self._ax = fig.add_axes((0.02, 0.08, 0.56, 0.86))
-        self._ax.set_axis_off()
+        # a framed image on a grey page: a white furnace or a white background stays visible as an image
+        fig.set_facecolor("0.82")
+        self._ax.set_xticks([])
+        self._ax.set_yticks([])
+        for spine in self._ax.spines.values():
+            spine.set_edgecolor("0.25")
+            spine.set_linewidth(1.2)
         self._im = self._ax.imshow(self.srgb(), interpolation="nearest")
         self._title = self._ax.set_title(self.status(), fontsize=9)
         names = brdfs.names()
@@ -307,20 +332,28 @@ class Viewer:
             if p not in ("model", "light_x", "light_y", "light_z", "intensity", "azimuth", "elevation"):
                 del self.sliders[p]
         self._param_axes = []
-        vals = self.values
-        for k, p in enumerate(self.spec):
+        vals, chans = self.values, self.channels
+        rows = []  # (slider name, Param, channel or None, value)
+        for p in self.spec:
+            if p.rgb and p.name in chans:
+                rows += [(f"{p.name}.{c}", p, k, chans[p.name][k]) for k, c in enumerate("rgb")]
+            else:
+                rows.append((p.name, p, None, vals[p.name]))
+        # the stack runs down from 0.62 and stays above the light and camera sliders (top at ~0.32)
+        step = min(0.045, 0.30 / max(len(rows), 1))
+        for k, (label, p, channel, value) in enumerate(rows):
             lo, hi, _ = slider_spec(p)
-            x = math.log10(max(vals[p.name], p.lo)) if p.scale == "log" else vals[p.name]
-            ax = self._fig.add_axes((0.68, 0.62 - 0.045 * k, 0.22, 0.03))
-            s = Slider(ax, p.name, lo, hi, valinit=float(np.clip(x, lo, hi)))
+            x = math.log10(max(value, p.lo)) if p.scale == "log" else value
+            ax = self._fig.add_axes((0.68, 0.62 - step * k, 0.22, min(0.03, 0.7 * step)))
+            s = Slider(ax, label, lo, hi, valinit=float(np.clip(x, lo, hi)))
             s.valtext.set_text(f"{from_slider(p, s.val):.3g}")
 
-            def changed(x, p=p, s=s):
+            def changed(x, p=p, s=s, channel=channel):
                 s.valtext.set_text(f"{from_slider(p, x):.3g}")
-                self.set_param(p.name, from_slider(p, x))
+                self.set_param(p.name, from_slider(p, x), channel)
 
             s.on_changed(changed)
-            self.sliders[p.name] = s
+            self.sliders[label] = s
             self._param_axes.append(ax)
         self._fig.canvas.draw_idle()
 
@@ -359,19 +392,22 @@ def notebook_controls(viewer: Viewer, scale: int = 2):
     def build_params():
         for k in [k for k in sliders if k in _param_names(sliders)]:
             del sliders[k]
-        vals, rows = viewer.values, []
+        vals, chans, rows = viewer.values, viewer.channels, []
         for p in viewer.spec:
-            if p.scale == "log":
-                lo, hi, _ = slider_spec(p)
-                s = w.FloatLogSlider(value=vals[p.name], base=10, min=lo, max=hi, step=(hi - lo) / 200,
-                                     description=p.name, readout_format=".3g")
-            else:
-                s = w.FloatSlider(value=vals[p.name], min=p.lo, max=p.hi, step=(p.hi - p.lo) / 200,
-                                  description=p.name, readout_format=".3g")
-            s.tooltip = p.doc
-            sliders[p.name] = s
-            on(p.name, lambda v, n=p.name: viewer.set_param(n, v))
-            rows.append(s)
+            entries = ([(f"{p.name}.{c}", k, chans[p.name][k]) for k, c in enumerate("rgb")]
+                       if p.rgb and p.name in chans else [(p.name, None, vals[p.name])])
+            for label, channel, value in entries:
+                if p.scale == "log":
+                    lo, hi, _ = slider_spec(p)
+                    s = w.FloatLogSlider(value=value, base=10, min=lo, max=hi, step=(hi - lo) / 200,
+                                         description=label, readout_format=".3g")
+                else:
+                    s = w.FloatSlider(value=value, min=p.lo, max=p.hi, step=(p.hi - p.lo) / 200,
+                                      description=label, readout_format=".3g")
+                s.tooltip = p.doc
+                sliders[label] = s
+                on(label, lambda v, n=p.name, c=channel: viewer.set_param(n, v, c))
+                rows.append(s)
         params.children = rows
 
     def _param_names(d):

@@ -31,16 +31,41 @@ def viewer():
     return v
 
 
+def _set_rgb(v, name, value):
+    for c in "rgb":
+        v.sliders[f"{name}.{c}"].set_val(value)
+
+
 def test_rho_d_slider_brightens_and_does_not_recompile(viewer):
-    s = viewer.sliders["rho_d"]
-    s.set_val(0.0)
+    _set_rgb(viewer, "rho_d", 0.0)
     dark = viewer.image.copy()
-    s.set_val(1.0)
+    _set_rgb(viewer, "rho_d", 1.0)
     bright = viewer.image.copy()
     assert viewer.values["rho_d"] == pytest.approx(1.0)
     assert np.all(bright >= dark - 1e-6) and float((bright - dark).max()) > 0.05
     assert np.isfinite(viewer.frame_time) and "ms" in viewer._title.get_text()
     assert viewer.compiles == viewer.compiled
+
+
+def test_one_slider_per_channel_keeps_the_colour(viewer):
+    """Moving rho_d's green slider changes green only (it used to set all three to one grey value)."""
+    _set_rgb(viewer, "rho_d", 0.2)
+    viewer.sliders["rho_d.r"].set_val(0.9)
+    before = viewer.image.copy()
+    viewer.sliders["rho_d.g"].set_val(0.6)
+    assert viewer.channels["rho_d"] == pytest.approx([0.9, 0.6, 0.2])
+    d = viewer.image - before
+    assert float(d[..., 1].max()) > 0.02 and np.abs(d[..., [0, 2]]).max() < 1e-6
+    assert viewer.sliders["rho_d.g"].valtext.get_text() == "0.6"
+    with pytest.raises(InputError, match="channel"):
+        viewer.set_param("s", 10.0, channel=1)
+    assert viewer.compiles == viewer.compiled
+
+
+def test_image_is_framed_on_a_grey_page(viewer):
+    ax = viewer._ax
+    assert ax.axison and all(sp.get_visible() for sp in ax.spines.values())
+    assert viewer.figure().get_facecolor()[:3] != (1.0, 1.0, 1.0)
 
 
 def test_log_slider_shows_the_value(viewer):
@@ -166,7 +191,7 @@ def test_progressive_furnace_closed_form_and_reset(furnace):
     # A convex Lambert sphere under a uniform environment L_e = 1 reflects L = rho_d * L_e (every
     # reflected ray escapes); pixels that miss the sphere see L_e exactly.
     v = furnace
-    v.sliders["rho_d"].set_val(0.5)
+    _set_rgb(v, "rho_d", 0.5)
     assert v.samples == SPP and int(v.accumulation.passes) == 1  # the slider restarted the accumulation
     np.testing.assert_array_equal(v.image, _direct(v.scene, 1)[0])
     for _ in range(7):
@@ -193,7 +218,8 @@ def test_notebook_controls_without_point_lights(furnace):
     from jaxrt.viewer import notebook_controls
 
     _, sliders = notebook_controls(furnace)
-    assert "light_x" not in sliders and "intensity" not in sliders and "rho_d" in sliders
+    assert "light_x" not in sliders and "intensity" not in sliders
+    assert {"rho_d.r", "rho_d.g", "rho_d.b"} <= set(sliders) and "rho_d" not in sliders
     furnace.refine()
     sliders["elevation"].value = 10.0  # a widget change restarts the accumulation
     assert furnace.samples == SPP and furnace.elevation == pytest.approx(10.0)

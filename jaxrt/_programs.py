@@ -88,11 +88,14 @@ def _count(name: str) -> None:
 @functools.cache
 def source_digest() -> str:
     """sha256 over the source files of the `jaxrt`, `brdfs` and `fitting` packages (once per process)."""
-    import importlib
+    import importlib.util
 
     h = hashlib.sha256()
     for pkg in _PACKAGES:
-        root = Path(importlib.import_module(pkg).__file__).parent
+        spec = importlib.util.find_spec(pkg)  # located, not imported (fitting imports optimistix)
+        if spec is None or not spec.submodule_search_locations:
+            continue
+        root = Path(next(iter(spec.submodule_search_locations)))
         for p in sorted(root.rglob("*")):
             if p.suffix in (".py", ".cc", ".h") and "__pycache__" not in p.parts:
                 h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")

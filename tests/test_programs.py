@@ -114,7 +114,7 @@ def test_unserializable_outputs_fall_back_to_jit(cdir):
 
 def test_a_second_process_renders_from_the_stored_frame_program(tmp_path):
     code = """
-    import hashlib, json
+    import hashlib, json, sys
     import jax
     import jaxrt
     from jaxrt import _programs, integrators, scene
@@ -127,7 +127,7 @@ def test_a_second_process_renders_from_the_stored_frame_program(tmp_path):
     sc = scene.load("spheres", overrides={"camera.width": 24, "camera.height": 16})
     img = jax.device_get(jaxrt.render(sc))
     s = _programs.program_stats()
-    print(json.dumps(dict(hits=s.hits, misses=s.misses, traced=len(traced),
+    print(json.dumps(dict(hits=s.hits, misses=s.misses, traced=len(traced), lean="optimistix" not in sys.modules,
                           image=hashlib.sha256(img.tobytes()).hexdigest())))
     """
     d = tmp_path / "cache"
@@ -136,6 +136,7 @@ def test_a_second_process_renders_from_the_stored_frame_program(tmp_path):
     assert (first["misses"], first["hits"]) == (1, 0) and (second["misses"], second["hits"]) == (0, 1)
     assert second["image"] == first["image"] == off["image"]
     assert first["traced"] >= 1 and second["traced"] == 0  # the second process never traced the integrator
+    assert first["lean"] and second["lean"]  # keying the program imports no fitting code (optimistix)
 
 
 def test_ahead_of_time_lowering_returns_the_stored_program(cdir):

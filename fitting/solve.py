@@ -208,13 +208,13 @@ def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: 
 
 
 def _jit(fn: Callable, what: str, shade: Callable, *parts) -> Callable:
-    """`jax.jit(fn)`, with its traced program kept across processes (`jaxrt.cache.cached_jit`) where
+    """`jax.jit(fn)`, with its traced program kept across processes (`jaxrt.programs.cached_jit`) where
     `shade` names itself stably (a `program_key` attribute: the shader factories of `fitting.setup`,
     `fitting.compact` and `fitting.brdf_space`); `parts` are the other values `fn` closes over."""
     key = getattr(shade, "program_key", None)
     if key is None:
         return jax.jit(fn)
-    from jaxrt.cache import cached_jit
+    from jaxrt.programs import cached_jit
 
     return cached_jit(fn, name=f"fitting.solve.{what}[{key}|{'|'.join(map(repr, parts))}]")
 

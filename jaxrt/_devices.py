@@ -143,7 +143,7 @@ def program(devices: tuple[jax.Device, ...], shape: tuple[int, int, int], aovs: 
     `aovs` the AOV dict, each (D, th, tw, ...)), sharded over the devices.
 
     One function object per (devices, tile shape, aovs), so `jax.jit` compiles it once per render
-    plan. (`jaxrt._programs.cached_jit` does not store programs on several devices; this one is
+    plan. (`jaxrt.programs.cached_jit` does not store programs on several devices; this one is
     traced in each process.)
     """
     m = mesh(devices)

@@ -79,8 +79,6 @@ if TYPE_CHECKING:
 
 __all__ = [
     "FORMAT_VERSION",
-    "cached_jit",
-    "program_stats",
     "CacheInfo",
     "CacheStats",
     "CacheWarning",
@@ -655,23 +653,3 @@ def build_bvh(vertices, faces, *, leaf_size: int = 1, builder: str = "lbvh", lay
     static = _from_json_array(a["static"])
     kw = {x.name: (jax.device_put(a[x.name]) if x.name in a else None) for x in fields if not x.metadata.get("static")}
     return _bvh.BVH(**kw, **static)
-
-
-# ---------------------------------------------------------------------------------------------
-# traced programs (`jaxrt._programs`; imported on use: it imports JAX)
-
-
-def cached_jit(fun=None, *, name: str | None = None, static_argnames=()):
-    """`jax.jit` whose traced program is stored in this cache and reused by later processes
-    (`jaxrt._programs.cached_jit`: the key, the fallbacks and the guarantees)."""
-    from jaxrt import _programs
-
-    return _programs.cached_jit(fun, name=name, static_argnames=static_argnames)
-
-
-def program_stats():
-    """This process's stored-program counters (`jaxrt._programs.ProgramStats`)."""
-    from jaxrt import _programs
-
-    return _programs.program_stats()
-

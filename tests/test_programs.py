@@ -1,4 +1,4 @@
-"""`jaxrt._programs.cached_jit`: traced programs stored on disk and reused by later processes.
+"""`jaxrt.programs.cached_jit`: traced programs stored on disk and reused by later processes.
 
 Checked: a stored program gives bit-identical results to `jax.jit`; a new function object (as in a
 new process) reuses it without tracing; every part of the key (static arguments, shapes, dtypes,
@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrt import _programs
+from jaxrt import programs as _programs
 
 from test_cache import _py
 
@@ -117,7 +117,7 @@ def test_a_second_process_renders_from_the_stored_frame_program(tmp_path):
     import hashlib, json, sys
     import jax
     import jaxrt
-    from jaxrt import _programs, integrators, scene
+    from jaxrt import programs as _programs, integrators, scene
     traced = []
     whitted, doc = integrators.REGISTRY["whitted"]
     def counting(*a, **k):  # runs each time the integrator is traced

@@ -21,7 +21,7 @@ from collections.abc import Callable
 
 import jax
 
-from jaxrt._programs import cached_jit
+from jaxrt.programs import cached_jit
 from jaxrt.camera import Window
 from jaxrt.integrators import path, whitted
 from jaxrt.integrators.common import sample_order
@@ -51,7 +51,7 @@ def _tile(scene, window: Window, aovs: bool = False):
 
 
 # One compiled function per (scene structure, aovs); reused across calls.
-# `frame`, `tile` and `shade` keep their traced programs on disk (`jaxrt._programs.cached_jit`): a new
+# `frame`, `tile` and `shade` keep their traced programs on disk (`jaxrt.programs.cached_jit`): a new
 # process with the same scene structure skips tracing as well as compilation.
 frame = cached_jit(_frame, name="integrators.frame", static_argnames=("aovs",))
 #: One tile: `tile(scene, window, aovs=False)` -> the window's share of the image, Σ over the

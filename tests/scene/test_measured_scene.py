@@ -236,3 +236,21 @@ def test_jaxrt_fit_of_an_analytic_model_to_a_measured_render(brdf_data, tmp_path
     assert fit["relative_rmse"] < 0.2, fit["relative_rmse"]
     r, g, b = fit["params"]["rho_s"]
     assert r > g > b, fit["params"]
+
+
+@pytest.mark.slow
+def test_viewer_offers_the_objects_measured_material(brdf_data, tmp_path):
+    from jaxrt.viewer import Viewer
+
+    scene = tmp_path / "gold.toml"
+    scene.write_text(FIT_SCENE)
+    v = Viewer(scene, object="ball", width=12, height=12)
+    assert v.model == "nbrdf" and v.models == brdfs.names() + ("nbrdf",)
+    assert [p.name for p in v.spec] == ["delta"] and set(v.values) == {"delta"}
+    own = v.image.copy()
+    v.set_model("phong")
+    assert not np.allclose(v.image, own)
+    v.set_model("nbrdf")
+    np.testing.assert_array_equal(v.image, own)
+    with pytest.raises(InputError, match="can wear"):
+        v.set_model("merl")

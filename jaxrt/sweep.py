@@ -114,8 +114,9 @@ def substitute(spec, model: str | Model | None, obj: str | None, base_params: Ma
     """A scene spec in which object `obj` can wear any registered model without recompiling.
 
     One material `material_name(m)` is added per registered model m (their stacked tables make every
-    model part of the compiled frame's structure); the object wears `model`'s (default: its own
-    material's model). Which material a face wears is a traced value, so `use_model` switches
+    model part of the compiled frame's structure), and the object's own material where it is a
+    measured one (`model = "measured"`: its data, no parameters); the object wears `model`'s
+    (default: its own material's model). Which material a face wears is a traced value, so `use_model` switches
     models without recompiling.
 
     Args:
@@ -149,6 +150,13 @@ def substitute(spec, model: str | Model | None, obj: str | None, base_params: Ma
             start.update(base_params or {})
         materials[material_name(mm)] = edit.material_spec(material_name(mm), mm, start,
                                                           where=f"{spec.source}: object {obj!r}")
+    if brdfs.is_measured(own.model):
+        # a measured material has no parameters to start another one from: it stays one of the
+        # object's choices as it is (the viewer shows it without parameter sliders)
+        materials[material_name(own.model)] = dataclasses.replace(own, name=material_name(own.model))
+    if material_name(m) not in materials:
+        raise InputError(f"{spec.source}: object {obj!r}: the measured model {m.name} comes with a material's "
+                         f"data; give the object a material with model = \"measured\" in the scene instead")
     spec = edit.wear(spec, obj, materials[material_name(m)], extra=materials)
     if isolate:
         objects = tuple(o for o in spec.objects if o.name == obj or o.primitive == "plane")

@@ -10,7 +10,9 @@ The selected object gets one material per registered model (`jaxrt.sweep.substit
 from the object's own material where parameter names agree, so a model switch is a value change
 (which material the object's faces wear) just like a parameter, light or camera change: the scene
 structure never changes and every update re-runs the one compiled `jaxrt.frame`. Slider
-ranges and log/linear scales come from each model's `Param` declarations; a log-scale parameter's
+ranges and log/linear scales come from each model's `Param` declarations (a measured material,
+`model = "measured"` in the scene, is one more choice when the object wears one: its model,
+"nbrdf" or "merl", has no parameters, so it has no sliders but δ's); a log-scale parameter's
 slider moves over log10(value) and its label shows the value itself. RGB parameters get one slider
 per channel (`rho_d.r`, `rho_d.g`, `rho_d.b`), so moving one keeps the material's colour.
 
@@ -80,8 +82,9 @@ class Viewer:
     Attributes:
         image: (H, W, 3) float32 linear RGB of the current state; frame_time: seconds of the last
             render (of the last pass when progressive).
-        model: current model name; values: {param: value} of the current model (RGB as the channel
-            mean); channels: {RGB param: [r, g, b]}.
+        model: current model name; models: the names the object can switch between (the analytic
+            models, then its own measured model if it wears one); values: {param: value} of the
+            current model (RGB as the channel mean); channels: {RGB param: [r, g, b]}.
         progressive: True for a path-traced scene; accumulation: its `jaxrt.integrators.path.Accumulation`
             (None otherwise); samples: samples per pixel in `image` (settings.spp for Whitted).
     """
@@ -97,6 +100,7 @@ class Viewer:
             "camera.width": width, "camera.height": height, "render.integrator": integrator, "render.spp": spp},
             confine=confine)
         spec, self.object, self.model = _sweep.substitute(spec, None, object, inherit=True)
+        self.models = brdfs.names() + ((self.model,) if brdfs.is_measured(self.model) else ())
         self.scene = _scene.build(spec)
         if frame:
             self.scene = _sweep.frame_object(self.scene, self.object)
@@ -124,7 +128,8 @@ class Viewer:
         mats = self.scene.materials
         i = mats.index(_sweep.material_name(self.model))
         table, row = mats.params[int(mats.model_id[i])], int(mats.row[i])
-        out = {k: float(np.mean(np.asarray(v[row]))) for k, v in table.items()}
+        names = brdfs.get(self.model).param_names  # a measured model's table holds data, not parameters
+        out = {k: float(np.mean(np.asarray(v[row]))) for k, v in table.items() if k in names}
         if not brdfs.get(self.model).delta:
             out["delta"] = float(mats.delta[i])
         return out
@@ -204,8 +209,10 @@ class Viewer:
         self.render()
 
     def set_model(self, name: str) -> None:
-        """Dress the object in model `name` (its own material, kept between switches) and re-render."""
-        brdfs.get(name)
+        """Dress the object in model `name` (one of `models`; its own material, kept between switches)
+        and re-render."""
+        if name not in self.models:
+            raise InputError(f"model {name!r}: the object can wear {', '.join(self.models)}")
         self.model = name
         self.scene = _sweep.use_model(self.scene, self.object, name)
         self._rebuild_param_sliders()
@@ -275,7 +282,7 @@ class Viewer:
             spine.set_linewidth(1.2)
         self._im = self._ax.imshow(self.srgb(), interpolation="nearest")
         self._title = self._ax.set_title(self.status(), fontsize=9)
-        names = brdfs.names()
+        names = self.models
         rax = fig.add_axes((0.62, 0.70, 0.14, 0.26))
         radio = RadioButtons(rax, names, active=names.index(self.model))
         radio.on_clicked(self.set_model)
@@ -413,7 +420,7 @@ def notebook_controls(viewer: Viewer, scale: int = 2):
     def _param_names(d):
         return set(d) - {"model", "light_x", "light_y", "light_z", "intensity", "azimuth", "elevation"}
 
-    sliders["model"] = w.Dropdown(options=list(brdfs.names()), value=viewer.model, description="model")
+    sliders["model"] = w.Dropdown(options=list(viewer.models), value=viewer.model, description="model")
 
     def set_model(name):
         viewer.set_model(name)

@@ -64,7 +64,7 @@ from jaxrt import camera, envmap
 from jaxrt import lights as _lights
 from jaxrt.integrators.common import intersect_active, power_heuristic
 from jaxrt.shading.aovs import build_aovs
-from jaxrt.shading.material import gather_params, glass_split, is_glass
+from jaxrt.shading.material import at_hits, hit_params, glass_split, is_glass
 from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented, to_local
 
 RR_DEPTH = 3
@@ -110,7 +110,7 @@ def _light_classes(scene):
 def _params(mats, s, k: int) -> dict:
     # textured parameters are looked up at the hit's uv where the Surface carries one
     uv = getattr(s, "uv", None)
-    return gather_params(mats, s.material, k) if uv is None else gather_params(mats, s.material, k, uv)
+    return hit_params(mats, s.material, k) if uv is None else hit_params(mats, s.material, k, uv)
 
 
 def _bsdf_models(mats):
@@ -224,10 +224,11 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             f = jnp.zeros(wi_l.shape)
             pdf = jnp.zeros(wi_l.shape[:-1])
             for kk, model in models:
-                p = {n: x.reshape(x.shape[:1] + (1,) * extra_dims + x.shape[1:]) for n, x in params[kk].items()}
+                fk, pk = at_hits(params[kk], lambda p, model=model: (model.eval(p, wi_l, wo_l),
+                                                                   model.pdf(_sg(p), wo_l, wi_l)), extra_dims)
                 m = sel[kk].reshape((-1,) + (1,) * extra_dims)
-                f = jnp.where(m[..., None], model.eval(p, wi_l, wo_l), f)
-                pdf = jnp.where(m, model.pdf(_sg(p), wo_l, wi_l), pdf)
+                f = jnp.where(m[..., None], fk, f)
+                pdf = jnp.where(m, pk, pdf)
             return f, pdf
 
         # ---- next-event estimation: every point light, one continuous-light sample
@@ -298,7 +299,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         wi_s = jnp.zeros((B, 3)).at[:, 2].set(1.0)
         pdf_s = jnp.zeros(B)
         for kk, model in models:
-            wk, _, pk = model.sample(_sg(params[kk]), _sg(wo), u[:, 5:7])
+            wk, _, pk = at_hits(params[kk], lambda p, model=model: model.sample(_sg(p), _sg(wo), u[:, 5:7]))
             wi_s = jnp.where(sel[kk][:, None], wk, wi_s)
             pdf_s = jnp.where(sel[kk], pk, pdf_s)
         f_s, _ = eval_f(wi_s, wo)

@@ -125,10 +125,13 @@ def build(spec: SceneSpec) -> Scene:
             rows[ms.model] = []
         model_id.append(models.index(ms.model))
         row.append(len(rows[ms.model]))
-        rows[ms.model].append(ms.params)
+        # a measured material's spec holds its raw data; the sampler's tables are added here (in JAX)
+        model = brdfs.get(ms.model)
+        rows[ms.model].append(brdfs.measured.complete(model, ms.params) if brdfs.is_measured(model) else ms.params)
         delta.append(ms.delta)
     tables = tuple(
-        {p: _put(np.stack([r[p] for r in rows[mname]])) for p in brdfs.get(mname).param_names}
+        {p: _put(np.stack([np.asarray(r[p]) for r in rows[mname]]))
+         for p in (brdfs.get(mname).param_names or tuple(rows[mname][0]))}
         for mname in models
     )
     texs, bindings = [], []

@@ -42,6 +42,8 @@ from jaxrt.scene.spec import (
 from jaxrt.scene.tables import MAX_APERTURE_RATIO, MAX_MAGNITUDE, MIN_FOCUS_DISTANCE, Names, Table, parse_transform
 
 SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
+#: `model = "measured"` in a material table: a measured BRDF (brdfs.measured) named by `data`
+MEASURED = "measured"
 MAX_RESOLUTION = 16384
 
 
@@ -223,7 +225,10 @@ def parse(
         mc = Table(file, f"materials.{name}", m)
         if not name or not name.isprintable():
             mc.fail(None, f"{name!r}: a material name must be a non-empty name without control characters")
-        model_name = mc.string("model", choices=tuple(brdfs.names()))
+        model_name = mc.string("model", choices=tuple(brdfs.names()) + (MEASURED,))
+        if model_name == MEASURED:
+            materials[name] = parse_measured(mc, name, paths)
+            continue
         model = brdfs.get(model_name)
         if model.delta:
             delta = 0.0
@@ -285,6 +290,33 @@ def parse(
     rc.raw("ray_budget", None)
     rc.done()
     return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances, environment)
+
+
+def parse_measured(mc: Table, name: str, paths: Paths) -> MaterialSpec:
+    """A `model = "measured"` material table: `data` is a measured material's name
+    ("merl/gold-metallic-paint", found through JAXRT_DATA) or a file, relative to the scene's folder
+    or absolute: NAME.h5 (neural-BRDF weights) or NAME.binary (a MERL table); `delta` and `emission`
+    as for other opaque materials. The data are read and checked here (numpy and h5py, no JAX)."""
+    data = mc.string("data")
+    delta = mc.number("delta", DELTA.default, lo=DELTA.lo, hi=DELTA.hi)
+    emission = mc.vector("emission", 3, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
+    mc.done()
+    ref = data
+    if Path(data).suffix:  # a file (a name "COLLECTION/NAME" has no suffix)
+        full = paths.resolve(data)
+        if Path(data).suffix.lower() not in brdfs.measured.SUFFIXES:
+            mc.fail("data", f"{data!r}: measured BRDF files are neural-BRDF weights (.h5) or MERL tables "
+                            "(.binary); or give a material name such as 'merl/gold-metallic-paint'")
+        if (why := paths.refusal(data, full)) is not None:
+            mc.fail("data", why)
+        if not full.is_file():
+            mc.fail("data", _not_a_file(data, full))
+        ref = str(full)
+    try:
+        model, raw = brdfs.measured.read(ref)
+    except InputError as e:
+        mc.fail("data", str(e))
+    return MaterialSpec(name, model.name, raw, delta, emission=emission, data=ref)
 
 
 def _numbers(value, rgb: bool) -> bool:

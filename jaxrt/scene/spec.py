@@ -41,6 +41,9 @@ class MaterialSpec:
     delta: float
     textures: dict = dataclasses.field(default_factory=dict)  # name -> TextureSpec
     emission: tuple = (0.0, 0.0, 0.0)  # RGB radiance [W/(m²·sr)]
+    # a measured material (model "nbrdf" or "merl"): the scene's `data` reference (a material name
+    # or the resolved file), and `params` holds its raw data (brdfs.measured.read)
+    data: str | None = None
 
 
 

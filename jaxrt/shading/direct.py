@@ -22,7 +22,7 @@ from jaxtyping import Array, Bool, Float
 import brdfs
 from jaxrt import envmap
 from jaxrt import lights as _lights
-from jaxrt.shading.material import gather_params
+from jaxrt.shading.material import at_hits, hit_params
 from jaxrt.shading.surface import Surface, dot, local_frame, oriented, to_local
 
 
@@ -77,8 +77,8 @@ def direct_lighting(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Arr
         if model.delta:
             continue
         sel = mats.model_id[s.material] == k
-        p = gather_params(mats, s.material, k, s.uv)
-        f = model.eval({n_: x[:, None] for n_, x in p.items()}, wi_l, wo_l)  # (B, L, 3)
+        p = hit_params(mats, s.material, k, s.uv)
+        f = at_hits(p, lambda q, model=model: model.eval(q, wi_l, wo_l), extra_dims=1)  # (B, L, 3)
         out = jnp.where(sel[:, None], jnp.sum(f * weight, axis=1), out)
     return out
 

@@ -3,16 +3,66 @@
 A scene's materials are grouped by model (`jaxrt.scene.Materials`): per hit, the model is a
 gather of `model_id` and the parameters a gather of that model's table row, so shading a batch of
 hits with several models is one evaluation per model plus a select.
+
+Measured models (`brdfs.is_measured`: a neural BRDF's weights, a MERL table) are the exception:
+their parameter rows are data, kilobytes to megabytes each (a MERL table is 17.5 MB), so gathering
+a row per hit is out of the question. `hit_params` gives them as `MeasuredRows` (the table and each
+hit's row) and `at_hits` evaluates such a model once per row, on every hit, with that row's
+unbatched pytree (which broadcasts against the hits' directions like any parameter pytree), keeping
+each hit's own row: a scene with R measured materials of one model costs R evaluations per hit.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+from typing import NamedTuple
+
+import jax
 from jaxtyping import Array, Bool, Float, Int
 
 import brdfs
 from jaxrt.shading import textures as _tx
 from jaxrt.shading.surface import Surface, from_local, glass_frame, to_local
+
+
+__all__ = [
+    "MeasuredRows", "gather_params", "hit_params", "at_hits", "glass_split", "model_masks", "is_glass",
+    "delta_and_glass", "surface_albedo",
+]
+
+
+class MeasuredRows(NamedTuple):
+    """A measured model's parameters at a batch of hits: `table` its parameter table (name -> (R, ...)),
+    `row` (B,) each hit's row in it (see the module docstring)."""
+
+    table: dict
+    row: Int[Array, "B"]
+
+
+def hit_params(materials, mat: Int[Array, "B"], k: int, uv: Float[Array, "B 2"] | None = None):
+    """Model k's parameters at every slot, for `at_hits`: the gathered pytree (`gather_params`) of an
+    analytic model, `MeasuredRows` of a measured one."""
+    if brdfs.is_measured(materials.models[k]):
+        return MeasuredRows(materials.params[k], jnp.where(materials.model_id[mat] == k, materials.row[mat], 0))
+    return gather_params(materials, mat, k, uv)
+
+
+def at_hits(params, fn, extra_dims: int = 0):
+    """fn(p) for every slot of a batch of hits, p being each slot's parameters (from `hit_params`).
+
+    fn returns a pytree of arrays with the slots' leading dimension B. `extra_dims` inserts that many
+    axes after B in a gathered pytree so that it broadcasts against directions of shape (B, L, 3),
+    say; a measured model's unbatched row broadcasts against them as it is.
+    """
+    if not isinstance(params, MeasuredRows):
+        return fn({n: x.reshape(x.shape[:1] + (1,) * extra_dims + x.shape[1:]) for n, x in params.items()})
+    rows = next(iter(params.table.values())).shape[0]
+    out = fn({n: t[0] for n, t in params.table.items()})
+    for r in range(1, rows):
+        here = params.row == r
+        y = fn({n: t[r] for n, t in params.table.items()})
+        out = jax.tree.map(lambda a, b: jnp.where(here.reshape(here.shape + (1,) * (a.ndim - 1)), a, b), y, out)
+    return out
 
 
 def gather_params(materials, mat: Int[Array, "B"], k: int, uv: Float[Array, "B 2"] | None = None) -> dict:
@@ -78,6 +128,8 @@ def surface_albedo(materials, s: Surface) -> Float[Array, "B 3"]:
     albedo = jnp.zeros(s.p.shape)
     for k, name in enumerate(materials.models):
         sel = materials.model_id[s.material] == k
-        p = gather_params(materials, s.material, k, s.uv)
-        albedo = jnp.where(sel[:, None], brdfs.get(name).diffuse_albedo(p).astype(albedo.dtype), albedo)
+        model = brdfs.get(name)
+        p = hit_params(materials, s.material, k, s.uv)
+        a = at_hits(p, lambda q, model=model: jnp.broadcast_to(model.diffuse_albedo(q), albedo.shape))
+        albedo = jnp.where(sel[:, None], a.astype(albedo.dtype), albedo)
     return albedo

@@ -4,7 +4,7 @@ Radiance (Größler & Zettwitz, "An interactive ray tracing system based on Nvid
 coefficient δ, and on glass with Fresnel reflectance R:
 
     L(x, wo) = δ·L(x, ω_r) + (1 − δ)·Σ_lights f_r(wi, wo)·I·cosθ_i / d² · V(x, light)
-    L(x, wo) = R·L(x, ω_r) + (1 − R)·L(x, ω_t)                 (glass: Schlick R, Snell ω_t)
+    L(x, wo) = R·L(x, ω_r) + (1 − R)·L(x, ω_t)   (glass: Schlick or exact Fresnel R, Snell ω_t)
 
 Rays that escape return the background radiance, or the environment's (`jaxrt.envmap`) if the
 scene has one.

@@ -19,6 +19,7 @@ from jaxrt.scene.build import build, load, object_meshes
 from jaxrt.scene.parse import MAX_RESOLUTION, SCENES_DIR, find_scene, parse
 from jaxrt.scene.spec import (
     DELTA,
+    FRESNEL,
     CameraSpec,
     EnvironmentSpec,
     GroupSpec,
@@ -33,7 +34,7 @@ from jaxrt.scene.tables import Table
 from jaxrt.scene.types import Materials, Scene, Settings, device_bytes
 
 __all__ = [
-    "DELTA", "MAX_RESOLUTION", "SCENES_DIR", "CameraSpec", "EnvironmentSpec", "GroupSpec", "InstanceSpec",
+    "DELTA", "FRESNEL", "MAX_RESOLUTION", "SCENES_DIR", "CameraSpec", "EnvironmentSpec", "GroupSpec", "InstanceSpec",
     "MaterialSpec", "Materials", "ObjectSpec", "RenderSpec", "Scene", "SceneSpec", "Settings", "Table",
     "TextureSpec", "build", "device_bytes", "edit", "find_scene", "load", "object_meshes", "parse",
 ]

@@ -148,6 +148,9 @@ def build(spec: SceneSpec) -> Scene:
         names=mat_names,
         textures=tuple(texs),
         bindings=tuple(bindings),
+        # "" for opaque materials, so that the set of choices in use is static (jaxrt.shading.material)
+        fresnel=tuple(spec.materials[n].fresnel if brdfs.get(spec.materials[n].model).delta else ""
+                      for n in mat_names),
     )
 
     cache: dict = {}

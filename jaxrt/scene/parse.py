@@ -29,6 +29,7 @@ from jaxrt import _config, integrators
 from jaxrt.errors import InputError
 from jaxrt.scene.spec import (
     DELTA,
+    FRESNEL,
     CameraSpec,
     EnvironmentSpec,
     GroupSpec,
@@ -230,9 +231,11 @@ def parse(
             materials[name] = parse_measured(mc, name, paths)
             continue
         model = brdfs.get(model_name)
+        fresnel = FRESNEL[0]
         if model.delta:
             delta = 0.0
             emission = (0.0, 0.0, 0.0)
+            fresnel = mc.string("fresnel", FRESNEL[0], choices=FRESNEL)
         else:
             delta = mc.number("delta", DELTA.default, lo=DELTA.lo, hi=DELTA.hi)
             emission = mc.vector("emission", 3, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True)
@@ -252,7 +255,7 @@ def parse(
             except ValueError as e:
                 mc.fail(p.name, str(e).split(": ", 1)[-1])
         mc.done()
-        materials[name] = MaterialSpec(name, model_name, params, delta, textures, emission=emission)
+        materials[name] = MaterialSpec(name, model_name, params, delta, textures, emission=emission, fresnel=fresnel)
 
     emits = (any(max(i) > 0 for _, i in lights)
              or any(max(m.emission) > 0 for m in materials.values())

@@ -20,6 +20,11 @@ from brdfs.base import Param
 DELTA = Param("delta", 0.0, 0.0, 1.0, doc="mirror reflection coefficient δ: L = δ·L(ω_r) + (1 − δ)·direct")
 
 
+# Fresnel reflectance choices of a glass material (`fresnel = ...` in its scene-file table), default
+# first: Schlick's approximation keeps the images of scenes written before the key existed unchanged.
+FRESNEL = ("schlick", "exact")
+
+
 @dataclasses.dataclass(frozen=True)
 class CameraSpec:
     position: tuple
@@ -44,6 +49,9 @@ class MaterialSpec:
     # a measured material (model "nbrdf" or "merl"): the scene's `data` reference (a material name
     # or the resolved file), and `params` holds its raw data (brdfs.measured.read)
     data: str | None = None
+    # a glass material's Fresnel reflectance (`FRESNEL`): "schlick" (Schlick 1994, the default and
+    # the only choice before scene files could choose) or "exact" (the dielectric Fresnel equations)
+    fresnel: str = "schlick"
 
 
 

@@ -36,6 +36,9 @@ class Materials(eqx.Module):
         delta: (M,) the mirror reflection coefficient δ in [0, 1] (`jaxrt.scene.DELTA`; 0 for glass).
         models: static tuple of `brdfs` model names used by the scene.
         names: static tuple of material names (scene-file keys), index = material id.
+        fresnel: static tuple, per material, of its Fresnel choice (`jaxrt.scene.FRESNEL`;
+            "" for opaque materials); () means Schlick everywhere.
+            Static because it selects code (`brdfs.glass.fresnel`'s `exact`), not values.
     """
 
     params: tuple[dict, ...]
@@ -48,6 +51,7 @@ class Materials(eqx.Module):
     # material row uses which texture is static: bindings[j] = (model index, row, param, texture index).
     textures: tuple = ()
     bindings: tuple[tuple[int, int, str, int], ...] = eqx.field(static=True, default=())
+    fresnel: tuple[str, ...] = eqx.field(static=True, default=())
 
     def index(self, name: str) -> int:
         if name not in self.names:

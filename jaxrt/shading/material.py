@@ -26,7 +26,7 @@ from jaxrt.shading.surface import Surface, from_local, glass_frame, to_local
 
 
 __all__ = [
-    "MeasuredRows", "gather_params", "hit_params", "at_hits", "glass_split", "model_masks", "is_glass",
+    "MeasuredRows", "gather_params", "hit_params", "at_hits", "glass_fresnel", "glass_split", "model_masks", "is_glass",
     "delta_and_glass", "surface_albedo",
 ]
 
@@ -85,6 +85,23 @@ def gather_params(materials, mat: Int[Array, "B"], k: int, uv: Float[Array, "B 2
 
 
 
+def glass_fresnel(materials, mat: Int[Array, "..."], k: int, p, cos_i, entering):
+    """Dielectric reflectance R of glass model k for materials `mat`, with each material's Fresnel
+    choice: Schlick's approximation (C. Schlick, Computer Graphics Forum 13(3), 1994) or the exact
+    unpolarised Fresnel equations (Born & Wolf, *Principles of Optics*, sec. 1.5), `brdfs.glass.fresnel`.
+    When all of a scene's glass materials make one choice (static: `materials.fresnel`) only that one
+    is evaluated, so Schlick-only scenes run the very arithmetic they ran before the choice existed;
+    mixed scenes evaluate both and select per slot."""
+    f = brdfs.get(materials.models[k]).dielectric.fresnel
+    used = {c for c in materials.fresnel if c}  # "" marks opaque materials
+    if used <= {"schlick"}:
+        return f(p, cos_i, entering)
+    if used == {"exact"}:
+        return f(p, cos_i, entering, exact=True)
+    exact = jnp.asarray([c == "exact" for c in materials.fresnel])[mat]
+    return jnp.where(exact, f(p, cos_i, entering, exact=True), f(p, cos_i, entering))
+
+
 def glass_split(materials, s: Surface, d, k: int):
     """(R, reflected dir, transmitted dir, transmission valid) for glass (model k) at every slot."""
     glass = brdfs.get(materials.models[k])
@@ -93,7 +110,7 @@ def glass_split(materials, s: Surface, d, k: int):
     wo = to_local(-d, frame)
     entering = wo[:, 2] > 0
     d_ = glass.dielectric
-    r = d_.fresnel(p, jnp.abs(wo[:, 2]), entering)
+    r = glass_fresnel(materials, s.material, k, p, jnp.abs(wo[:, 2]), entering)
     wt, ok = d_.refract(p, wo)
     wr = d_.reflect(wo)
     return r, from_local(wr, frame), from_local(wt, frame), ok & (r < 1.0)

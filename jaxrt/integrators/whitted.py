@@ -46,7 +46,10 @@ Surfaces
 --------
 Rays leave hit points offset along the geometric normal (`jaxrt.shading.surface`). Surfaces are
 two-sided for opaque materials; glass decides inside/outside from the geometric normal of each hit (no nested
-media: glass inside glass is treated as glass in air). Glass casts opaque shadows (Whitted).
+media: glass inside glass is treated as glass in air). Shadow rays through glass carry its Fresnel
+transmittance, unrefracted (`jaxrt.shading.shadows`; `[render] glass_shadows = "opaque"` restores
+the opaque shadows of Whitted's model); the GBuffer's `visible` is then that transmittance (float)
+and, like visibility, fixed at trace time (no gradient to n_t through shadows).
 """
 
 from __future__ import annotations
@@ -63,11 +66,20 @@ from jaxrt import camera
 from jaxrt import lights as _lights
 from jaxrt.integrators.common import intersect_active, sample_order
 from jaxrt.shading.aovs import build_aovs
+from jaxrt.shading import shadows as _shadows
 from jaxrt.shading.direct import local_radiance
 from jaxrt.shading.material import delta_and_glass, glass_split, is_glass
 from jaxrt.shading.surface import dot, mirror_dir, normalize, offset_scale, oriented
 
 MIRROR, GLASS_R, GLASS_T = 0, 1, 2
+
+
+def transmits(scene) -> bool:
+    """Whether shadow rays carry glass's Fresnel transmittance (static): scenes with glass whose
+    `[render] glass_shadows` is "transmit" (the default). Scenes without glass keep the boolean
+    any-hit shadow test, so their images are the ones they were before glass let light through."""
+    return (getattr(scene.settings, "glass_shadows", "transmit") == "transmit"
+            and any(brdfs.get(m).delta for m in scene.materials.models))
 
 
 class GBuffer(eqx.Module):
@@ -76,7 +88,8 @@ class GBuffer(eqx.Module):
     Arrays are (D, B, ...) for D = max_depth levels of B ray slots (see module docstring).
     active: ray exists; prim: hit face or -1 (escaped); u, v: barycentrics; t: hit distance;
     direction: unit ray direction; parent: slot in the previous level (-1 on level 0);
-    branch: MIRROR / GLASS_R / GLASS_T; pixel: flat pixel index; visible: (D, B, L) shadow rays;
+    branch: MIRROR / GLASS_R / GLASS_T; pixel: flat pixel index; visible: (D, B, L) shadow rays
+    (bool, or the float transmittance where glass transmits: `transmits`);
     weight: path throughput reaching the ray (product of δ, R, 1 − R along its branches) for the
     material values at trace time (`shade` recomputes it from the current values).
     dropped: () number of branches dropped for lack of slots.
@@ -127,6 +140,7 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
     L = scene.lights.count
     # the throughput's dtype follows the scene's values (float64 when a test asks for it)
     wdtype = jnp.result_type(mats.delta.dtype, jnp.float32)
+    glass_shadows = transmits(scene)
 
     order, first = sample_order(th, tw, spp)
     o0, d0 = camera.generate_rays(cam, st.spp, st.seed, window=window)
@@ -147,7 +161,7 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
             u=jnp.zeros((D, B)), v=jnp.zeros((D, B)), t=jnp.zeros((D, B)),
             direction=jnp.zeros((D, B, 3)), parent=jnp.full((D, B), -1, jnp.int32),
             branch=jnp.zeros((D, B), jnp.int32), pixel=jnp.zeros((D, B), jnp.int32),
-            visible=jnp.zeros((D, B, L), bool), weight=jnp.zeros((D, B)), dropped=jnp.zeros((), jnp.int32),
+            visible=jnp.zeros((D, B, L), wdtype if glass_shadows else bool), weight=jnp.zeros((D, B)), dropped=jnp.zeros((), jnp.int32),
         )
     img = jnp.zeros((npix, 3), wdtype) if image else None
     rec = None
@@ -174,10 +188,15 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
         lit = found[:, None] & (dot(wi, ng[:, None, :]) > 0) & ~is_glass(mats, s.material)[:, None]
         so = jnp.broadcast_to(s.p[:, None, :] + ng[:, None, :] * eps[:, None, :], wi.shape)
         smax = jnp.where(lit, dist - 2.0 * eps, -1.0)
-        # from the light: coherent origins (single-level BVH; the two-level one traces forwards)
-        occ = geo.occluded(so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1),
-                        from_end=True).reshape(B, L)
-        visible = lit & ~occ
+        if glass_shadows:
+            # glass lets light through: V is the Fresnel transmittance (jaxrt.shading.shadows)
+            visible = lit * _shadows.transmittance(scene, so.reshape(-1, 3), wi.reshape(-1, 3),
+                                                   smax.reshape(-1)).reshape(B, L)
+        else:
+            # from the light: coherent origins (single-level BVH; the two-level one traces forwards)
+            occ = geo.occluded(so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1),
+                            from_end=True).reshape(B, L)
+            visible = lit & ~occ
         if record:
             buf = GBuffer(
                 active=buf.active.at[k].set(act), prim=buf.prim.at[k].set(prim),

@@ -20,6 +20,7 @@ from jaxrt.scene.parse import MAX_RESOLUTION, SCENES_DIR, find_scene, parse
 from jaxrt.scene.spec import (
     DELTA,
     FRESNEL,
+    GLASS_SHADOWS,
     CameraSpec,
     EnvironmentSpec,
     GroupSpec,
@@ -34,7 +35,7 @@ from jaxrt.scene.tables import Table
 from jaxrt.scene.types import Materials, Scene, Settings, device_bytes
 
 __all__ = [
-    "DELTA", "FRESNEL", "MAX_RESOLUTION", "SCENES_DIR", "CameraSpec", "EnvironmentSpec", "GroupSpec", "InstanceSpec",
+    "DELTA", "FRESNEL", "GLASS_SHADOWS", "MAX_RESOLUTION", "SCENES_DIR", "CameraSpec", "EnvironmentSpec", "GroupSpec", "InstanceSpec",
     "MaterialSpec", "Materials", "ObjectSpec", "RenderSpec", "Scene", "SceneSpec", "Settings", "Table",
     "TextureSpec", "build", "device_bytes", "edit", "find_scene", "load", "object_meshes", "parse",
 ]

@@ -233,6 +233,7 @@ def build(spec: SceneSpec) -> Scene:
         max_depth=r.max_depth,
         spp=r.spp,
         ray_budget=r.ray_budget if r.ray_budget is not None else (2 if has_glass else 1),
+        glass_shadows=r.glass_shadows,
     )
     return Scene(geometry, materials, lights, camera, settings, source=spec.source, area_lights=area_lights,
                  environment=environment)

@@ -30,6 +30,7 @@ from jaxrt.errors import InputError
 from jaxrt.scene.spec import (
     DELTA,
     FRESNEL,
+    GLASS_SHADOWS,
     CameraSpec,
     EnvironmentSpec,
     GroupSpec,
@@ -289,6 +290,7 @@ def parse(
         seed=rc.integer("seed", 0, lo=0, hi=2**31 - 1),
         background=rc.vector("background", 3, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True),
         ray_budget=rc.integer("ray_budget", None, lo=1, hi=8) if "ray_budget" in rc.data else None,
+        glass_shadows=rc.string("glass_shadows", GLASS_SHADOWS[0], choices=GLASS_SHADOWS),
     )
     rc.raw("ray_budget", None)
     rc.done()

@@ -23,6 +23,9 @@ DELTA = Param("delta", 0.0, 0.0, 1.0, doc="mirror reflection coefficient δ: L =
 # Fresnel reflectance choices of a glass material (`fresnel = ...` in its scene-file table), default
 # first: Schlick's approximation keeps the images of scenes written before the key existed unchanged.
 FRESNEL = ("schlick", "exact")
+# Whitted shadow rays through glass (`[render] glass_shadows`), default first: "transmit" carries the
+# Fresnel transmittance of the glass crossed (it cannot change scenes without glass), "opaque" blocks.
+GLASS_SHADOWS = ("transmit", "opaque")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +93,7 @@ class RenderSpec:
     seed: int
     background: tuple
     ray_budget: int | None
+    glass_shadows: str = "transmit"  # GLASS_SHADOWS
 
 
 

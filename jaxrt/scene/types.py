@@ -69,6 +69,8 @@ class Settings(eqx.Module):
     max_depth: int = eqx.field(static=True)
     spp: int = eqx.field(static=True)
     ray_budget: int = eqx.field(static=True)
+    # Whitted shadow rays through glass (`jaxrt.shading.shadows`): "transmit" or "opaque"
+    glass_shadows: str = eqx.field(static=True, default="transmit")
 
 
 

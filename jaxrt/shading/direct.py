@@ -51,7 +51,8 @@ def direct_terms(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Array,
 
     Returns:
         wi: (B, L, 3) local-frame directions to the lights; wo: (B, 1, 3) local direction to the
-        viewer; light: (B, L, 3) cosθ_i·I/d²·V per light (0 behind the geometric surface or shadowed).
+        viewer; light: (B, L, 3) cosθ_i·I/d²·V per light (0 behind the geometric surface or shadowed;
+        `visible` is bool, or a float transmittance V in [0, 1]).
         Σ_l f(wi, wo)·light is the direct term of the Whitted model above, without its (1 − δ).
     """
     ng, ns, _ = oriented(s, d)
@@ -61,7 +62,10 @@ def direct_terms(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Array,
     wi_l = to_local(wi, tuple(x[:, None, :] for x in frame))
     cos = jnp.maximum(wi_l[..., 2], 0.0)
     above = dot(wi, ng[:, None, :]) > 0
-    light = jnp.where(visible & above, cos, 0.0)[..., None] * scale
+    if visible.dtype == bool:
+        light = jnp.where(visible & above, cos, 0.0)[..., None] * scale
+    else:  # a transmittance in [0, 1] (shadow rays through glass: jaxrt.shading.shadows)
+        light = jnp.where(above, visible * cos, 0.0)[..., None] * scale
     return wi_l, wo_l, light
 
 

@@ -142,7 +142,10 @@ def tile_cost(scene, aovs: bool = False) -> tuple[int, int]:
     about ray_budget·(260 + 155·L) for L point lights (each slot carries its ray, two candidate
     children and L shadow rays); path tracing 389 (cornell_area) to 942 (showcase with AOVs), about
     400 + 250·L, 462 with furnace's environment light, and 37 to 170 more with AOVs (first-hit
-    records). Per pixel: at most 25, 75 with AOVs. The constants below are those fits with a margin
+    records). Whitted shadow rays that cross glass (`jaxrt.shading.shadows`, scenes with glass) add
+    about 150 per ray-budget slot and point light (a scene with glass, ray_budget 2 and two lights:
+    1450-1490 against 860-910 with opaque glass shadows). Per pixel: at most 25, 75 with AOVs. The
+    constants below are those fits with a margin
     (every measurement is 10 to 95 % under its bound); `compile_plan` checks the compiled program
     against the budget, so a scene the fit does not cover still cannot overrun it.
     """
@@ -150,12 +153,13 @@ def tile_cost(scene, aovs: bool = False) -> tuple[int, int]:
     if scene.settings.integrator == "path":
         per_sample = _P0 + _P1 * L + (_P_AOV if aovs else 0)
     else:
-        per_sample = scene.settings.ray_budget * (_W0 + _W1 * L)
+        glass = _W_GLASS * L if integrators.whitted.transmits(scene) else 0
+        per_sample = scene.settings.ray_budget * (_W0 + _W1 * L + glass)
     return int(per_sample), int(_PIX + (_PIX_AOV if aovs else 0))
 
 
 # the constants of `tile_cost` [bytes]; see its docstring
-_W0, _W1 = 300, 180
+_W0, _W1, _W_GLASS = 300, 180, 250
 _P0, _P1, _P_AOV = 520, 290, 48
 _PIX, _PIX_AOV = 32, 64
 

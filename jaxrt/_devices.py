@@ -41,8 +41,8 @@ from jaxrt import integrators
 from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
-__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "mesh", "parse", "program", "replicate", "round_arrays", "select",
-           "sharded"]
+__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "mesh", "pad_rows", "padded", "parse", "program",
+           "put_each", "replicate", "round_arrays", "select", "sharded"]
 
 AXIS = "devices"
 # A render on several devices is split into at least max(MIN_TILES, TILES_PER_DEVICE·D) tiles, so
@@ -163,3 +163,67 @@ def round_arrays(steps: Sequence, n: int) -> tuple[Int[np.ndarray, "D 2"], Int[n
     samples = np.array([s[2] for s in steps] + [(steps[-1][2][0], 0)] * pad, np.int32)
     return origins, samples
 
+
+
+# ---- whole independent problems (fits) split over the devices -------------------------------------------
+
+
+def padded(n: int, devices: Sequence[jax.Device]) -> int:
+    """`n` rounded up to a multiple of the device count: the batch length a sharded call takes."""
+    d = max(1, len(devices))
+    return -(-int(n) // d) * d
+
+
+def pad_rows(tree, n: int):
+    """Every leaf of `tree` (leading axis m ≤ n) padded to n rows with copies of its last row, so that a
+    batch split over devices has one shape on every call; the caller drops the padded rows' results."""
+    def pad(x):
+        x = np.asarray(x)
+        m = x.shape[0]
+        return x if m == n else np.concatenate([x, np.repeat(x[-1:], n - m, axis=0)])
+
+    return jax.tree.map(pad, tree)
+
+
+def put_each(tree, devices: Sequence[jax.Device]) -> list:
+    """One copy of `tree` on each of `devices` (the replicated arguments of `batched`), in device order."""
+    return [jax.device_put(tree, d) for d in devices]
+
+
+@functools.lru_cache(maxsize=64)
+def _jitted(fn):
+    return jax.jit(fn)
+
+
+def batched(fn, devices: Sequence[jax.Device], split: tuple[bool, ...], *args, replicated: Sequence | None = None):
+    """``fn(*args)`` for a batch of independent problems (`fn` vmapped over the leading axis, e.g. a
+    batch of least-squares solves), the batch split over `devices`: positional argument i is split
+    along its leading axis where ``split[i]`` (every leaf of that pytree), else the same for every
+    device. Returns the outputs as numpy arrays, the devices' rows concatenated back in order.
+
+    Each device runs the one-device program (`jax.jit(fn)`) on its own rows, dispatched
+    asynchronously one device after another, so the devices run at once, each with its own while
+    loops that stop when its own lanes have converged, and nothing communicates. (A `shard_map` of
+    an optimistix solve does not trace in this JAX: lineax compares the shapes of a linear
+    operator's input and output, and inside a manual mesh one side carries the mesh's sharding and
+    the other not, "Incompatible linear operator structures"; with the replication check on,
+    linearize meets tangents that are not marked as varying over the mesh.) The leading axis must be
+    a multiple of the device count (`padded`, `pad_rows`). `replicated`: `put_each` of the
+    non-split arguments (in order), to move them once for many calls.
+    """
+    n = len(devices)
+    run = _jitted(fn)
+    rows = {i: jax.tree.leaves(a)[0].shape[0] for i, a in enumerate(args) if split[i]}
+    total = next(iter(rows.values()))
+    if any(r != total for r in rows.values()) or total % n:
+        raise ValueError(f"split arguments of {total} rows for {n} devices: give a multiple of the device count")
+    k = total // n
+    shared = [a for i, a in enumerate(args) if not split[i]]
+    copies = replicated if replicated is not None else put_each(shared, devices)
+    outs = []
+    for j, d in enumerate(devices):
+        it = iter(copies[j])
+        call = [jax.device_put(jax.tree.map(lambda x: np.asarray(x)[j * k:(j + 1) * k], a), d) if split[i]
+                else next(it) for i, a in enumerate(args)]
+        outs.append(run(*call))  # asynchronous: the next device starts while this one computes
+    return jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *outs)

@@ -37,12 +37,12 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Int
 
-from jaxrt import integrators
+from jaxrt import _config, integrators
 from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
-__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "mesh", "pad_rows", "padded", "parse", "program",
-           "put_each", "replicate", "round_arrays", "select", "sharded"]
+__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "gather", "initialize", "local", "mesh", "pad_rows",
+           "padded", "parse", "program", "put_each", "put_rows", "replicate", "round_arrays", "select", "sharded"]
 
 AXIS = "devices"
 # A render on several devices is split into at least max(MIN_TILES, TILES_PER_DEVICE·D) tiles, so
@@ -109,6 +109,46 @@ def select(devices: Any = None, label: str = "devices=") -> tuple[jax.Device, ..
     return chosen
 
 
+def initialize(environ=None) -> bool:
+    """Join a run over several hosts when JAXRT_COORDINATOR is set (`jaxrt._config`): one process per
+    host calls `jax.distributed.initialize` with the coordinator's host:port, the process count and
+    this process's id, after which `jax.devices()` lists every host's devices and the same code
+    splits its work over all of them (each process passes the same arguments; the results are
+    gathered to every process, and only process 0 writes files, `jaxrt.fsutil`). Must run before
+    anything else asks JAX for its devices; the CLI calls it first. Returns whether it joined one;
+    a second call is a no-op."""
+    cfg = _config.config(environ)
+    if cfg.coordinator is None:
+        return False
+    if not jax.distributed.is_initialized():
+        jax.distributed.initialize(coordinator_address=cfg.coordinator, num_processes=cfg.process_count,
+                                   process_id=cfg.process_id)
+    return True
+
+
+def local(devices: Sequence[jax.Device]) -> list[jax.Device]:
+    """The devices of `devices` that this process drives (all of them on one host)."""
+    me = jax.process_index()
+    return [d for d in devices if d.process_index == me]
+
+
+def put_rows(x: np.ndarray, devices: Sequence[jax.Device]) -> jax.Array:
+    """A host array (the same on every process) split along its leading axis over a mesh of
+    `devices`, each process placing only its own devices' rows (works across hosts)."""
+    x = np.asarray(x)
+    return jax.make_array_from_callback(x.shape, NamedSharding(mesh(devices), PartitionSpec(AXIS)), lambda i: x[i])
+
+
+def gather(tree):
+    """Every leaf of `tree` (arrays split over a mesh, maybe over several hosts) as a whole numpy
+    array on this process: a plain transfer on one host, `process_allgather` across hosts."""
+    if jax.process_count() == 1:
+        return jax.tree.map(np.asarray, tree)
+    from jax.experimental import multihost_utils
+
+    return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
+
+
 def sharded(devices: Sequence[jax.Device]) -> bool:
     """Whether a render on `devices` takes the sharded path: several devices, or one that is not the
     default device (the one-device renderer runs on the default device)."""
@@ -121,8 +161,13 @@ def mesh(devices: Sequence[jax.Device]) -> Mesh:
 
 
 def replicate(tree, devices: Sequence[jax.Device]):
-    """`tree` (a scene) with every array on every device of `devices`."""
-    return jax.device_put(tree, NamedSharding(mesh(devices), PartitionSpec()))
+    """`tree` (a scene) with every array on every device of `devices` (across hosts, each process
+    places its own devices' copies of its own, equal, values)."""
+    sharding = NamedSharding(mesh(devices), PartitionSpec())
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sharding)
+    return jax.tree.map(lambda x: jax.make_array_from_callback(np.shape(x), sharding, lambda i: np.asarray(x)[i])
+                        if isinstance(x, (jax.Array, np.ndarray)) else x, tree)
 
 
 def _device_tile(scene, origin, samples, *, shape, aovs: bool):
@@ -164,7 +209,6 @@ def round_arrays(steps: Sequence, n: int) -> tuple[Int[np.ndarray, "D 2"], Int[n
     return origins, samples
 
 
-
 # ---- whole independent problems (fits) split over the devices -------------------------------------------
 
 
@@ -186,8 +230,9 @@ def pad_rows(tree, n: int):
 
 
 def put_each(tree, devices: Sequence[jax.Device]) -> list:
-    """One copy of `tree` on each of `devices` (the replicated arguments of `batched`), in device order."""
-    return [jax.device_put(tree, d) for d in devices]
+    """One copy of `tree` on each of `devices` that this process drives (the replicated arguments of
+    `batched`), in device order."""
+    return [jax.device_put(tree, d) for d in local(devices)]
 
 
 @functools.lru_cache(maxsize=64)
@@ -218,12 +263,27 @@ def batched(fn, devices: Sequence[jax.Device], split: tuple[bool, ...], *args, r
     if any(r != total for r in rows.values()) or total % n:
         raise ValueError(f"split arguments of {total} rows for {n} devices: give a multiple of the device count")
     k = total // n
+    mine = [j for j, d in enumerate(devices) if d.process_index == jax.process_index()]
     shared = [a for i, a in enumerate(args) if not split[i]]
-    copies = replicated if replicated is not None else put_each(shared, devices)
+    copies = replicated if replicated is not None else put_each(shared, [devices[j] for j in mine])
     outs = []
-    for j, d in enumerate(devices):
-        it = iter(copies[j])
-        call = [jax.device_put(jax.tree.map(lambda x: np.asarray(x)[j * k:(j + 1) * k], a), d) if split[i]
+    for c, j in enumerate(mine):
+        it = iter(copies[c])
+        call = [jax.device_put(jax.tree.map(lambda x: np.asarray(x)[j * k:(j + 1) * k], a), devices[j]) if split[i]
                 else next(it) for i, a in enumerate(args)]
         outs.append(run(*call))  # asynchronous: the next device starts while this one computes
-    return jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *outs)
+    out = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *outs)
+    if jax.process_count() == 1:
+        return out
+    # several hosts: every process computed its own devices' rows; each gets all of them, in device order
+    from jax.experimental import multihost_utils
+
+    every = multihost_utils.process_allgather(out)  # (processes, own rows, ...)
+    owner = [[j for j, d in enumerate(devices) if d.process_index == p] for p in range(jax.process_count())]
+    order = np.argsort([j for js in owner for j in js], kind="stable")
+
+    def place(x):
+        parts = [x[p, c * k:(c + 1) * k] for p, js in enumerate(owner) for c in range(len(js))]
+        return np.concatenate([parts[i] for i in order])
+
+    return jax.tree.map(lambda x: place(np.asarray(x)), every)

@@ -266,7 +266,8 @@ def _resolve_budget(memory, scene, devices=()) -> tuple[int, str]:
         if env is not None:
             return env, "JAXRT_MEMORY"
         if len(devices) > 1 and not _on_cpu(devices):  # per device: the one with the least free memory
-            return min((default_budget(d, scene) for d in devices), key=lambda b: b[0])
+            # (of this process's devices: another host's allocator cannot be asked from here)
+            return min((default_budget(d, scene) for d in _devices.local(devices)), key=lambda b: b[0])
         return default_budget(devices[0] if devices else None, scene=scene)
     if isinstance(memory, str):
         b = _config.parse_size(memory, "memory")
@@ -355,7 +356,7 @@ def _window(shape, origin, samples) -> Window:
 
 def _compile_tile(scene, p: Plan, aovs: bool):
     if p.devices:  # the sharded program: its memory analysis is that of one device's share
-        zeros = np.zeros((len(p.devices), 2), np.int32)
+        zeros = _devices.put_rows(np.zeros((len(p.devices), 2), np.int32), p.devices)
         return _devices.program(p.devices, p.shape, aovs).lower(scene, zeros, zeros).compile()
     return integrators.tile.lower(scene, _window(p.shape, (0, 0), (0, p.shape[2])), aovs=aovs).compile()
 
@@ -493,11 +494,10 @@ def _render_tiles(scene, p: Plan, aovs, bar, should_stop, where):
             out = integrators.tile(scene, _window(p.shape, (r0, c0), (s0, count)), aovs=aovs)
             parts = [out if aovs else (out, None)]
         else:
-            out = run(scene, *_devices.round_arrays(steps, n))
-            # the one gather of this call's tiles: each device's shard comes to the host
-            img_d, aov_d = out if aovs else (out, None)
-            img_d = np.asarray(img_d)
-            aov_d = {key: np.asarray(v) for key, v in aov_d.items()} if aovs else None
+            out = run(scene, *(_devices.put_rows(a, p.devices) for a in _devices.round_arrays(steps, n)))
+            # the one gather of this call's tiles: each device's shard comes to the host (to every
+            # host's, when the devices span several)
+            img_d, aov_d = _devices.gather(out if aovs else (out, None))
             parts = [(img_d[j], {key: v[j] for key, v in aov_d.items()} if aovs else None)
                      for j in range(len(steps))]
         for ((r, c), (r0, c0), (s0, _)), (part, part_aov) in zip(steps, parts):

@@ -65,7 +65,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     debug = False
     try:
-        debug = _config.config().debug
+        cfg = _config.config()
+        debug = cfg.debug
+        if cfg.coordinator is not None:  # several hosts: join them before anything asks JAX for devices
+            from jaxrt import _devices
+
+            _devices.initialize()
         return int(args._run(args) or 0)
     except (InputError, ValueError, FileNotFoundError) as e:
         if debug:

@@ -42,7 +42,7 @@ from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
 __all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "gather", "initialize", "local", "mesh", "pad_rows",
-           "padded", "parse", "program", "put_each", "put_rows", "replicate", "round_arrays", "select", "sharded"]
+           "padded", "parse", "pass_program", "program", "put_each", "put_rows", "replicate", "round_arrays", "select", "sharded"]
 
 AXIS = "devices"
 # A render on several devices is split into at least max(MIN_TILES, TILES_PER_DEVICE·D) tiles, so
@@ -178,6 +178,29 @@ def _device_tile(scene, origin, samples, *, shape, aovs: bool):
     window = Window(o[0], o[1], s[0], s[1], th, tw, sb)
     out = integrators.REGISTRY[scene.settings.integrator][0](scene, aovs=aovs, window=window)
     return jax.tree.map(lambda x: jax.lax.expand_dims(x, [0]), out)
+
+
+def _device_pass(scene, origin, samples, pass_index, *, shape):
+    # one device's tile of progressive path-tracing pass `pass_index` (jittered, as
+    # `integrators.path.accumulate`): the pass's random stream, the tile's pixels and samples
+    th, tw, sb = shape
+    o, s = jax.lax.squeeze(origin, [0]), jax.lax.squeeze(samples, [0])
+    window = Window(o[0], o[1], s[0], s[1], th, tw, sb)
+    out = integrators.path.render(scene, pass_index, jitter=True, window=window)
+    return jax.lax.expand_dims(out, [0])
+
+
+@functools.lru_cache(maxsize=32)
+def pass_program(devices: tuple[jax.Device, ...], shape: tuple[int, int, int]):
+    """`program` for one pass of progressive path tracing: ``f(scene, origins, samples, pass_index)``,
+    the pass index a replicated int32 scalar (traced: one compilation for every pass); returns each
+    device's tile of that pass, (D, th, tw, 3), Σ over the tile's samples / spp."""
+    m = mesh(devices)
+    rows, rep = PartitionSpec(AXIS), PartitionSpec()
+    body = functools.partial(_device_pass, shape=shape)
+    smap = _shard_map(body, mesh=m, in_specs=(rep, rows, rows, rep), out_specs=rows, **_UNCHECKED)
+    r, split = NamedSharding(m, rep), NamedSharding(m, rows)
+    return jax.jit(smap, in_shardings=(r, split, split, r), out_shardings=split)
 
 
 @functools.lru_cache(maxsize=32)

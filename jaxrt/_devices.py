@@ -1,4 +1,5 @@
-"""Several devices of one host for one render: the device choice, the mesh and the sharded tile program.
+"""Several devices, and several hosts, for one job: the device choice, the mesh, the sharded tile
+programs of renders and progressive passes, batches of fits split over devices, and joining hosts.
 
 `jaxrt.render_tiles` renders an image as independent tiles (`camera.Window`: a rectangle of pixels
 and a run of their samples, its origin traced, its extents static). On a mesh of D devices the same
@@ -24,6 +25,27 @@ does not depend on D, so renders on any D ≥ 2 devices are equal to each other 
 wherever the tile shape is the same, which it is up to MIN_TILES / TILES_PER_DEVICE = 8 devices
 unless the memory budget shrinks the tiles (on a CPU the budget is split between the devices).
 A mesh of one device compiles the one-device module and equals `integrators.tile` bit for bit.
+Progressive path-tracing passes (`pass_program`, `jaxrt.render_tiles.accumulate`) are the same tiles
+with the pass index a traced, replicated scalar.
+
+Fits
+----
+A batch of independent least-squares problems (the starts of one fit, one model's fits to several
+targets, the study's materials) is split by rows over the devices (`batched`): each device runs the
+one-device, vmapped program on its rows, with its own while loops, and nothing is exchanged until
+the rows are gathered. This is `shard_map`'s model without `shard_map`, which optimistix's solvers
+do not survive in this JAX (see `batched`); for the same reason one fit's residuals are not split
+over devices with the Jacobian products summed by a collective: that would need the solver's linear
+solves to run inside the manual mesh.
+
+Several hosts
+-------------
+With JAXRT_COORDINATOR, JAXRT_PROCESS_COUNT and JAXRT_PROCESS_ID (`jaxrt._config`), `initialize`
+joins the processes (one per host) through `jax.distributed`; `jax.devices()` then lists every
+host's devices and the code above runs unchanged: host arrays are placed with
+`jax.make_array_from_callback` (each process its own devices' rows, `put_rows`, `replicate`),
+results are gathered to every process (`gather`, and `batched` gathers its rows with
+`process_allgather`), and `jaxrt.fsutil` lets process 0 alone write files.
 """
 
 from __future__ import annotations

@@ -238,6 +238,8 @@ def fit(
     overrides: Sequence[Mapping[str, Any] | None] | None = None,
     mask: Float[Array, "K H W"] | None = None,
     setup: Setup | None = None,
+    devices: Any = None,
+    split: str = "starts",
     **solver_options,
 ) -> tuple[FitResult, Setup]:
     """Recover `model`'s parameters for `object`'s material from target images.
@@ -248,6 +250,14 @@ def fit(
             negative beyond noise and at most MAX_TARGET (`check_targets`).
         mask: optional (K, H, W) weights multiplied into the default mask (the material's pixels).
         setup: a `prepare` result to reuse (skips building and tracing).
+        devices: None (default) or 1: the default device; an int N, "all" or a list of
+            `jax.devices()`: the fit is split over those devices as `split` says.
+        split: "starts" (default): the starts run at once, split over the devices
+            (`fitting.solve.fit_images`); "nodes": the starts run one after another and each
+            residual evaluation is split: every device shades its share of the fit buffer's nodes and
+            a `psum` adds the partial images (`fitting.compact.split_shader`), so the solver's
+            Jacobian products are summed over the devices by that collective and its iterates equal
+            the one-device fit's up to the order of the sum.
         **solver_options: fix, init, rgb, solver, starts, max_steps, rtol, atol, progress
             (see `fitting.solve.fit_images`).
 
@@ -263,8 +273,17 @@ def fit(
         raise InputError(f"targets have shape {targets.shape}; the scene renders {expect} (K, H, W, RGB)")
     check_targets(targets)
     m = setup.mask if mask is None else setup.mask * np.asarray(mask, np.float32)
-    result = fit_images(compact.shader(setup.model.name), setup.fitbuffer, targets, setup.model, mask=m,
-                        **solver_options)
+    if split not in ("starts", "nodes"):
+        raise InputError(f"split={split!r}: must be 'starts' or 'nodes'")
+    from fitting.solve import fit_devices
+
+    devs = fit_devices(devices)
+    if split == "nodes" and devs:
+        result = fit_images(compact.split_shader(setup.model.name, devs), compact.split(setup.fitbuffer, devs),
+                            targets, setup.model, mask=m, **solver_options)
+    else:
+        result = fit_images(compact.shader(setup.model.name), setup.fitbuffer, targets, setup.model, mask=m,
+                            devices=devs or None, **solver_options)
     return result, setup
 
 

@@ -64,7 +64,8 @@ from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
 __all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "gather", "initialize", "local", "mesh", "pad_rows",
-           "padded", "parse", "pass_program", "program", "put_each", "put_rows", "replicate", "round_arrays", "select", "sharded"]
+           "padded", "parse", "pass_program", "program", "put_each", "put_rows", "replicate",
+           "round_arrays", "select", "shard_map", "sharded"]
 
 AXIS = "devices"
 # A render on several devices is split into at least max(MIN_TILES, TILES_PER_DEVICE·D) tiles, so
@@ -81,6 +82,12 @@ except AttributeError:  # pragma: no cover - older JAX
     from jax.experimental.shard_map import shard_map as _shard_map
 
     _UNCHECKED = {"check_rep": False}
+
+
+def shard_map(f, *, mesh: Mesh, in_specs, out_specs):
+    """`jax.shard_map` of this JAX (the experimental one of older versions), without the replication
+    check (bodies here either use no collective or end in a `psum`)."""
+    return _shard_map(f, mesh=mesh, in_specs=in_specs, out_specs=out_specs, **_UNCHECKED)
 
 
 def _what(label: str, value: Any) -> str:

@@ -90,6 +90,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--demo", action="store_true",
                         help="render targets of the default scene with hidden parameters and fit "
                              f"{', '.join(DEMO_MODELS)}")
+    parser.add_argument("--split", choices=("starts", "nodes"), default="starts",
+                        help="with several devices: run the starts at once, split over them (starts, default), "
+                             "or split each residual evaluation's nodes over them (nodes)")
     add_common_options(parser)
 
 
@@ -210,6 +213,7 @@ def run(args: argparse.Namespace) -> int:
     result, setup = fit_setup.fit(
         None, np.stack(targets), model, setup=setup, fix=fix, init=init, rgb=not args.grey, solver=args.solver,
         starts=args.starts, max_steps=args.max_steps, progress=not args.quiet, devices=args.devices,
+        split=args.split,
     )
     print(f"object {setup.object!r}, {int(setup.mask.sum())} pixels")
     print(report.format_result(result))

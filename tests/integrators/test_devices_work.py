@@ -239,12 +239,16 @@ target = np.asarray(fs.render_with(setups["lambert"], setups["lambert"].model.pa
 r1, _ = fs.fit(None, target, "phong", setup=s, starts=5, max_steps=60, progress=False)
 r4, _ = fs.fit(None, target, "phong", setup=s, starts=5, max_steps=60, progress=False, devices=4)
 out["starts"] = [r.to_json() for r in (r1, r4)]
+
+# one fit's nodes split over 3 devices (padded with weight-0 nodes), the partial images added by a psum
+rn, _ = fs.fit(None, target, "phong", setup=s, starts=5, max_steps=60, progress=False, devices=3, split="nodes")
+out["nodes"] = dict(fit=rn.to_json(), nodes=int(s.fitbuffer.pixel.shape[0]))
 print(json.dumps(out))
 """
 
 
 @pytest.mark.slow  # ~3 min on 2 cores: each solver and Jacobian program compiles once per device on a CPU
-def test_fits_study_and_fit_matrix_on_devices_equal_one_device(brdf_data):
+def test_fits_study_fit_matrix_and_split_nodes_on_devices_equal_one_device(brdf_data):
     out = _run(_FITS)
     st = out["study"]
     assert st["devices"] == [1, 4] and st["batch"] == 3  # 1 material per device and call on a CPU, 3 < 4 devices
@@ -264,6 +268,13 @@ def test_fits_study_and_fit_matrix_on_devices_equal_one_device(brdf_data):
     for k, v in f1["params"].items():
         np.testing.assert_allclose(f4["params"][k], v, rtol=1e-4, err_msg=k)
     assert f4["rmse"] == pytest.approx(f1["rmse"], rel=1e-3)
+    fn = out["nodes"]["fit"]
+    assert out["nodes"]["nodes"] % 3  # the nodes do not split evenly: padded
+    # the same iterates up to the summation order of the psum: the same step counts and parameters
+    assert fn["iterations"] == f1["iterations"] and fn["total_iterations"] == f1["total_iterations"]
+    for k, v in f1["params"].items():
+        np.testing.assert_allclose(fn["params"][k], v, rtol=1e-4, err_msg=k)
+    assert fn["rmse"] == pytest.approx(f1["rmse"], rel=1e-3)
 
 
 # ---- two processes on this host with jax.distributed (slow) ---------------------------------------------------

@@ -348,7 +348,7 @@ def fit_images(
             padded to a multiple of N with copies of the last start, whose results are dropped).
             Each start's solve is the same arithmetic either way, so the result equals the
             one-device fit up to the rounding of a differently compiled program (see
-            `tests/integrators/test_devices.py` for the tolerance).
+            `tests/integrators/test_devices_work.py` for the tolerance).
 
     Returns: FitResult with the best start's parameters, standard errors, error metrics and the
     parameters that end at a bound of their declared range (`at_bound`).

@@ -12,7 +12,10 @@ costs computes the wall time of the calls under two assignments:
 - interleaved (what `render_tiles` does): call c renders steps c·N … c·N + N − 1, so each device's
   tiles are spread over the image and the tiles of one call are neighbours of similar cost;
 - blocks: device d renders the d-th contiguous run of T/N steps (call c: steps d·T/N + c), so one
-  device may get all the glass or all the sky.
+  device may get all the glass or all the sky;
+- sorted (a bound, not implemented): the tiles ordered by their measured cost, then taken N at a
+  time, which minimises the sum over calls of the slowest tile; what a perfect cost estimate (say
+  from a previous pass) could give.
 
 It prints, per N, the ideal Σ cost / N, each assignment's Σ over calls of the slowest tile, and the
 efficiency ideal / actual. Tile costs come from one device, so the figures describe the assignment,
@@ -64,7 +67,9 @@ def makespan(cost: np.ndarray, n: int, order: str) -> float:
     t = len(cost)
     calls = -(-t // n)
     pad = np.concatenate([cost, np.zeros(calls * n - t)])
-    if order == "interleaved":
+    if order == "sorted":
+        pad = np.sort(pad)[::-1]
+    if order in ("interleaved", "sorted"):
         per_call = pad.reshape(calls, n)  # row c: steps c·n … c·n + n − 1
     else:
         per_call = pad.reshape(n, calls).T  # column d: device d's contiguous run
@@ -96,10 +101,11 @@ def main() -> None:
             costs[p.shape] = tile_costs(sc, p, a.repeats)
         c = costs[p.shape]
         ideal = c.sum() / n
-        inter, block = makespan(c, n, "interleaved"), makespan(c, n, "blocks")
+        inter, block, best = (makespan(c, n, o) for o in ("interleaved", "blocks", "sorted"))
         print(f"N={n}: {p.tiles} tiles, tile cost ms min/median/max {1e3 * c.min():.1f}/{1e3 * np.median(c):.1f}/"
               f"{1e3 * c.max():.1f}; ideal {1e3 * ideal:.0f} ms, interleaved {1e3 * inter:.0f} ms "
-              f"({ideal / inter:.0%}), blocks {1e3 * block:.0f} ms ({ideal / block:.0%})")
+              f"({ideal / inter:.0%}), blocks {1e3 * block:.0f} ms ({ideal / block:.0%}), sorted {1e3 * best:.0f} ms "
+              f"({ideal / best:.0%})")
 
 
 if __name__ == "__main__":

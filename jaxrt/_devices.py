@@ -144,8 +144,10 @@ def initialize(environ=None) -> bool:
     this process's id, after which `jax.devices()` lists every host's devices and the same code
     splits its work over all of them (each process passes the same arguments; the results are
     gathered to every process, and only process 0 writes files, `jaxrt.fsutil`). Must run before
-    anything else asks JAX for its devices; the CLI calls it first. Returns whether it joined one;
-    a second call is a no-op."""
+    anything else asks JAX for its devices; the CLI calls it first (in Python: `jaxrt.join_hosts`).
+    Every process should drive the same number of devices (results are gathered with
+    `process_allgather`, which needs equal shares). Returns whether it joined a run over several
+    hosts; a second call is a no-op."""
     cfg = _config.config(environ)
     if cfg.coordinator is None:
         return False

@@ -292,9 +292,10 @@ _HOST = r"""
 import json, sys
 import numpy as np
 import jax
-from jaxrt import _devices, cli
+import jaxrt
+from jaxrt import cli
 
-joined = _devices.initialize()
+joined = jaxrt.join_hosts()
 pid = jax.process_index()
 rc = cli.main(["render", "spheres", "--width", "40", "--height", "30", "-q", "-o", sys.argv[1] + f"/p{pid}.exr"])
 print(json.dumps(dict(joined=joined, rc=rc, processes=jax.process_count(), devices=len(jax.devices()),

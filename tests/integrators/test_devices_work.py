@@ -298,8 +298,20 @@ from jaxrt import cli
 joined = jaxrt.join_hosts()
 pid = jax.process_index()
 rc = cli.main(["render", "spheres", "--width", "40", "--height", "30", "-q", "-o", sys.argv[1] + f"/p{pid}.exr"])
+
+# a batch of independent problems over the 4 devices of both processes: each computes its own
+# devices' rows, and every process gets all rows in device order
+import jax.numpy as jnp
+from jaxrt import _devices
+
+def affine(x, k):
+    return jax.vmap(lambda a, b: a * 3.0 + b)(x, k)
+
+x = np.arange(8, dtype=np.float32)
+k = np.arange(8, dtype=np.float32) * 100.0
+y = _devices.batched(affine, tuple(jax.devices()), (True, True), x, k)
 print(json.dumps(dict(joined=joined, rc=rc, processes=jax.process_count(), devices=len(jax.devices()),
-                      local=len(jax.local_devices()))))
+                      local=len(jax.local_devices()), batched=y.tolist())))
 """
 
 _REFERENCE = r"""
@@ -336,6 +348,8 @@ def test_two_processes_render_the_one_process_image_and_only_process_0_writes(tm
         assert p.returncode == 0, se[-3000:]
         outs.append(json.loads(so.strip().splitlines()[-1]))
     for o in outs:
+        assert o["batched"] == [3.0 * i + 100.0 * i for i in range(8)]  # every row, in order, on both
+        del o["batched"]
         assert o == {"joined": True, "rc": 0, "processes": 2, "devices": 4, "local": 2}, o
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p0.exr"]  # process 1 wrote nothing, no temporaries
     ref = _run(_REFERENCE, str(tmp_path))

@@ -34,9 +34,10 @@ A batch of independent least-squares problems (the starts of one fit, one model'
 targets, the study's materials) is split by rows over the devices (`batched`): each device runs the
 one-device, vmapped program on its rows, with its own while loops, and nothing is exchanged until
 the rows are gathered. This is `shard_map`'s model without `shard_map`, which optimistix's solvers
-do not survive in this JAX (see `batched`); for the same reason one fit's residuals are not split
-over devices with the Jacobian products summed by a collective: that would need the solver's linear
-solves to run inside the manual mesh.
+do not survive in this JAX (see `batched`). One fit's residual nodes can be split the other way
+round (`fitting.compact.split_shader`): only the shading runs inside a `shard_map`, ending in a
+`psum` of the partial images, and the solver runs outside it on the replicated residuals,
+differentiating through the collective.
 
 Several hosts
 -------------

@@ -484,6 +484,8 @@ def accumulate(scene, state: integrators.Accumulation | None = None, *, devices:
     with the random numbers of the same path of the whole pass, so the pass equals the one-device
     pass up to the rounding of a differently compiled program, as tiled renders do (the tolerance
     is tested on 4 virtual CPU devices); on any N ≥ 2 devices the passes are equal bit for bit.
+    The tiles are sized by `tile_cost`'s bound; unlike `render`, the compiled pass program is not
+    measured against the budget (`compile_plan` would compile the one-pass tile program as well).
 
     Args:
         scene: a path-traced `jaxrt.scene.Scene` (`settings.integrator == "path"`).

@@ -235,6 +235,13 @@ def brdf_fit_png(path: str | os.PathLike, fit, model, params, measured_model, me
         fig.savefig(tmp, dpi=100)
 
 
+def _material_label(name: str) -> str:
+    """A study material's short label: the name without its collection, or a file's name."""
+    from pathlib import Path
+
+    return Path(name).name if Path(name).suffix else name.split("/", 1)[-1]
+
+
 def study_errors_png(path: str | os.PathLike, materials: Sequence[str], models: Sequence[str],
                      table: np.ndarray, metric: str, unit: str, space: str = "brdf") -> None:
     """Ngan et al. 2005's figure: materials sorted by error (the lowest error any model reaches),
@@ -250,7 +257,7 @@ def study_errors_png(path: str | os.PathLike, materials: Sequence[str], models: 
     for j, m in enumerate(models):
         ax.plot(np.arange(n), e[order, j], marker=markers[j % len(markers)], ms=3.5, lw=1.0, label=m)
     ax.set_yscale("log")
-    ax.set_xticks(np.arange(n), [materials[i].split("/", 1)[-1] for i in order], rotation=90,
+    ax.set_xticks(np.arange(n), [_material_label(materials[i]) for i in order], rotation=90,
                   fontsize=7 if n > 40 else 9)
     ax.set_xlim(-0.5, n - 0.5)
     ax.set_ylabel(f"fitting error E ({metric} metric) [{unit}]")
@@ -313,7 +320,7 @@ def study_renders_png(path: str | os.PathLike, materials: Sequence[str], models:
         target = np.asarray(images[(a, "target")])
         white = float(np.percentile(target, 99.5)) or 1.0
         axes[i, 0].imshow(_display(target, white))
-        axes[i, 0].set_title(f"{a.split('/', 1)[-1]}\nmeasured", fontsize=7)
+        axes[i, 0].set_title(f"{_material_label(a)}\nmeasured", fontsize=7)
         for j, m in enumerate(models):
             f = fits[(a, m)]
             axes[i, 1 + j].imshow(_display(np.asarray(images[(a, m)]), white))

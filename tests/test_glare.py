@@ -170,3 +170,27 @@ def test_scene_file_glare_table(tmp_path):
         G.Glare(pixel_pitch=0.0)
     with pytest.raises(InputError, match="450 nm"):
         G.Glare(f_number=1.0)
+
+
+def test_cli_glare_option_values():
+    from jaxrt.cli.render import parse_glare_option
+
+    assert parse_glare_option("on") == ("on", {}) and parse_glare_option("off") == ("off", {})
+    mode, values = parse_glare_option("aperture=circle, f_number=22.5,size=63")
+    assert mode == "set" and values == {"aperture": "circle", "f_number": 22.5, "size": 63}
+    # the values become the [glare] table's, checked by the scene parser
+    spec = S.parse(S.find_scene("spheres"), overrides={f"glare.{k}": v for k, v in values.items()})
+    assert spec.glare == G.Glare(aperture="circle", f_number=22.5, size=63)
+
+
+def test_cli_glare_off_renders_the_scene_without_its_glare_table(tmp_path, capsys):
+    toml = tmp_path / "spheres_glare.toml"
+    toml.write_text(S.find_scene("spheres").read_text() + "\n[glare]\nblades = 5\n")
+    assert S.parse(toml).glare == G.Glare(blades=5)
+    exr = tmp_path / "off.exr"
+    rc, err = run_cli(["render", toml, "-q", "-o", exr, "--width", 24, "--height", 24, "--glare", "off"], capsys)
+    assert rc == 0, err
+    from jaxrt import image
+
+    ref = np.asarray(integrators.frame(S.load("spheres", overrides=SHIPPED)))
+    assert np.array_equal(image.read_exr(exr), ref)

@@ -240,7 +240,7 @@ def build(spec: SceneSpec) -> Scene:
         glass_shadows=r.glass_shadows,
     )
     return Scene(geometry, materials, lights, camera, settings, source=spec.source, area_lights=area_lights,
-                 environment=environment)
+                 environment=environment, glare=spec.glare)
 
 
 

@@ -309,8 +309,8 @@ def study_spheres_png(path: str | os.PathLike, materials: Sequence[str], models:
 def study_renders_png(path: str | os.PathLike, materials: Sequence[str], models: Sequence[str], images: dict,
                       fits: dict) -> None:
     """Rows of renders (the image-space study's first view): the render of the measured material |
-    each model's fit (`images[(material, "target")]`, `images[(material, model)]`), cropped to the
-    lit scene's extent, one display white per row (the target's)."""
+    each model's fit (`images[(material, "target")]`, `images[(material, model)]`), one display white
+    per row (the target's, over the object's pixels `images[(material, "mask")]`)."""
     from matplotlib.figure import Figure
 
     rows, cols = len(materials), 1 + len(models)
@@ -318,7 +318,8 @@ def study_renders_png(path: str | os.PathLike, materials: Sequence[str], models:
     axes = fig.subplots(rows, cols, squeeze=False)
     for i, a in enumerate(materials):
         target = np.asarray(images[(a, "target")])
-        white = float(np.percentile(target, 99.5)) or 1.0
+        mask = np.asarray(images.get((a, "mask"), np.ones(target.shape[:2]))) > 0
+        white = float(np.percentile(target[mask] if mask.any() else target, 99.5)) or 1.0
         axes[i, 0].imshow(_display(target, white))
         axes[i, 0].set_title(f"{_material_label(a)}\nmeasured", fontsize=7)
         for j, m in enumerate(models):

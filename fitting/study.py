@@ -145,7 +145,8 @@ def check_output_dir(path: str | os.PathLike, flag: str = "-o") -> Path:
 class Study:
     """The fits of one study run; `fits[(material, model)]` (`brdf_space.BrdfFit` in BRDF space,
     `study_image.ImageFit` in image space). `images` (image space only): the first view of each target
-    (`(material, "target")`) and of each fit (`(material, model)`), (H, W, 3) linear RGB."""
+    (`(material, "target")`) and of each fit (`(material, model)`), (H, W, 3) linear RGB, and the
+    compared pixels of that view (`(material, "mask")`, (H, W))."""
 
     materials: list[str]
     models: list[str]

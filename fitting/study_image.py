@@ -224,6 +224,8 @@ def run_image(materials: Sequence[str] = DEFAULT_MATERIALS, models: Sequence[str
             bar.set_postfix_str(f"{name}: preparing")
             setup = fit_setup.prepare(specs, model, object=OBJECT, traced=traces)
             pixels = int(setup.mask.sum())
+            for a in names:
+                images[(a, "mask")] = setup.mask[0]
             tie = bs.ties(model)
             fix = {t: model.param(t).default for t, _ in tie}  # not fitted: the shader sets it to its source
             shade = _shader(model.name, tie)

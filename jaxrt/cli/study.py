@@ -47,7 +47,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--metric", default="ngan", choices=bs.METRICS, help="error metric (default ngan)")
     parser.add_argument("-o", "--output", default="study", metavar="DIR", help="output folder (default study/)")
     parser.add_argument("--grid", metavar="NAMES",
-                        help="comma-separated materials of the sphere grid (default: six spread over the errors)")
+                        help="comma-separated materials of the sphere (or render) grid (default: six spread over the errors)")
     parser.add_argument("--starts", type=int, default=6, help="deterministic starts per fit (default 6)")
     parser.add_argument("--max-steps", type=int, default=100, help="solver iterations per start (default 100)")
     parser.add_argument("--batch", type=int, help="materials per compiled solve (default: all on a GPU, 1 on a CPU)")

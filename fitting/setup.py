@@ -131,6 +131,7 @@ def prepare(
     overrides: Sequence[Mapping[str, Any] | None] | None = None,
     confine: bool | None = None,
     progress: bool = False,
+    traced: Sequence[Any] | None = None,
 ) -> Setup:
     """Build and trace the scene(s) for fitting `model` on `object`'s material.
 
@@ -143,6 +144,10 @@ def prepare(
         confine: refuse scene paths outside each scene's folder and the data folder (default:
             JAXRT_CONFINE; `jaxrt.scene.parse`).
         progress: a progress bar on stderr over the views (build, trace) and the fit buffer.
+        traced: the traces (`jaxrt.integrators.trace`) of the scenes *as given*, one per scene, to
+            reuse instead of tracing them again, e.g. when several models are fitted to the same views
+            (a trace depends on geometry, δ and which materials are glass, not on the opaque models).
+            Ignored for an object that was glass (its substituted scene is traced).
     """
     model = brdfs.get(model) if isinstance(model, str) else model
     if isinstance(scenes, (str, os.PathLike, Mapping, _scene.SceneSpec)):
@@ -150,6 +155,9 @@ def prepare(
     overrides = list(overrides) if overrides is not None else [None] * len(scenes)
     if len(overrides) != len(scenes):
         raise InputError(f"got {len(scenes)} scenes but {len(overrides)} override sets")
+    traced = list(traced) if traced is not None else [None] * len(scenes)
+    if len(traced) != len(scenes):
+        raise InputError(f"got {len(scenes)} scenes but {len(traced)} traces")
     built, gbs, masks = [], [], []
     obj_name = None
     from tqdm import tqdm
@@ -158,7 +166,7 @@ def prepare(
     bar = tqdm(total=len(scenes) + 1, desc="preparing views", unit="step", leave=False, disable=not progress,
                delay=0.5)
     try:
-        for src, ov in zip(scenes, overrides):
+        for src, ov, gb in zip(scenes, overrides, traced):
             original = _spec(src, ov, confine)
             spec, mat_name, obj_name = _substitute(original, model, object)
             sc = _scene.build(spec)
@@ -166,7 +174,10 @@ def prepare(
             # model: trace the scene as given (one compilation per scene, whatever model is fitted)
             # unless the object was glass, whose branches the substituted model no longer has.
             was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
-            gb = integrators.trace(sc if was_glass else _scene.build(original))
+            if was_glass:
+                gb = integrators.trace(sc)
+            elif gb is None:
+                gb = integrators.trace(_scene.build(original))
             built.append(sc)
             gbs.append(gb)
             bar.update(1)

@@ -79,7 +79,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt import _config, _devices, integrators
+from jaxrt import _config, _devices, glare, integrators
 from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
@@ -425,6 +425,9 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
             there (a Ctrl-C caught by another thread, as the CLI does).
         use_plan: a `Plan` from `plan` to use instead of planning again.
 
+    The scene's glare (`Scene.glare`; `jaxrt.glare`), if any, is applied to the assembled image (not
+    to the AOVs) after the last tile.
+
     Returns:
         (H, W, 3) float32 numpy image of linear radiance, or (image, AOV dict of numpy arrays) with
         `aovs`: as `integrators.frame` (see the module docstring for how equal).
@@ -433,6 +436,10 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
         InputError: the job cannot fit one tile in the budget (before any rendering).
         KeyboardInterrupt: between tiles, from Ctrl-C or `should_stop`.
     """
+    # glare is applied to the assembled image below; the compiled programs take the scene without it.
+    # It runs after the tiles, as the writers do: the budget keeps room for the larger of the two.
+    post, scene = scene.glare, scene.without_glare()
+    reserve = max(int(reserve), glare.work_bytes(scene.camera.height, scene.camera.width, post))
     p = use_plan or plan(scene, memory=memory, aovs=aovs, max_tile_rays=max_tile_rays, reserve=reserve,
                          budget_source=budget_source, devices=devices, devices_source=devices_source)
     bar, own = progress, False
@@ -461,10 +468,14 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
             _check_finite(img, where)
             if bar:
                 bar.update(1)
-            if not aovs:
-                return img
-            return img, {k: np.asarray(v) for k, v in aov.items()}
-        return _render_tiles(scene, p, aovs, bar, should_stop, where)
+            out = img if not aovs else (img, {k: np.asarray(v) for k, v in aov.items()})
+        else:
+            out = _render_tiles(scene, p, aovs, bar, should_stop, where)
+        if post is None:
+            return out
+        img, aov = out if aovs else (out, None)
+        img = np.asarray(glare.apply(img, post))  # the whole image: light crosses tile borders
+        return (img, aov) if aovs else img
     finally:
         if own:
             bar.close()

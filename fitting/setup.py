@@ -249,6 +249,8 @@ def fit(
     overrides: Sequence[Mapping[str, Any] | None] | None = None,
     mask: Float[Array, "K H W"] | None = None,
     setup: Setup | None = None,
+    devices: Any = None,
+    split: str = "starts",
     **solver_options,
 ) -> tuple[FitResult, Setup]:
     """Recover `model`'s parameters for `object`'s material from target images.
@@ -259,6 +261,14 @@ def fit(
             negative beyond noise and at most MAX_TARGET (`check_targets`).
         mask: optional (K, H, W) weights multiplied into the default mask (the material's pixels).
         setup: a `prepare` result to reuse (skips building and tracing).
+        devices: None (default) or 1: the default device; an int N, "all" or a list of
+            `jax.devices()`: the fit is split over those devices as `split` says.
+        split: "starts" (default): the starts run at once, split over the devices
+            (`fitting.solve.fit_images`); "nodes": the starts run one after another and each
+            residual evaluation is split: every device shades its share of the fit buffer's nodes and
+            a `psum` adds the partial images (`fitting.compact.split_shader`), so the solver's
+            Jacobian products are summed over the devices by that collective and its iterates equal
+            the one-device fit's up to the order of the sum.
         **solver_options: fix, init, rgb, solver, starts, max_steps, rtol, atol, progress
             (see `fitting.solve.fit_images`).
 
@@ -274,13 +284,23 @@ def fit(
         raise InputError(f"targets have shape {targets.shape}; the scene renders {expect} (K, H, W, RGB)")
     check_targets(targets)
     m = setup.mask if mask is None else setup.mask * np.asarray(mask, np.float32)
-    result = fit_images(compact.shader(setup.model.name), setup.fitbuffer, targets, setup.model, mask=m,
-                        **solver_options)
+    if split not in ("starts", "nodes"):
+        raise InputError(f"split={split!r}: must be 'starts' or 'nodes'")
+    from fitting.solve import fit_devices
+
+    devs = fit_devices(devices)
+    if split == "nodes" and devs:
+        result = fit_images(compact.split_shader(setup.model.name, devs), compact.split(setup.fitbuffer, devs),
+                            targets, setup.model, mask=m, **solver_options)
+    else:
+        result = fit_images(compact.shader(setup.model.name), setup.fitbuffer, targets, setup.model, mask=m,
+                            devices=devs or None, **solver_options)
     return result, setup
 
 
 def cross_model_matrix(
-    setups: Mapping[str, Setup], targets_params: Mapping[str, Mapping[str, Any]], **solver_options
+    setups: Mapping[str, Setup], targets_params: Mapping[str, Mapping[str, Any]], *, devices: Any = None,
+    **solver_options
 ) -> np.ndarray:
     """Fit every model to targets rendered by every model (Ngan, Durand & Matusik 2005 style).
 
@@ -288,19 +308,40 @@ def cross_model_matrix(
         setups: model name -> `prepare` result, all of the same scene and object.
         targets_params: model name -> the parameters its target is rendered with (same keys/order as
             `setups`).
+        devices: None (default) or 1: one fit after another on the default device (`fit`); an int
+            N, "all" or a list of `jax.devices()`: whole fits split over those devices: for each
+            fitted model, its fits to every target run as one batch (`fitting.solve.solve_batch`),
+            the targets split over the devices.
         **solver_options: passed to `fit` (starts, max_steps, rgb, solver, progress).
 
     Returns:
         (n, n) RMSE of the best fit relative to the target's RMS over the object's pixels; row i is the
         target model, column j the fitted model.
     """
+    from fitting.solve import fit_devices, solve_batch
+
     names = list(setups)
     out = np.zeros((len(names), len(names)))
-    for i, src in enumerate(names):
+    targets, scales = [], []
+    for src in names:
         s = setups[src]
         target = np.asarray(render_with(s, s.model.params(**targets_params[src])))
-        scale = float(np.sqrt(np.mean(target[s.mask > 0] ** 2))) or 1.0
-        for j, dst in enumerate(names):
-            r, _ = fit(None, target, dst, setup=setups[dst], **solver_options)
-            out[i, j] = r.rmse / scale
+        targets.append(target)
+        scales.append(float(np.sqrt(np.mean(target[s.mask > 0] ** 2))) or 1.0)
+    if not fit_devices(devices):
+        for i, target in enumerate(targets):
+            for j, dst in enumerate(names):
+                r, _ = fit(None, target, dst, setup=setups[dst], **solver_options)
+                out[i, j] = r.rmse / scales[i]
+        return out
+    for t in targets:
+        check_targets(t)
+    for j, dst in enumerate(names):
+        s = setups[dst]
+        sols = solve_batch(compact.shader(s.model.name), s.fitbuffer, np.stack(targets), s.model, mask=s.mask,
+                           devices=devices, **solver_options)
+        # the mask is 0/1, so the loss ½Σr² is over the object's pixels and channels: the fit's RMSE
+        count = 3 * int(np.count_nonzero(s.mask > 0))
+        for i, sol in enumerate(sols):
+            out[i, j] = float(np.sqrt(2.0 * sol.loss / count)) / scales[i]
     return out

@@ -189,19 +189,27 @@ def default_batch(n: int) -> int:
 
 def run(materials: Sequence[str], models: Sequence[str], *, metric: str = "ngan",
         fit_resolution=FIT_RESOLUTION, eval_resolution=EVAL_RESOLUTION, starts: int = 6, max_steps: int = 100,
-        batch: int | None = None, progress: bool = True) -> Study:
+        batch: int | None = None, progress: bool = True, devices=None) -> Study:
     """Fit every model to every material (see the module docstring); `batch` materials per compiled
-    solve (default `default_batch`). A tqdm bar counts (material, model) fits."""
+    solve (default `default_batch`). A tqdm bar counts (material, model) fits.
+
+    `devices` (None: the default device; an int N, "all" or a list of `jax.devices()`) splits each
+    compiled solve's materials over several devices (`fitting.solve.solve_batch`); `batch` then counts
+    materials per device (default `default_batch` of each device's share), so a call solves
+    batch × N materials."""
     import jax
     from tqdm.auto import tqdm
 
+    from fitting.solve import fit_devices
+
     bs.check_metric(metric)
+    n_dev = max(1, len(fit_devices(devices)))
     t0 = time.perf_counter()
     samp = bs.sampling(*fit_resolution)
     ev = bs.sampling(*eval_resolution)
     if batch is None:
-        batch = default_batch(len(materials))
-    batch = max(1, min(batch, len(materials)))
+        batch = default_batch(-(-len(materials) // n_dev))
+    batch = max(1, min(batch * n_dev, len(materials)))
     bar = tqdm(total=len(materials) * len(models), desc="study", unit="fit", disable=not progress)
     bar.set_postfix_str("sampling the measured materials")
     f_fit = bs.measured_samples(materials, samp)
@@ -216,7 +224,7 @@ def run(materials: Sequence[str], models: Sequence[str], *, metric: str = "ngan"
             bar.set_postfix_str(f"{name}: {names[0]}…")
             chunk = bs.fit_samples(f_fit[lo: lo + batch], model, names=names, metric=metric, samp=samp,
                                    f_eval=f_eval[lo: lo + batch], eval_samp=ev, starts=starts,
-                                   max_steps=max_steps, batch=batch)
+                                   max_steps=max_steps, batch=batch, devices=devices if n_dev > 1 else None)
             fits.update({(f.material, name): f for f in chunk})
             bar.update(len(names))
         per_model[name] = time.perf_counter() - t_model
@@ -224,7 +232,7 @@ def run(materials: Sequence[str], models: Sequence[str], *, metric: str = "ngan"
     settings = {
         "metric": metric, "unit": bs.UNITS[metric], "metric_definition": bs.METRIC_DOC[metric],
         "fit_sampling": samp.describe(), "eval_sampling": ev.describe(), "starts": starts, "max_steps": max_steps,
-        "solver": f"Levenberg-Marquardt (optimistix), {bs.SOLVER}", "batch": batch,
+        "solver": f"Levenberg-Marquardt (optimistix), {bs.SOLVER}", "batch": batch, "devices": n_dev,
         "backend": jax.default_backend(), "device": jax.devices()[0].device_kind,
         "wall_s_sampling": t_sample, "wall_s_per_model": per_model,
         "models": {m: [dataclasses.asdict(p) for p in brdfs.get(m).spec] for m in models},

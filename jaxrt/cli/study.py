@@ -50,7 +50,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated materials of the sphere (or render) grid (default: six spread over the errors)")
     parser.add_argument("--starts", type=int, default=6, help="deterministic starts per fit (default 6)")
     parser.add_argument("--max-steps", type=int, default=100, help="solver iterations per start (default 100)")
-    parser.add_argument("--batch", type=int, help="materials per compiled solve (default: all on a GPU, 1 on a CPU)")
+    parser.add_argument("--batch", type=int, help="materials per compiled solve and device (default: all on a GPU, "
+                                                  "1 on a CPU)")
+    parser.add_argument("--devices", metavar="N", default="all",
+                        help="split each solve's materials over the first N devices of jax.devices() (default: all; "
+                             "1: the default device alone)")
     parser.add_argument("--sampling", metavar="NH,ND,NP",
                         help="fit grid: θh, θd, φd cells (default %s)" % ",".join(map(str, study.FIT_RESOLUTION)))
     parser.add_argument("--eval-sampling", metavar="NH,ND,NP",
@@ -75,6 +79,9 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"--grid: {g!r} is not one of the study's materials")
     if args.starts < 1 or args.max_steps < 1 or (args.batch is not None and args.batch < 1):
         raise InputError("--starts, --max-steps and --batch must be at least 1")
+    from jaxrt.cli.fit import devices_option
+
+    devices = devices_option(args.devices)
     if args.space == "image":
         if args.metric != "ngan" or args.sampling or args.eval_sampling or args.batch is not None:
             raise InputError("--metric, --sampling, --eval-sampling and --batch apply to --space brdf only")
@@ -91,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
         fit_res = study.parse_resolution(args.sampling, study.FIT_RESOLUTION, "--sampling")
         eval_res = study.parse_resolution(args.eval_sampling, study.EVAL_RESOLUTION, "--eval-sampling")
         result = study.run(materials, models, metric=args.metric, fit_resolution=fit_res, eval_resolution=eval_res,
-                           starts=args.starts, max_steps=args.max_steps, batch=args.batch, progress=not args.quiet)
+                           starts=args.starts, max_steps=args.max_steps, batch=args.batch, progress=not args.quiet,
+                           devices=devices)
     paths = study.write(result, out, grid)
     print(study.summary_markdown(result), end="")
     print("wrote " + ", ".join(str(p) for p in paths))

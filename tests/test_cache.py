@@ -576,6 +576,7 @@ _COUNT = """
 """
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_second_process_compiles_nothing_for_a_render(tmp_path):
     d = tmp_path / "cache"
     code = _COUNT + """

@@ -45,6 +45,7 @@ def test_every_notebook_is_tested():
 
 
 @pytest.mark.parametrize("name", sorted(EXPECT))
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_notebook_runs(name, tmp_path, monkeypatch):
     if name in NEEDS_DATA and not os.environ.get("JAXRT_DATA"):
         pytest.skip("JAXRT_DATA is not set: the measured BRDFs are not configured (CI sets it)")

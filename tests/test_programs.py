@@ -112,6 +112,7 @@ def test_unserializable_outputs_fall_back_to_jit(cdir):
     assert list(_stats() - s0) == [0, 0, 1]
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_a_second_process_renders_from_the_stored_frame_program(tmp_path):
     code = """
     import hashlib, json, sys

@@ -41,7 +41,13 @@ def test_the_readme_has_python_examples():
     assert small('{"camera.width": 256, "camera.height": 192}') == '{"camera.width": 16, "camera.height": 12}'
 
 
-@pytest.mark.parametrize("code", BLOCKS, ids=[b.strip().splitlines()[-1][:40] for b in BLOCKS])
+def _param(block: str):
+    # examples that differentiate the renderer compile its gradient (minutes on 2 cores): slow pass
+    marks = [pytest.mark.slow] if "grad(" in block else []
+    return pytest.param(block, marks=marks, id=block.strip().splitlines()[-1][:40])
+
+
+@pytest.mark.parametrize("code", [_param(b) for b in BLOCKS])
 def test_readme_example_runs(code, tmp_path):
     if any(n in code for n in DATA_NAMES) and not os.environ.get("JAXRT_DATA"):
         pytest.skip("the example uses the Stanford meshes and JAXRT_DATA is not set")

@@ -39,6 +39,7 @@ def assert_same_hits(a, b):
 
 
 @pytest.mark.data
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_pallas_matches_xla_and_brute_force(data_dir, fns, monkeypatch):
     monkeypatch.setenv("JAXRT_DATA", str(data_dir))
     m = mesh.load(data.find("bunny"))

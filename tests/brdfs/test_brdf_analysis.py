@@ -277,6 +277,7 @@ def test_plot_lobe_writes_png_atomically(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["lobe.png"]
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_brdf_report_cli(tmp_path, capsys):
     out = tmp_path / "report.png"
     rc = cli_main(["brdf-report", "-o", str(out), "--samples", "32"])

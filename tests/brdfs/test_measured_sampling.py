@@ -267,6 +267,7 @@ def _albedo_reference(model, p, wo, tol=1e-6):
     return cell_probs(fn, np.linspace(0, 1, 5), np.linspace(0, 2 * math.pi, 9), tol=tol).sum()
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_albedo_and_slices_of_a_merl_table(ct_merl):
     """brdfs.albedo of a tabulated Cook-Torrance: the float64 quadrature of the same table, and the
     analytic model's albedo to the table's interpolation error; lobe slices are eval along the slice."""

@@ -177,6 +177,7 @@ SMALL = ["--sampling", ",".join(map(str, RES)), "--eval-sampling", ",".join(map(
          "--starts", str(STARTS), "-q"]
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_fit_brdf_cli_writes_both_outputs_or_none(brdf_data, tmp_path, monkeypatch, capsys):
     out, plot = tmp_path / "fit.json", tmp_path / "fit.png"
     assert _cli("fit-brdf", TWO[0], "--model", "cook_torrance", "--out", str(out), "--plot", str(plot), *SMALL) == 0
@@ -225,6 +226,7 @@ def test_bad_input_is_one_line_and_writes_nothing(brdf_data, tmp_path, capsys, a
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_tiny_study_writes_consistent_tables(brdf_data, tmp_path, capsys):
     out = tmp_path / "study"
     # --batch 2: both materials in one solve, the compiled programs of the closed-loop tests

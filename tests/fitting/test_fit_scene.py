@@ -46,6 +46,7 @@ def bunny_setups(data_dir):
 
 @pytest.mark.data
 @pytest.mark.parametrize("name", BAR_MODELS)
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_noise_free_recovery_from_default_start(bunny_setups, name):
     setup = bunny_setups[name]
     model = brdfs.get(name)
@@ -97,6 +98,7 @@ def test_noisy_recovery_and_standard_errors(bunny_setups):
 
 
 @pytest.mark.data
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_fit_loss_gradient_matches_float64_finite_differences(bunny_setups):
     """d loss / d params through the full renderer (shadows, a mirror bounce: jade δ > 0) in float64."""
     setup = bunny_setups["cook_torrance"]
@@ -127,6 +129,7 @@ def test_fit_loss_gradient_matches_float64_finite_differences(bunny_setups):
                 assert abs(an - fd) <= 1e-5 * max(abs(fd), 1e-8) + 1e-9, (name, c, an, fd)
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_fit_demo_cli_recovers_hidden_parameters(tmp_path, capsys):
     out, plot = tmp_path / "demo.json", tmp_path / "demo.png"
     assert cli(["fit", "--demo", "--starts", "1", "-q", "--out", str(out), "--plot", str(plot)]) == 0

@@ -196,6 +196,7 @@ def _close(a, b):
     return np.max(np.abs(a - b)) <= 1e-4 * max(np.max(np.abs(b)), 1.0)
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_instanced_render_equals_copied_objects(shipped):
     inst, copy = shipped["inst"], shipped["copy"]
     assert isinstance(inst.geometry, instancing.InstancedGeometry) and isinstance(copy.geometry, TriangleGeometry)
@@ -315,6 +316,7 @@ def test_instances_parse_names_and_override():
 
 
 @pytest.mark.data
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_thousand_bunnies_memory_and_rays(data_dir, fns, monkeypatch):
     monkeypatch.setenv("JAXRT_DATA", str(data_dir))
     base = {"camera": {"position": [0, 0, 30], "look_at": [0, 0, 0], "width": 8, "height": 8},

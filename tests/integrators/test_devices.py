@@ -130,6 +130,7 @@ def _within_tiling_tolerance(c):
     assert c["beyond"] <= 0.01 and c["mean"] <= 1e-5, c
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_whitted_on_4_and_3_devices_is_one_image_and_the_one_device_image(multi):
     w = multi["whitted"]
     assert w["devices4"] == 4 and w["shape4"] == w["shape3"] and w["finite"] and w["max"] > 0.1
@@ -139,6 +140,7 @@ def test_whitted_on_4_and_3_devices_is_one_image_and_the_one_device_image(multi)
     assert w["bar"] == [w["tiles"], w["tiles"]]  # progress over tiles
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_path_tracing_with_aovs_on_4_devices_with_an_idle_device_in_the_last_call(multi):
     p = multi["path"]
     assert p["shape"][2] == p["spp"] == 4 and p["tiles"] % 4 and p["max"] > 0.1  # all samples in a tile
@@ -147,11 +149,13 @@ def test_path_tracing_with_aovs_on_4_devices_with_an_idle_device_in_the_last_cal
     _within_tiling_tolerance(p["depth"])
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_the_budget_is_shared_by_virtual_cpu_devices(multi):
     b = multi["budget"]
     assert b["pixels"] <= 200 and b["pixels"] * b["cost"] <= b["tile_room"]
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_bad_device_values_are_one_line_input_errors(multi):
     errs = multi["errors"]
     for name, msg in errs.items():
@@ -165,6 +169,7 @@ def test_bad_device_values_are_one_line_input_errors(multi):
     assert "from 1 to 4" in multi["cli_errors"]["5"][1]
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_cli_devices_2_writes_the_4_device_image(multi):
     assert multi["cli"] == {"rc": 0, "equal": True}
 

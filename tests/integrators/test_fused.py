@@ -76,6 +76,7 @@ def case(request):
                 ref=np.asarray(ref), ref_aovs=jax.device_get(ref_aovs))
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_fused_image_equals_two_pass(case):
     img, ref = case["img"], case["ref"]
     assert img.shape == (H, W, 3) and np.all(np.isfinite(img))
@@ -83,6 +84,7 @@ def test_fused_image_equals_two_pass(case):
     np.testing.assert_allclose(img, ref, rtol=1e-5, atol=1e-6 * ref.max())
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_fused_aovs_equal_two_pass(case):
     a, b = case["aovs"], case["ref_aovs"]
     assert set(a) == set(b) == {"depth", "normal", "albedo", "object_id"}
@@ -92,6 +94,7 @@ def test_fused_aovs_equal_two_pass(case):
     assert np.any(a["object_id"] >= 0) and np.any(a["depth"] > 0)
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_scenes_exercise_the_branches(case):
     """Guards the coverage the comparisons above rely on."""
     gb, sc = case["gb"], case["scene"]
@@ -205,6 +208,7 @@ def _pick(sc, g):
     }
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_fused_gradients_equal_two_pass(built_grads):
     sc, _, g_fused, g_ref = built_grads
     _assert_same_grads(g_fused, g_ref)
@@ -229,6 +233,7 @@ def test_fused_gradients_with_aovs_equal_two_pass():
     assert np.any(np.asarray(g_fused.geometry.vertices) != 0)  # the normal AOV and shading move with vertices
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_fused_gradients_match_finite_differences(built_grads):
     """Central differences of the fused image itself (float32) for parameters that do not change the
     traced tree: light intensity and ρ_s are linear in the image, the Phong exponent is smooth.

@@ -66,6 +66,7 @@ def renders():
 
 @pytest.mark.parametrize("kind", list(KINDS))
 @pytest.mark.parametrize("integ", ["whitted", "path"])
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_every_integrator_renders_every_geometry_kind(renders, kind, integ):
     sc, img, (img2, aovs) = renders[kind, integ]
     img, img2 = np.asarray(img), np.asarray(img2)
@@ -90,6 +91,7 @@ def test_every_integrator_renders_every_geometry_kind(renders, kind, integ):
 
 
 @pytest.mark.parametrize("integ", ["whitted", "path"])
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_instanced_and_triangle_geometry_agree(renders, integ):
     _, img_t, (_, a_t) = renders["triangles", integ]
     sc_i, img_i, (_, a_i) = renders["instances", integ]
@@ -107,6 +109,7 @@ def test_instanced_and_triangle_geometry_agree(renders, integ):
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_whitted_and_path_aovs_agree(renders, kind):
     _, _, (_, aw) = renders[kind, "whitted"]
     _, _, (_, ap) = renders[kind, "path"]
@@ -114,6 +117,7 @@ def test_whitted_and_path_aovs_agree(renders, kind):
         np.testing.assert_array_equal(np.asarray(ap[k]), np.asarray(aw[k]), err_msg=k)
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_cli_renders_instanced_scene_with_path_tracing(tmp_path, capsys):
     """`jaxrt render instances --integrator path` used to crash building AOVs (the path tracer had
     its own AOV code without the instanced branch)."""

@@ -468,6 +468,7 @@ def _compare_cornell(res, spp, depth, mi_spp, mi_runs, block):
 
 @pytest.mark.mitsuba
 @pytest.mark.data
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_cornell_area_light_agrees_with_mitsuba(data_dir):
     _compare_cornell(res=16, spp=512, depth=4, mi_spp=512, mi_runs=8, block=4)
 

@@ -171,6 +171,7 @@ def _f64(tree):
         tree)
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_gradients_match_float64_finite_differences(lab):
     """d(loss)/d(material, light) through shade on a fixed G-buffer vs central differences in float64."""
     from jaxrt import integrators

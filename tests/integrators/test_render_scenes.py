@@ -79,5 +79,6 @@ def test_cli_help_documents_every_option(capsys):
 
 @pytest.mark.data
 @pytest.mark.parametrize("name", ["bunny", "dragon", "cornell", "showcase"])
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_data_scenes_are_finite(name, data_dir):
     _check_finite(name)

@@ -50,6 +50,7 @@ def direct_floor(cam, model, p) -> np.ndarray:
     return rad.reshape(cam.height, cam.width, 3)
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_neural_material_renders_the_direct_value_with_both_integrators(brdf_data):
     sc = S.load(plane_doc({"model": "measured", "data": MATERIAL}))
     assert sc.materials.models == ("nbrdf",)
@@ -219,6 +220,7 @@ material = "floor"
 """
 
 
+@pytest.mark.slow  # minutes on 2 cores: CI's slow pass
 def test_jaxrt_fit_of_an_analytic_model_to_a_measured_render(brdf_data, tmp_path, capsys):
     # a measured material is a target like any other: render it, then fit Ward to the render
     import json

@@ -432,6 +432,8 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
         InputError: the job cannot fit one tile in the budget (before any rendering).
         KeyboardInterrupt: between tiles, from Ctrl-C or `should_stop`.
     """
+    if scene.settings.integrator == "sppm":
+        return _render_passes(scene, aovs, progress, should_stop)
     p = use_plan or plan(scene, memory=memory, aovs=aovs, max_tile_rays=max_tile_rays, reserve=reserve,
                          budget_source=budget_source, devices=devices, devices_source=devices_source)
     bar, own = progress, False
@@ -464,6 +466,43 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
                 return img
             return img, {k: np.asarray(v) for k, v in aov.items()}
         return _render_tiles(scene, p, aovs, bar, should_stop, where)
+    finally:
+        if own:
+            bar.close()
+
+
+def _render_passes(scene, aovs, progress, should_stop):
+    """A progressive integrator's image (`integrators.sppm`): settings.spp passes of one compiled
+    whole-frame program, the progress bar counting passes and Ctrl-C (`should_stop`) checked between
+    them. Its working set is one pass's (visible points and photons); no tiles, no memory plan."""
+    sppm = integrators.sppm
+    sppm.check(scene)
+    passes = scene.settings.spp
+    bar, own = progress, False
+    if progress is True:
+        from tqdm import tqdm
+
+        bar, own = tqdm(total=passes, unit="pass", desc="compiling", leave=False, dynamic_ncols=True), True
+    elif progress is not False and progress is not None:
+        bar.total = passes
+        bar.unit = "pass"
+    try:
+        if bar:
+            bar.set_description_str("compiling")
+        state = None
+        for i in range(passes):
+            if should_stop is not None and should_stop():
+                raise KeyboardInterrupt
+            state = sppm.accumulate(scene, state)
+            state.passes.block_until_ready()
+            if bar:
+                bar.set_description_str("rendering")
+                bar.update(1)
+        img = np.asarray(state.image)
+        _check_finite(img, f"{scene.source}")
+        if not aovs:
+            return img
+        return img, {k: np.asarray(v) for k, v in sppm.first_aovs(scene).items()}
     finally:
         if own:
             bar.close()

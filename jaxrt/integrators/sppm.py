@@ -374,15 +374,11 @@ def build_grid(dep: Deposits, cell, key) -> Grid:
     return Grid(b[order], order, cell, size)
 
 
-def gather(scene, grid: Grid, dep: Deposits, vp: dict, r2: Float[Array, " S"]):
-    """(M, Φ): photons found within radius r of every visible point (bucket subsampling weights
-    included) and their reflected flux Σ β·f(wo, wi)·Φ_p, (S,) and (S, 3)."""
-    mats = scene.materials
-    models = _models(mats)
-    D = scene.settings.max_depth
+def _candidates(grid: Grid, dep: Deposits, p, r2):
+    """The deposits read for every point p (S, 3): their indices (S, 8, K), whether each lies in its
+    cell and within radius r, and the bucket subsampling weight n / K of each cell (S, 8)."""
     K = CELL_PHOTONS
     N = dep.p.shape[0]
-    p = vp["p"]
     x = p / grid.cell
     base = jnp.floor(x)
     lo = base - jnp.where(x - base < 0.5, 1.0, 0.0)  # the 2x2x2 cells the ball of radius cell/2 touches
@@ -391,20 +387,37 @@ def gather(scene, grid: Grid, dep: Deposits, vp: dict, r2: Float[Array, " S"]):
     hq = _hash(cells, grid.size)
     start = jnp.searchsorted(grid.bucket, hq, side="left")
     end = jnp.searchsorted(grid.bucket, hq, side="right")
-    count = end - start
     j = start[..., None] + jnp.arange(K)  # (S, 8, K)
-    take = j < end[..., None]
     pid = grid.order[jnp.clip(j, 0, N - 1)]
     same = jnp.all(_cells(dep.p[pid], grid.cell) == cells[:, :, None, :], axis=-1)
     dp = dep.p[pid] - p[:, None, None, :]
     near = jnp.sum(dp * dp, axis=-1) < r2[:, None, None]
+    scale = (jnp.maximum(end - start, K) / K).astype(jnp.float32)
+    return pid, (j < end[..., None]) & same & near, scale
+
+
+def count_near(grid: Grid, dep: Deposits, p: Float[Array, "S 3"], r2: Float[Array, " S"]) -> Int[Array, " S"]:
+    """Deposits read within radius r of every point (all of them where no cell holds more than
+    CELL_PHOTONS; r must not exceed the grid's cell / 2)."""
+    _, ok, _ = _candidates(grid, dep, p, r2)
+    return jnp.sum(ok, axis=(1, 2))
+
+
+def gather(scene, grid: Grid, dep: Deposits, vp: dict, r2: Float[Array, " S"]):
+    """(M, Φ): photons found within radius r of every visible point (bucket subsampling weights
+    included) and their reflected flux Σ β·f(wo, wi)·Φ_p, (S,) and (S, 3)."""
+    mats = scene.materials
+    models = _models(mats)
+    D = scene.settings.max_depth
+    K = CELL_PHOTONS
+    p = vp["p"]
+    S = p.shape[0]
+    pid, ok, scale = _candidates(grid, dep, p, r2)
     wi = dep.wi[pid]
     front = dot(wi, vp["ng"][:, None, None, :]) > 0
     short = dep.bounce[pid] + vp["depth"][:, None, None] <= D
-    ok = take & same & near & front & short & vp["found"][:, None, None]
-    weight = jnp.where(ok, (jnp.maximum(count, K) / K)[..., None].astype(jnp.float32), 0.0)
-    S = p.shape[0]
-    weight = weight.reshape(S, 8 * K)
+    ok = ok & dep.valid[pid] & front & short & vp["found"][:, None, None]
+    weight = jnp.where(ok, scale[..., None], 0.0).reshape(S, 8 * K)
     frame = vp["frame"]
     wi_l = to_local(wi.reshape(S, 8 * K, 3), tuple(a[:, None, :] for a in frame))
     s = vp["surface"]
@@ -579,6 +592,17 @@ def _pass(scene, state: SPPMState, with_first: bool = False):
 
 step = jax.jit(_pass)
 step.__doc__ = "One SPPM pass (camera pass, photon pass, gather, progressive update), compiled."
+
+
+def _first_aovs(scene):
+    key = jax.random.fold_in(jax.random.key(jnp.asarray(scene.settings.seed, jnp.uint32)), jnp.uint32(0))
+    _, _, first = visible_points(scene, jax.random.split(key, 3)[0])
+    cam = scene.camera
+    return build_aovs(scene, *(first[k] for k in ("prim", "u", "v", "t", "d")), shape=(cam.height, cam.width))
+
+
+#: The AOVs (depth, normal, albedo, object_id) of the first pass's camera hits, compiled.
+first_aovs = jax.jit(_first_aovs)
 
 
 def accumulate(scene, state: SPPMState | None = None) -> SPPMState:

@@ -1,0 +1,257 @@
+"""Stochastic progressive photon mapping (jaxrt.integrators.sppm).
+
+Independent references: the lights' emitted flux written out from the scene's numbers (4π·I for a
+point light, π·L_e·A for an emissive quad); the paraxial ball-lens focus (f = nR / (2(n − 1)) from
+the centre and the thin-lens equation about the centre, the ball's principal planes); the path
+tracer's image of a diffuse scene (a different estimator of the same integral).
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxrt as R
+from jaxrt.errors import InputError
+from jaxrt.integrators import path, sppm
+
+LIGHTS = [((0.5, 3.0, -0.2), (2.0, 1.0, 0.5)), ((-1.0, 2.0, 0.7), (0.3, 0.9, 1.6))]
+QUAD, EMISSION = (0.4, 0.25), (5.0, 3.0, 1.0)
+
+
+def diffuse_scene(width=24, height=18, lights=LIGHTS, quad=True, **render):
+    """A floor, a back wall and a sphere (Lambert) under point lights and an emissive quad."""
+    objects = [
+        {"name": "floor", "primitive": "plane", "size": [4.0, 4.0], "material": "white"},
+        {"name": "wall", "primitive": "plane", "size": [4.0, 3.0], "rotate": [90.0, 0.0, 0.0],
+         "translate": [0.0, 1.5, -2.0], "material": "red"},
+        {"name": "ball", "primitive": "sphere", "radius": 0.5, "subdivisions": 3, "translate": [0.3, 0.5, -0.5],
+         "material": "white"},
+    ]
+    materials = {"white": {"model": "lambert", "rho_d": 0.7}, "red": {"model": "lambert", "rho_d": [0.7, 0.2, 0.2]}}
+    if quad:
+        materials["lamp"] = {"model": "lambert", "rho_d": 0.0, "emission": list(EMISSION)}
+        objects.append({"name": "lamp", "primitive": "plane", "size": list(QUAD), "rotate": [180.0, 0.0, 0.0],
+                        "translate": [-0.5, 2.2, 0.0], "material": "lamp"})
+    return {
+        "camera": {"position": [0.0, 1.6, 3.5], "look_at": [0.0, 0.6, -0.5], "vfov": 45.0,
+                   "width": width, "height": height},
+        "lights": [{"position": list(p), "intensity": list(i)} for p, i in lights],
+        "materials": materials,
+        "objects": objects,
+        "render": {"integrator": "sppm", "max_depth": 4, **render},
+    }
+
+
+# ---------------------------------------------------------------------------------------------- power
+
+def test_photon_power_sums_to_light_power():
+    """Mean photon power = Σ 4π·I over point lights + π·L_e·A of the quad, per channel (the sum over
+    photons / count is an unbiased estimate; here within 4 standard errors of 100k photons)."""
+    scene = R.load_scene(diffuse_scene())
+    closed = 4 * math.pi * np.sum([i for _, i in LIGHTS], axis=0) + math.pi * np.array(EMISSION) * QUAD[0] * QUAD[1]
+    n = 100_000
+    _, d, power = jax.jit(sppm.emit)(scene, jax.random.uniform(jax.random.key(3), (n, 6)))
+    power = np.asarray(power, np.float64)
+    mean, se = power.mean(0), power.std(0) / math.sqrt(n)
+    assert np.all(np.abs(mean - closed) < 4 * se + 1e-6 * closed), (mean, closed, se)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(d), axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(sppm.light_power(scene)), closed, rtol=1e-5)
+
+
+def test_photon_power_exact_for_one_white_light():
+    """One grey point light, or one grey quad alone: every photon carries the whole power (exact)."""
+    for lights, quad, want in (([((0.0, 2.0, 0.0), (3.0, 3.0, 3.0))], False, 4 * math.pi * 3.0),
+                               ([], True, None)):
+        d = diffuse_scene(lights=lights, quad=quad)
+        if quad:
+            d["materials"]["lamp"]["emission"] = 2.0
+            want = math.pi * 2.0 * QUAD[0] * QUAD[1]
+        scene = R.load_scene(d)
+        _, _, power = jax.jit(sppm.emit)(scene, jax.random.uniform(jax.random.key(0), (1000, 6)))
+        np.testing.assert_allclose(np.asarray(power), want, rtol=1e-5)
+
+
+def test_area_photons_leave_the_emitting_side_cosine_distributed():
+    """Quad photons start on the quad (y = 2.2, emitting down) with cos θ distributed as 2cosθ·sinθ:
+    E[cos θ] = 2/3, E[cos² θ] = 1/2."""
+    scene = R.load_scene(diffuse_scene(lights=[]))
+    n = 50_000
+    o, d, _ = jax.jit(sppm.emit)(scene, jax.random.uniform(jax.random.key(1), (n, 6)))
+    o, d = np.asarray(o), np.asarray(d)
+    assert np.all(np.abs(o[:, 1] - 2.2) < 1e-3) and np.all(np.abs(o[:, 0] + 0.5) <= QUAD[0] / 2 + 1e-4)
+    c = -d[:, 1]
+    assert c.min() >= 0
+    assert abs(c.mean() - 2 / 3) < 4 * c.std() / math.sqrt(n)
+    assert abs((c * c).mean() - 0.5) < 4 * (c * c).std() / math.sqrt(n)
+
+
+# ---------------------------------------------------------------------------------------------- input
+
+@pytest.mark.parametrize("key,value", [("photons", -5), ("photons", 0), ("photons", 1.5), ("photons", 1 << 30),
+                                       ("radius", -1.0), ("radius", 0.0), ("radius", "big"),
+                                       ("radius", float("inf"))])
+def test_bad_settings_are_one_line_errors(key, value):
+    with pytest.raises(InputError) as e:
+        R.load_scene(diffuse_scene(**{key: value}))
+    msg = str(e.value)
+    assert "\n" not in msg and key in msg and "render" in msg
+
+
+def test_cli_bad_photons_exit_2(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "jaxrt.cli", "render", "caustics", "--photons", "-3",
+                        "-o", str(tmp_path / "x.exr")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "photons" in lines[0]
+    assert not (tmp_path / "x.exr").exists()
+
+
+def test_settings_reach_the_integrator():
+    scene = R.load_scene(diffuse_scene(photons=777, radius=0.125))
+    assert sppm.photons_per_pass(scene) == 777
+    assert float(sppm.initial_radius(scene)) == 0.125
+    default = R.load_scene(diffuse_scene(width=40, height=30))
+    assert sppm.photons_per_pass(default) == sppm.DEFAULT_PHOTONS[0]
+    # the scene's bounding box: x, z in [-2, 2] (floor), y in [0, 3] (wall): diagonal sqrt(41)
+    np.testing.assert_allclose(float(sppm.initial_radius(default)), 2 * math.sqrt(41.0) / 40, rtol=1e-5)
+
+
+# ---------------------------------------------------------------------------------------------- hash grid
+
+def test_gather_finds_every_photon_in_radius():
+    """The hash-grid gather counts exactly the deposits within r of each point (brute force), when
+    no cell holds more than CELL_PHOTONS of them (no subsampling)."""
+    rng = np.random.default_rng(0)
+    n, S = 5000, 200
+    pts = rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32)  # about 20 per cell of edge 0.16
+    vp_p = rng.uniform(-0.6, 0.6, (S, 3)).astype(np.float32)
+    r2 = rng.uniform(0.03, 0.08, S).astype(np.float32) ** 2
+    dep = sppm.Deposits(jnp.asarray(pts), jnp.zeros((n, 3)).at[:, 2].set(1.0), jnp.ones((n, 3)),
+                        jnp.zeros(n, jnp.int32), jnp.asarray(rng.random(n) < 0.9))
+    grid = sppm.build_grid(dep, 2 * math.sqrt(r2.max()), jax.random.key(0))
+    counts = np.asarray(sppm.count_near(grid, dep, jnp.asarray(vp_p), jnp.asarray(r2)))
+    valid = np.asarray(dep.valid)
+    brute = (((pts[None] - vp_p[:, None]) ** 2).sum(-1) < r2[:, None]) & valid[None]
+    np.testing.assert_array_equal(counts, brute.sum(1))
+    assert brute.sum() > 300
+
+
+# ---------------------------------------------------------------------------------------------- images
+
+N_GLASS, R_BALL, D_LIGHT, HOLE = 1.5, 1.0, 4.0, 0.25
+CAUSTIC_W = CAUSTIC_H = 41
+PIXEL = 0.05  # screen units per pixel at the camera's distance 4
+
+
+def caustic_scene(passes=4, photons=60_000):
+    """A point light on the axis (y) above a glass ball behind a black stop with a square hole of
+    half-width HOLE (paraxial rays only), and a diffuse screen in the plane z = 0 below the ball,
+    seen face on: every refracted ray meets that plane where it crosses the axis, so the screen
+    shows the axial caustic, which the stop confines to near the paraxial focus."""
+    side = 3.0
+    black = "stop"
+    stop_y = R_BALL + 0.2
+    objects = [
+        {"name": "ball", "primitive": "sphere", "radius": R_BALL, "subdivisions": 5, "material": "glass"},
+        {"name": "screen", "primitive": "plane", "size": [1.2, 2.4], "rotate": [90.0, 0.0, 0.0],
+         "translate": [0.0, -R_BALL - 0.05 - 1.2, 0.0], "material": "screen"},
+    ]
+    w = side - HOLE
+    for i, (sx, sz, tx, tz) in enumerate([(w, 2 * side, -(HOLE + side) / 2, 0.0), (w, 2 * side, (HOLE + side) / 2, 0.0),
+                                          (2 * HOLE, w, 0.0, -(HOLE + side) / 2), (2 * HOLE, w, 0.0, (HOLE + side) / 2)]):
+        objects.append({"name": f"stop{i}", "primitive": "plane", "size": [sx, sz],
+                        "translate": [tx, stop_y, tz], "material": black})
+    focus = 1.0 / (1.0 / (N_GLASS * R_BALL / (2 * (N_GLASS - 1))) - 1.0 / D_LIGHT)
+    half = PIXEL * CAUSTIC_H / 2
+    return {
+        "camera": {"position": [0.0, -focus, 4.0], "look_at": [0.0, -focus, 0.0],
+                   "vfov": math.degrees(2 * math.atan(half / 4.0)), "width": CAUSTIC_W, "height": CAUSTIC_H},
+        "lights": [{"position": [0.0, D_LIGHT, 0.0], "intensity": 50.0}],
+        "materials": {"glass": {"model": "glass", "n_t": N_GLASS}, "screen": {"model": "lambert", "rho_d": 0.8},
+                      "stop": {"model": "lambert", "rho_d": 0.0}},
+        "objects": objects,
+        "render": {"integrator": "sppm", "max_depth": 4, "spp": passes, "photons": photons, "radius": 0.03},
+    }, focus
+
+
+@pytest.mark.slow
+def test_point_light_caustic_at_paraxial_focus():
+    """The brightest screen pixel lies on the axis at the paraxial image of the light through the
+    ball: 1/s_o + 1/s_i = 1/f about the centre with f = nR/(2(n − 1)), here s_i = 2.4 R. The camera
+    is centred on that point; tolerance: the centre pixel (±PIXEL/2) plus the spherical aberration
+    the stop admits (rays at height 0.25 R cross the axis < 0.05 R before the paraxial focus)."""
+    d, focus = caustic_scene()
+    img = np.asarray(R.render(R.load_scene(d)))
+    assert np.isfinite(img).all() and img.min() >= 0
+    lum = img.mean(-1)
+    r, c = np.unravel_index(np.argmax(lum), lum.shape)
+    y = -focus + (CAUSTIC_H / 2 - r - 0.5) * PIXEL
+    assert abs(c - CAUSTIC_W // 2) <= 1
+    assert abs(y + focus) <= PIXEL / 2 + 0.05 * R_BALL, (y, -focus)
+    # a real focus: the peak stands far above the rest of the screen's caustic column
+    column = lum[:, c]
+    assert column.max() > 5 * np.median(column[column > 0])
+
+
+def _path_reference(scene, spp, batches):
+    """The path tracer's per-pixel mean and standard error from `batches` passes of `spp` samples."""
+    s = R.load_scene(dict(scene, render=dict(scene["render"], integrator="path", spp=spp)))
+    passes = [np.asarray(path.render_jit(s, i, jitter=True)) for i in range(batches)]
+    return np.mean(passes, 0), np.std(passes, 0, ddof=1) / math.sqrt(batches)
+
+
+def _blocks(img, k=6):
+    h, w = img.shape[:2]
+    return img[: h - h % k, : w - w % k].reshape(h // k, k, w // k, k, 3).mean((1, 3))
+
+
+@pytest.mark.slow
+def test_diffuse_scene_converges_to_path_tracer():
+    """Diffuse-only scene with point lights and an area light: the SPPM image's mean and 6x6-pixel
+    blocks agree with the path tracer's within combined standard errors (path tracer: spread of its
+    passes; SPPM: spread over 3 independent seeds), and the block error shrinks with passes."""
+    d = diffuse_scene(width=24, height=18, photons=20_000, radius=0.15)
+    ref, ref_se = _path_reference(d, 64, 8)
+    runs = {}
+    for passes in (4, 48):
+        imgs = []
+        for seed in range(3):
+            s = R.load_scene(dict(d, render=dict(d["render"], spp=passes, seed=seed)))
+            img = np.asarray(R.render(s))
+            assert np.isfinite(img).all() and img.min() >= 0
+            imgs.append(img)
+        runs[passes] = np.array(imgs)
+    late = runs[48]
+    se_mean = np.sqrt(late.mean((1, 2)).std(0, ddof=1) ** 2 / 3 + ref_se.mean((0, 1)) ** 2 + 1e-12)
+    assert np.all(np.abs(late.mean((0, 1, 2)) - ref.mean((0, 1))) < 4 * se_mean + 0.01 * ref.mean((0, 1)))
+    b_late = np.array([_blocks(x) for x in late])
+    b_ref = _blocks(ref)
+    b_ref_se = np.sqrt(_blocks(ref_se ** 2) / 36)  # pixels' errors are independent
+    se = np.sqrt(b_late.std(0, ddof=1) ** 2 / 3 + b_ref_se ** 2)
+    z = np.abs(b_late.mean(0) - b_ref) / (se + 0.02 * b_ref + 1e-6)
+    assert np.mean(z < 4) > 0.95, z.max()
+    err = {p: np.sqrt(np.mean((np.array([_blocks(x) for x in runs[p]]).mean(0) - b_ref) ** 2)) for p in runs}
+    assert err[48] < err[4], err
+
+
+@pytest.mark.slow
+def test_caustics_scene_renders_finite(tmp_path):
+    """The shipped caustics scene through the CLI at a small size: finite, lit, with AOVs."""
+    out = tmp_path / "c.exr"
+    r = subprocess.run([sys.executable, "-m", "jaxrt.cli", "render", "caustics", "--width", "32", "--height", "24",
+                        "--passes", "2", "--photons", "4096", "--aovs", "-q", "-o", str(out)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    from jaxrt import image
+
+    ch = image.read_exr(out, channels=True)
+    rgb = ch["RGB"]
+    assert rgb.shape == (24, 32, 3) and np.isfinite(rgb).all() and rgb.max() > 0
+    assert "depth" in ch

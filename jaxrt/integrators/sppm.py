@@ -24,7 +24,7 @@ photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of p
   the path tracer's max_depth (a scattering vertex count, pbrt's maxDepth).
 
 Gathering uses a hash grid built with array operations: cell size 2·r_max (the largest current
-radius), each deposit's cell hashed into a table of 2^k buckets (Teschner et al. 2003's hash), the
+radius), each deposit's cell hashed into a table of 2^k buckets, the
 deposits sorted by bucket after a random permutation, bucket starts and ends by `searchsorted`. A
 visible point reads the 8 cells its radius-r ball can touch and, of each bucket, the first
 `CELL_PHOTONS` deposits; a bucket with n > CELL_PHOTONS deposits has its read deposits weighted by
@@ -339,17 +339,29 @@ def trace_photons(scene, key, n: int) -> Deposits:
 
 # ---------------------------------------------------------------------------------------------- grid
 
-_PRIMES = (73856093, 19349663, 83492791)  # Teschner et al., "Optimized spatial hashing", VMV 2003
+_CELL_RANGE = 1 << 20  # cell coordinates are clipped to ±2^20 (a 2^21-cell grid a side)
 
 
 def _cells(p, cell):
-    return jnp.clip(jnp.floor(p / cell), -(1 << 20), 1 << 20).astype(jnp.int32)
+    return jnp.clip(jnp.floor(p / cell), -_CELL_RANGE, _CELL_RANGE).astype(jnp.int32)
+
+
+def _fmix(h):
+    # MurmurHash3's 32-bit finaliser: a bijection whose every output bit depends on every input bit
+    h = (h ^ (h >> 16)) * jnp.uint32(0x85EBCA6B)
+    h = (h ^ (h >> 13)) * jnp.uint32(0xC2B2AE35)
+    return h ^ (h >> 16)
 
 
 def _hash(c, size: int):
-    h = jnp.zeros(c.shape[:-1], jnp.uint32)
-    for a in range(3):
-        h = h ^ (c[..., a].astype(jnp.uint32) * jnp.uint32(_PRIMES[a]))
+    """Bucket of integer cells (..., 3) in a table of `size` (a power of two) buckets: the finaliser
+    chained over the coordinates (offset to non-negative), so sign flips and permutations of a
+    cell's coordinates land in unrelated buckets (a masked XOR of coordinate multiples, Teschner et
+    al. 2003's hash for prime table sizes, maps (i, j, k) and (i, -j, -k) together for many cells)."""
+    u = (c + _CELL_RANGE).astype(jnp.uint32)
+    h = _fmix(u[..., 2] + jnp.uint32(0x9E3779B9))
+    h = _fmix(h ^ u[..., 1])
+    h = _fmix(h ^ u[..., 0])
     return (h & jnp.uint32(size - 1)).astype(jnp.int32)
 
 
@@ -383,7 +395,7 @@ def _candidates(grid: Grid, dep: Deposits, p, r2):
     base = jnp.floor(x)
     lo = base - jnp.where(x - base < 0.5, 1.0, 0.0)  # the 2x2x2 cells the ball of radius cell/2 touches
     offs = jnp.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], jnp.float32)
-    cells = jnp.clip(lo[:, None, :] + offs[None], -(1 << 20), 1 << 20).astype(jnp.int32)  # (S, 8, 3)
+    cells = jnp.clip(lo[:, None, :] + offs[None], -_CELL_RANGE, _CELL_RANGE).astype(jnp.int32)  # (S, 8, 3)
     hq = _hash(cells, grid.size)
     start = jnp.searchsorted(grid.bucket, hq, side="left")
     end = jnp.searchsorted(grid.bucket, hq, side="right")

@@ -129,8 +129,8 @@ def test_gather_finds_every_photon_in_radius():
     """The hash-grid gather counts exactly the deposits within r of each point (brute force), when
     no cell holds more than CELL_PHOTONS of them (no subsampling)."""
     rng = np.random.default_rng(0)
-    n, S = 5000, 200
-    pts = rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32)  # about 20 per cell of edge 0.16
+    n, S = 2500, 200
+    pts = rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32)  # about 10 per cell of edge 0.16
     vp_p = rng.uniform(-0.6, 0.6, (S, 3)).astype(np.float32)
     r2 = rng.uniform(0.03, 0.08, S).astype(np.float32) ** 2
     dep = sppm.Deposits(jnp.asarray(pts), jnp.zeros((n, 3)).at[:, 2].set(1.0), jnp.ones((n, 3)),
@@ -140,7 +140,7 @@ def test_gather_finds_every_photon_in_radius():
     valid = np.asarray(dep.valid)
     brute = (((pts[None] - vp_p[:, None]) ** 2).sum(-1) < r2[:, None]) & valid[None]
     np.testing.assert_array_equal(counts, brute.sum(1))
-    assert brute.sum() > 300
+    assert brute.sum() > 150
 
 
 # ---------------------------------------------------------------------------------------------- images

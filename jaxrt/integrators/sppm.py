@@ -408,10 +408,14 @@ def _candidates(grid: Grid, dep: Deposits, p, r2):
     return pid, (j < end[..., None]) & same & near, scale
 
 
-def count_near(grid: Grid, dep: Deposits, p: Float[Array, "S 3"], r2: Float[Array, " S"]) -> Int[Array, " S"]:
-    """Deposits read within radius r of every point (all of them where no cell holds more than
-    CELL_PHOTONS; r must not exceed the grid's cell / 2)."""
-    _, ok, _ = _candidates(grid, dep, p, r2)
+def count_near(grid: Grid, dep: Deposits, p: Float[Array, "S 3"], r2: Float[Array, " S"],
+               weighted: bool = False) -> Array:
+    """Deposits read within radius r of every point, (S,): all of them where no bucket holds more
+    than CELL_PHOTONS (r must not exceed the grid's cell / 2); with `weighted`, each read deposit
+    counts n / CELL_PHOTONS for its bucket's n, the unbiased estimate the gather uses."""
+    _, ok, scale = _candidates(grid, dep, p, r2)
+    if weighted:
+        return jnp.sum(jnp.where(ok, scale[..., None], 0.0), axis=(1, 2))
     return jnp.sum(ok, axis=(1, 2))
 
 

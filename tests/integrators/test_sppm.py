@@ -240,31 +240,34 @@ def _blocks(img, k=6):
 
 @pytest.mark.slow
 def test_diffuse_scene_converges_to_path_tracer():
-    """Diffuse-only scene with point lights and an area light: the SPPM image's mean and 6x6-pixel
-    blocks agree with the path tracer's within combined standard errors (path tracer: spread of its
-    passes; SPPM: spread over 3 independent seeds), and the block error shrinks with passes."""
-    d = diffuse_scene(width=24, height=18, photons=20_000, radius=0.15)
-    ref, ref_se = _path_reference(d, 64, 8)
-    runs = {}
-    for passes in (4, 48):
-        imgs = []
-        for seed in range(3):
-            s = R.load_scene(dict(d, render=dict(d["render"], spp=passes, seed=seed)))
-            img = np.asarray(R.render(s))
-            assert np.isfinite(img).all() and img.min() >= 0
-            imgs.append(img)
-        runs[passes] = np.array(imgs)
-    late = runs[48]
-    se_mean = np.sqrt(late.mean((1, 2)).std(0, ddof=1) ** 2 / 3 + ref_se.mean((0, 1)) ** 2 + 1e-12)
+    """Diffuse-only scene with point lights and an area light: after 24 passes the SPPM image's
+    mean and 6x6-pixel blocks agree with the path tracer's within combined standard errors (path
+    tracer: spread of its passes; SPPM: spread over 3 independent seeds; a 1 % allowance for the
+    remaining radius bias), and the block error to the path tracer shrinks from pass 4 to 24 (the
+    large initial radius's bias, blurred indirect light, fades as the radii shrink)."""
+    d = diffuse_scene(width=24, height=18, photons=10_000, radius=0.3)
+    ref, ref_se = _path_reference(d, 32, 8)
+    runs = {4: [], 24: []}
+    for seed in range(3):
+        s = R.load_scene(dict(d, render=dict(d["render"], seed=seed)))
+        state = None
+        for p in range(1, 25):
+            state = sppm.accumulate(s, state)
+            if p in runs:
+                img = np.asarray(state.image)
+                assert np.isfinite(img).all() and img.min() >= 0
+                runs[p].append(img)
+    late = np.array(runs[24])
+    se_mean = np.sqrt(late.mean((1, 2)).std(0, ddof=1) ** 2 / 3 + ref_se.mean((0, 1)) ** 2)
     assert np.all(np.abs(late.mean((0, 1, 2)) - ref.mean((0, 1))) < 4 * se_mean + 0.01 * ref.mean((0, 1)))
     b_late = np.array([_blocks(x) for x in late])
     b_ref = _blocks(ref)
     b_ref_se = np.sqrt(_blocks(ref_se ** 2) / 36)  # pixels' errors are independent
     se = np.sqrt(b_late.std(0, ddof=1) ** 2 / 3 + b_ref_se ** 2)
-    z = np.abs(b_late.mean(0) - b_ref) / (se + 0.02 * b_ref + 1e-6)
-    assert np.mean(z < 4) > 0.95, z.max()
+    z = np.abs(b_late.mean(0) - b_ref) / (se + 0.01 * b_ref + 1e-6)
+    assert np.all(z < 4), z.max()
     err = {p: np.sqrt(np.mean((np.array([_blocks(x) for x in runs[p]]).mean(0) - b_ref) ** 2)) for p in runs}
-    assert err[48] < err[4], err
+    assert err[24] < err[4], err
 
 
 @pytest.mark.slow

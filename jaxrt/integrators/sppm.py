@@ -14,7 +14,9 @@ photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of p
   path tracer.
 * Photon pass: `[render] photons` photons leave the lights, the light chosen by its power
   (luminance): a point light of intensity I emits 4π·I uniformly over the sphere, an emissive
-  triangle of radiance L_e and area A emits π·L_e·A cosine-distributed on its emitting side. Each
+  triangle of radiance L_e and area A emits π·L_e·A cosine-distributed on its emitting side, an
+  environment sends π r²·∫L dω through the disk of the scene's bounding-sphere radius r facing each
+  direction (directions from its importance sampler, as pbrt-v4's infinite lights). Each
   photon is traced through every BSDF (the models' `sample`/`pdf`, measured models included) and
   the delta materials for at most max_depth − 1 scatterings, without Russian roulette, and
   deposited at every non-delta hit *after its first scattering*: light reaching a surface straight
@@ -25,10 +27,10 @@ photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of p
 
 Gathering uses a hash grid built with array operations: cell size 2·r_max (the largest current
 radius), each deposit's cell hashed into a table of 2^k buckets, the
-deposits sorted by bucket after a random permutation, bucket starts and ends by `searchsorted`. A
+deposits sorted by (bucket, a random key), bucket starts and ends by `searchsorted`. A
 visible point reads the 8 cells its radius-r ball can touch and, of each bucket, the first
 `CELL_PHOTONS` deposits; a bucket with n > CELL_PHOTONS deposits has its read deposits weighted by
-n / CELL_PHOTONS (they are a uniform random subset of the bucket, thanks to the permutation), so
+n / CELL_PHOTONS (they are a uniform random subset of the bucket, thanks to the random key), so
 the estimate of each cell's sum stays unbiased with static shapes. Deposits of another cell sharing
 the bucket are rejected by their cell coordinates.
 
@@ -42,9 +44,8 @@ bounding-box diagonal) / max(width, height), a couple of pixels' footprint when 
 view. The number of passes is `[render] spp` (one camera sample per pixel per pass), so
 `jaxrt render --passes N` and `--spp N` are the same setting.
 
-Not modelled: photons from the environment (an environment lights visible points directly and
-through delta bounces, not by interreflection), differentiation (the render is a Monte Carlo
-density estimate; gradients are not meaningful), tiles (a pass is one whole-frame program).
+Not modelled: differentiation (the render is a Monte Carlo density estimate; gradients are not
+meaningful), tiles (a pass is one whole-frame program).
 """
 
 from __future__ import annotations
@@ -117,10 +118,8 @@ def initial_radius(scene) -> Float[Array, ""]:
     r = getattr(scene.settings, "radius", 0.0)
     if r:
         return jnp.asarray(r, jnp.float32)
-    geo = _sg(scene.geometry)
-    v = jnp.stack(geo.triangles(jnp.arange(geo.triangle_count)), 0).reshape(-1, 3)
-    diag = jnp.linalg.norm(jnp.max(v, axis=0) - jnp.min(v, axis=0))
-    return 2.0 * diag / max(scene.camera.width, scene.camera.height)
+    _, half_diag = _bounds(scene)
+    return 4.0 * half_diag / max(scene.camera.width, scene.camera.height)
 
 
 def check(scene) -> None:
@@ -205,17 +204,43 @@ def _scatter(scene, models, s, d, found, u):
 
 # ---------------------------------------------------------------------------------------------- lights
 
+def _bounds(scene):
+    """Centre and radius of the scene's bounding sphere (about its bounding box; detached)."""
+    geo = _sg(scene.geometry)
+    v = jnp.stack(geo.triangles(jnp.arange(geo.triangle_count)), 0).reshape(-1, 3)
+    lo, hi = jnp.min(v, axis=0), jnp.max(v, axis=0)
+    return 0.5 * (lo + hi), 0.5 * jnp.linalg.norm(hi - lo)
+
+
+def environment_radiant_exitance(env) -> Float[Array, "3"]:
+    """∫ L(ω) dω over the sphere of directions [W/m²] per channel: the power an environment sends
+    through a unit disk facing each direction, summed over directions (4π·L for a constant one)."""
+    tex = _sg(env.texels)
+    if env.uniform:
+        return 4.0 * math.pi * tex[0, 0]
+    h, w = tex.shape[:2]
+    theta = (jnp.arange(h) + 0.5) * (math.pi / h)
+    d_omega = (2.0 * math.pi / w) * (math.pi / h) * jnp.sin(theta)
+    return jnp.sum(tex * d_omega[:, None, None], axis=(0, 1))
+
+
 def _light_choice(scene):
     """Selection weights of the photon sources by power (luminance): (L point lights, the emissive
-    triangles as one entry), and the emitter table (None without emissive triangles)."""
+    triangles as one entry, the environment as one entry), the emitter table (None without emissive
+    triangles) and the bounding sphere (None without an environment)."""
     L = scene.lights.count
     w = [4.0 * math.pi * envmap.luminance(_sg(scene.lights.intensity))] if L else []
-    table = None
+    table = sphere = None
     if scene.area_lights is not None and scene.area_lights.count > 0:
         table = emitter_table(scene)
         w.append(math.pi * table.total[None])
+    env = getattr(scene, "environment", None)
+    if env is not None:
+        sphere = _bounds(scene)
+        # the environment's photons cross a disk of the bounding sphere's radius facing them
+        w.append((math.pi * sphere[1] ** 2 * envmap.luminance(environment_radiant_exitance(env)))[None])
     w = jnp.concatenate(w) if w else jnp.zeros(0)
-    return w, table
+    return w, table, sphere
 
 
 def light_power(scene) -> Float[Array, "3"]:
@@ -234,10 +259,11 @@ def emit(scene, u: Float[Array, "n 6"]):
 
     Returns origins (n, 3), unit directions (n, 3) and powers (n, 3) [W], each photon's power its
     light's emitted flux over the probability density of the photon, so the mean power over photons
-    is an unbiased estimate of `light_power` (exactly it for one light of one colour)."""
+    is an unbiased estimate of `light_power` (exactly it for one light of one colour), plus, with an
+    environment, π r²·∫L dω, the power it sends into the bounding sphere of radius r."""
     geo = _sg(scene.geometry)
     n = u.shape[0]
-    w, table = _light_choice(scene)
+    w, table, sphere = _light_choice(scene)
     nl = scene.lights.count
     tot = jnp.sum(w)
     if w.shape[0] == 0:
@@ -280,6 +306,23 @@ def emit(scene, u: Float[Array, "n 6"]):
         o = jnp.where(area[:, None], y + n_l * offset_scale(y), o)
         d = jnp.where(area[:, None], d_tri, d)
         power = jnp.where(area[:, None], pw_tri, power)
+    if sphere is not None:
+        # from the environment (pbrt-v4's ImageInfiniteLight::SampleLe): a direction wi from the
+        # map's importance sampler, a uniform point on the disk of the bounding sphere's radius
+        # facing it, the photon travelling along −wi; power L(wi)·π r² / pdf(wi)
+        env = _sg(scene.environment)
+        centre, radius = sphere
+        wi_e, le_e, pdf_e = envmap.sample(env, u[:, 4:6])
+        t_e, b_e, _ = local_frame(wi_e, jnp.zeros_like(wi_e))
+        rd = radius * jnp.sqrt(u[:, 2])
+        ang = 2.0 * math.pi * u[:, 3]
+        o_e = centre + radius * wi_e + (rd * jnp.cos(ang))[:, None] * t_e + (rd * jnp.sin(ang))[:, None] * b_e
+        pw_e = le_e * (math.pi * radius**2 * jnp.where(pdf_e > 0, 1.0 / jnp.where(pdf_e > 0, pdf_e, 1.0), 0.0)
+                       * inv_p)[:, None]
+        sky = pick == w.shape[0] - 1
+        o = jnp.where(sky[:, None], o_e, o)
+        d = jnp.where(sky[:, None], -wi_e, d)
+        power = jnp.where(sky[:, None], pw_e, power)
     return o, normalize(d), jnp.where(jnp.isfinite(power), power, 0.0)
 
 
@@ -366,31 +409,37 @@ def _hash(c, size: int):
 
 
 class Grid(eqx.Module):
-    """Deposits sorted by hash bucket: bucket (N,) sorted, order (N,) deposit index of each sorted
-    entry, cell size (), table size (static)."""
+    """The valid deposits sorted by hash bucket (random order within a bucket): bucket (N,) sorted
+    (`size` for invalid deposits, last), and each sorted entry's cell, position, wi, power and
+    scattering count; the cell edge () and the table size (static)."""
 
     bucket: Int[Array, " N"]
-    order: Int[Array, " N"]
+    cells: Int[Array, "N 3"]
+    p: Float[Array, "N 3"]
+    wi: Float[Array, "N 3"]
+    power: Float[Array, "N 3"]
+    bounce: Int[Array, " N"]
     cell: Float[Array, ""]
     size: int = eqx.field(static=True)
 
 
 def build_grid(dep: Deposits, cell, key) -> Grid:
-    """The hash grid of the valid deposits with cells of edge `cell` (sort by bucket after a random
-    permutation, so that each bucket's entries are in random order)."""
+    """The hash grid of the valid deposits with cells of edge `cell`: one sort by (bucket, a random
+    32-bit key), so that a bucket's first entries are a uniform random subset of it."""
     N = dep.p.shape[0]
     size = 1 << max(int(2 * N - 1).bit_length(), 4)
-    b = jnp.where(dep.valid, _hash(_cells(dep.p, cell), size), size)
-    perm = jax.random.permutation(key, N)
-    order = perm[jnp.argsort(b[perm], stable=True)]
-    return Grid(b[order], order, cell, size)
+    cells = _cells(dep.p, cell)
+    b = jnp.where(dep.valid, _hash(cells, size), size)
+    rand = jax.random.bits(key, (N,), jnp.uint32)
+    b, _, order = lax.sort((b, rand, jnp.arange(N, dtype=jnp.int32)), num_keys=2)
+    return Grid(b, cells[order], dep.p[order], dep.wi[order], dep.power[order], dep.bounce[order], cell, size)
 
 
-def _candidates(grid: Grid, dep: Deposits, p, r2):
-    """The deposits read for every point p (S, 3): their indices (S, 8, K), whether each lies in its
-    cell and within radius r, and the bucket subsampling weight n / K of each cell (S, 8)."""
+def _candidates(grid: Grid, p, r2):
+    """The sorted entries read for every point p (S, 3): their indices (S, 8, K), whether each lies
+    in its cell and within radius r, and the bucket subsampling weight n / K of each cell (S, 8)."""
     K = CELL_PHOTONS
-    N = dep.p.shape[0]
+    N = grid.bucket.shape[0]
     x = p / grid.cell
     base = jnp.floor(x)
     lo = base - jnp.where(x - base < 0.5, 1.0, 0.0)  # the 2x2x2 cells the ball of radius cell/2 touches
@@ -400,26 +449,25 @@ def _candidates(grid: Grid, dep: Deposits, p, r2):
     start = jnp.searchsorted(grid.bucket, hq, side="left")
     end = jnp.searchsorted(grid.bucket, hq, side="right")
     j = start[..., None] + jnp.arange(K)  # (S, 8, K)
-    pid = grid.order[jnp.clip(j, 0, N - 1)]
-    same = jnp.all(_cells(dep.p[pid], grid.cell) == cells[:, :, None, :], axis=-1)
-    dp = dep.p[pid] - p[:, None, None, :]
+    jc = jnp.clip(j, 0, N - 1)
+    same = jnp.all(grid.cells[jc] == cells[:, :, None, :], axis=-1)
+    dp = grid.p[jc] - p[:, None, None, :]
     near = jnp.sum(dp * dp, axis=-1) < r2[:, None, None]
     scale = (jnp.maximum(end - start, K) / K).astype(jnp.float32)
-    return pid, (j < end[..., None]) & same & near, scale
+    return jc, (j < end[..., None]) & same & near, scale
 
 
-def count_near(grid: Grid, dep: Deposits, p: Float[Array, "S 3"], r2: Float[Array, " S"],
-               weighted: bool = False) -> Array:
+def count_near(grid: Grid, p: Float[Array, "S 3"], r2: Float[Array, " S"], weighted: bool = False) -> Array:
     """Deposits read within radius r of every point, (S,): all of them where no bucket holds more
     than CELL_PHOTONS (r must not exceed the grid's cell / 2); with `weighted`, each read deposit
     counts n / CELL_PHOTONS for its bucket's n, the unbiased estimate the gather uses."""
-    _, ok, scale = _candidates(grid, dep, p, r2)
+    _, ok, scale = _candidates(grid, p, r2)
     if weighted:
         return jnp.sum(jnp.where(ok, scale[..., None], 0.0), axis=(1, 2))
     return jnp.sum(ok, axis=(1, 2))
 
 
-def gather(scene, grid: Grid, dep: Deposits, vp: dict, r2: Float[Array, " S"]):
+def gather(scene, grid: Grid, vp: dict, r2: Float[Array, " S"]):
     """(M, Φ): photons found within radius r of every visible point (bucket subsampling weights
     included) and their reflected flux Σ β·f(wo, wi)·Φ_p, (S,) and (S, 3)."""
     mats = scene.materials
@@ -428,11 +476,11 @@ def gather(scene, grid: Grid, dep: Deposits, vp: dict, r2: Float[Array, " S"]):
     K = CELL_PHOTONS
     p = vp["p"]
     S = p.shape[0]
-    pid, ok, scale = _candidates(grid, dep, p, r2)
-    wi = dep.wi[pid]
+    jc, ok, scale = _candidates(grid, p, r2)
+    wi = grid.wi[jc]
     front = dot(wi, vp["ng"][:, None, None, :]) > 0
-    short = dep.bounce[pid] + vp["depth"][:, None, None] <= D
-    ok = ok & dep.valid[pid] & front & short & vp["found"][:, None, None]
+    short = grid.bounce[jc] + vp["depth"][:, None, None] <= D
+    ok = ok & front & short & vp["found"][:, None, None]
     weight = jnp.where(ok, scale[..., None], 0.0).reshape(S, 8 * K)
     frame = vp["frame"]
     wi_l = to_local(wi.reshape(S, 8 * K, 3), tuple(a[:, None, :] for a in frame))
@@ -440,7 +488,7 @@ def gather(scene, grid: Grid, dep: Deposits, vp: dict, r2: Float[Array, " S"]):
     params = {kk: _params(mats, s, kk) for kk, _ in models}
     sel = {kk: mats.model_id[s.material] == kk for kk, _ in models}
     f = _eval_f(models, params, sel, wi_l, vp["wo"][:, None, :], extra_dims=1)
-    phi = jnp.sum(weight[..., None] * f * dep.power[pid].reshape(S, 8 * K, 3), axis=1) * vp["beta"]
+    phi = jnp.sum(weight[..., None] * f * grid.power[jc].reshape(S, 8 * K, 3), axis=1) * vp["beta"]
     m = jnp.sum(weight, axis=1)
     return m, jnp.where(jnp.isfinite(phi), phi, 0.0)
 
@@ -596,7 +644,7 @@ def _pass(scene, state: SPPMState, with_first: bool = False):
     dep = trace_photons(scene, kph, state.photons)
     r_max = jnp.sqrt(jnp.max(jnp.where(vp["found"], state.r2, 0.0)))
     grid = build_grid(dep, jnp.maximum(2.0 * r_max, 1e-6), kgrid)
-    m, phi = gather(scene, grid, dep, vp, state.r2)
+    m, phi = gather(scene, grid, vp, state.r2)
     n_new = state.n + ALPHA * m
     ratio = jnp.where(state.n + m > 0, n_new / jnp.where(state.n + m > 0, state.n + m, 1.0), 1.0)
     r2_new = state.r2 * ratio

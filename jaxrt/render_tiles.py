@@ -15,6 +15,10 @@ origin per device, `Plan.steps` taken N at a time, and the host gathers each cal
 budget then applies to each device (on a CPU, whose virtual devices share the RAM, it is split
 between them), and the image has at least max(32, 4·N) tiles for load balance.
 
+A progressive whole-frame integrator (`integrators.sppm`: each pass needs every pixel's visible point
+and the whole photon map) is not tiled: `render` runs its passes one compiled call at a time on the
+default device, the progress bar counting passes and Ctrl-C checked between them.
+
 Memory model
 ------------
 The budget B is `memory` (bytes or "2G"), else JAXRT_MEMORY, else `default_budget()`: on a GPU 90 %

@@ -637,6 +637,7 @@ def start(scene) -> SPPMState:
 
 
 def _pass(scene, state: SPPMState, with_first: bool = False):
+    # pass P's random numbers: fold_in(key(seed), P), split between camera, photons and the grid
     key = jax.random.fold_in(jax.random.key(jnp.asarray(scene.settings.seed, jnp.uint32)),
                              state.passes.astype(jnp.uint32))
     kvp, kph, kgrid = jax.random.split(key, 3)
@@ -654,8 +655,9 @@ def _pass(scene, state: SPPMState, with_first: bool = False):
     return (new, first) if with_first else new
 
 
+#: One pass (camera pass, photon pass, hash grid, gather, progressive update), compiled once per scene
+#: structure: `step(scene, state)` -> the next `SPPMState` (the pass index is the state's, traced).
 step = jax.jit(_pass)
-step.__doc__ = "One SPPM pass (camera pass, photon pass, gather, progressive update), compiled."
 
 
 def _first_aovs(scene):
@@ -677,8 +679,7 @@ def accumulate(scene, state: SPPMState | None = None) -> SPPMState:
     return step(scene, state)
 
 
-def render(scene, pass_index: Int[Array, ""] | int = 0, *, aovs: bool = False, jitter: bool | None = None,
-           window: camera.Window | None = None):
+def render(scene, *, aovs: bool = False, window: camera.Window | None = None):
     """`settings.spp` passes of SPPM in one program: the (H, W, 3) image; with `aovs` a pair (image,
     AOVs of the first pass's camera hits). SPPM has no tiles (a pass is one whole-frame program)."""
     if window is not None:

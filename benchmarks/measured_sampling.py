@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from brdfs import _common as C
+from brdfs import _measured_sampling as S
 from brdfs import measured, nbrdf
 
 NAMED = ("merl/chrome", "merl/alum-bronze", "merl/blue-acrylic", "merl/gold-metallic-paint", "merl/white-paint",
@@ -91,7 +92,7 @@ def main(argv=None) -> None:
             v_ours, v_cos = max(m2 - alb**2, 0.0), max(m2c - alb**2, 0.0)
             r.append({"theta_o": th, "albedo": alb, "var_ours": v_ours, "var_cos": v_cos,
                       "ratio": v_cos / v_ours if v_ours > 0 else float("inf"),
-                      "ps": float(nbrdf.MODEL.extras["lobe_prob"](p, wo))})
+                      "ps": float(S.lobe_prob(p, wo))})
         rows[name] = r
     print(f"variance of the albedo estimator (channel mean), n = {a.n} samples per material and angle")
     print(f"{'material':32s} " + " ".join(f"{'θo=' + format(th, 'g') + '°':>22s}" for th in a.angles))

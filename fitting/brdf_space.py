@@ -317,14 +317,16 @@ def fit_samples(
     f_eval: Float[np.ndarray, "B M 3"] | None = None,
     eval_samp: Sampling | None = None,
     progress: bool = False,
+    devices=None,
 ) -> list[BrdfFit]:
     """Fit `model` to B measured BRDFs given as values f_meas (B, N, 3) [1/sr] on the sampling `samp`.
 
     One compiled Levenberg–Marquardt solve (fitting.solve.solve_batch) runs vmapped over the B
     materials and the `starts` deterministic starts; `batch` materials per call (default all).
     With `f_eval` (B, M, 3), the same materials on a (finer) sampling `eval_samp`, the reported errors
-    are evaluated there; otherwise on `samp`. Returns one BrdfFit per material (named by `names`,
-    default "0", "1", ...).
+    are evaluated there; otherwise on `samp`. `devices` (None: the default device) splits the
+    materials of each call over several devices (`fitting.solve.solve_batch`). Returns one BrdfFit
+    per material (named by `names`, default "0", "1", ...).
     """
     model = fit_model(model)
     check_metric(metric)
@@ -346,7 +348,8 @@ def fit_samples(
     mask = (samp.weight / samp.weight.mean()).astype(np.float32)
     with jax.default_matmul_precision(MATMUL_PRECISION):
         sols = solve_batch(shade, data, targets, model, mask=mask, fix=fix, init=init, rgb=True, solver=solver,
-                           starts=starts, max_steps=max_steps, rtol=rtol, atol=atol, batch=batch, progress=progress)
+                           starts=starts, max_steps=max_steps, rtol=rtol, atol=atol, batch=batch, progress=progress,
+                           devices=devices)
     for sol in sols:
         for t, s in tie:
             sol.params[t] = sol.params[s]

@@ -127,3 +127,59 @@ def shader(model_name: str):
 
     shade.program_key = f"fitting.compact.shader({model_name!r})"  # stable across processes
     return shade
+
+
+# ---- one fit's nodes split over devices ------------------------------------------------------------------
+
+
+def _node_specs(axis):
+    from jax.sharding import PartitionSpec as P
+
+    rows = P(axis)
+    return FitBuffer(pixel=rows, weight=rows, wi=rows, wo=rows, light=rows, constant=P())
+
+
+def split(fb: FitBuffer, devices) -> FitBuffer:
+    """`fb` with its nodes split over a mesh of `devices` (`jaxrt._devices`) and the constant image
+    replicated; the nodes are padded to a multiple of the device count with copies of the last node
+    of weight 0 (they add exactly 0). Each process places its own devices' rows (works across hosts)."""
+    from jax.sharding import NamedSharding
+
+    from jaxrt import _devices
+
+    m = _devices.mesh(devices)
+    n = int(fb.pixel.shape[0])
+    padded = _devices.pad_rows(FitBuffer(pixel=fb.pixel, weight=fb.weight, wi=fb.wi, wo=fb.wo, light=fb.light,
+                                         constant=np.zeros((1,))), _devices.padded(n, devices))
+    weight = np.array(padded.weight)
+    weight[n:] = 0.0
+    host = FitBuffer(pixel=padded.pixel, weight=weight, wi=padded.wi, wo=padded.wo, light=padded.light,
+                     constant=np.asarray(fb.constant))
+
+    def put(x, spec):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, NamedSharding(m, spec), lambda i: x[i])
+
+    return jax.tree.map(put, host, _node_specs(_devices.AXIS))
+
+
+@functools.lru_cache(maxsize=None)
+def split_shader(model_name: str, devices: tuple):
+    """`shader(model_name)` for a `split` fit buffer: each device's nodes summed into a partial image,
+    the partial images added by a `psum` over the devices. One function object per (model, devices)."""
+    from jax.sharding import PartitionSpec as P
+
+    from jaxrt import _devices
+
+    model = brdfs.get(model_name)
+    m = _devices.mesh(devices)
+
+    def partial_images(params, fb):
+        return jax.lax.psum(contribution(model, params, fb), _devices.AXIS)
+
+    summed = _devices.shard_map(partial_images, mesh=m, in_specs=(P(), _node_specs(_devices.AXIS)), out_specs=P())
+
+    def shade(params, fb: FitBuffer):
+        return fb.constant + summed(params, fb)
+
+    return shade

@@ -235,8 +235,15 @@ def brdf_fit_png(path: str | os.PathLike, fit, model, params, measured_model, me
         fig.savefig(tmp, dpi=100)
 
 
+def _material_label(name: str) -> str:
+    """A study material's short label: the name without its collection, or a file's name."""
+    from pathlib import Path
+
+    return Path(name).name if Path(name).suffix else name.split("/", 1)[-1]
+
+
 def study_errors_png(path: str | os.PathLike, materials: Sequence[str], models: Sequence[str],
-                     table: np.ndarray, metric: str, unit: str) -> None:
+                     table: np.ndarray, metric: str, unit: str, space: str = "brdf") -> None:
     """Ngan et al. 2005's figure: materials sorted by error (the lowest error any model reaches),
     one curve per model, log scale; every material labelled."""
     from matplotlib.figure import Figure
@@ -250,14 +257,15 @@ def study_errors_png(path: str | os.PathLike, materials: Sequence[str], models: 
     for j, m in enumerate(models):
         ax.plot(np.arange(n), e[order, j], marker=markers[j % len(markers)], ms=3.5, lw=1.0, label=m)
     ax.set_yscale("log")
-    ax.set_xticks(np.arange(n), [materials[i].split("/", 1)[-1] for i in order], rotation=90,
+    ax.set_xticks(np.arange(n), [_material_label(materials[i]) for i in order], rotation=90,
                   fontsize=7 if n > 40 else 9)
     ax.set_xlim(-0.5, n - 0.5)
     ax.set_ylabel(f"fitting error E ({metric} metric) [{unit}]")
     ax.set_xlabel("material, sorted by the lowest error of any model")
     ax.grid(True, which="both", axis="y", lw=0.4, alpha=0.5)
     ax.legend(fontsize=8)
-    ax.set_title(f"BRDF-space fits of {n} measured materials (after Ngan, Durand & Matusik 2005)",
+    ax.set_title(f"{'Image' if space == 'image' else 'BRDF'}-space fits of {n} measured materials "
+                 "(after Ngan, Durand & Matusik 2005)",
                  fontsize=10)
     fig.tight_layout()
     with atomic_path(path) as tmp:
@@ -294,6 +302,33 @@ def study_spheres_png(path: str | os.PathLike, materials: Sequence[str], models:
         ax.set_axis_off()
     fig.text(0.5, 0.005, SPHERE_CAPTION, ha="center", va="bottom", fontsize=6.5, color="0.3")
     fig.tight_layout(rect=(0, 0.03, 1, 1))
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+
+
+def study_renders_png(path: str | os.PathLike, materials: Sequence[str], models: Sequence[str], images: dict,
+                      fits: dict) -> None:
+    """Rows of renders (the image-space study's first view): the render of the measured material |
+    each model's fit (`images[(material, "target")]`, `images[(material, model)]`), one display white
+    per row (the target's, over the object's pixels `images[(material, "mask")]`)."""
+    from matplotlib.figure import Figure
+
+    rows, cols = len(materials), 1 + len(models)
+    fig = Figure(figsize=(1.6 * cols + 0.4, 1.75 * rows + 0.4))
+    axes = fig.subplots(rows, cols, squeeze=False)
+    for i, a in enumerate(materials):
+        target = np.asarray(images[(a, "target")])
+        mask = np.asarray(images.get((a, "mask"), np.ones(target.shape[:2]))) > 0
+        white = float(np.percentile(target[mask] if mask.any() else target, 99.5)) or 1.0
+        axes[i, 0].imshow(_display(target, white))
+        axes[i, 0].set_title(f"{_material_label(a)}\nmeasured", fontsize=7)
+        for j, m in enumerate(models):
+            f = fits[(a, m)]
+            axes[i, 1 + j].imshow(_display(np.asarray(images[(a, m)]), white))
+            axes[i, 1 + j].set_title(f"{m}\nE = {f.error:.3g}", fontsize=7)
+    for ax in axes.ravel():
+        ax.set_axis_off()
+    fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100)
 

@@ -131,6 +131,7 @@ def prepare(
     overrides: Sequence[Mapping[str, Any] | None] | None = None,
     confine: bool | None = None,
     progress: bool = False,
+    traced: Sequence[Any] | None = None,
 ) -> Setup:
     """Build and trace the scene(s) for fitting `model` on `object`'s material.
 
@@ -143,6 +144,10 @@ def prepare(
         confine: refuse scene paths outside each scene's folder and the data folder (default:
             JAXRT_CONFINE; `jaxrt.scene.parse`).
         progress: a progress bar on stderr over the views (build, trace) and the fit buffer.
+        traced: the traces (`jaxrt.integrators.trace`) of the scenes *as given*, one per scene, to
+            reuse instead of tracing them again, e.g. when several models are fitted to the same views
+            (a trace depends on geometry, δ and which materials are glass, not on the opaque models).
+            Ignored for an object that was glass (its substituted scene is traced).
     """
     model = brdfs.get(model) if isinstance(model, str) else model
     if isinstance(scenes, (str, os.PathLike, Mapping, _scene.SceneSpec)):
@@ -150,6 +155,9 @@ def prepare(
     overrides = list(overrides) if overrides is not None else [None] * len(scenes)
     if len(overrides) != len(scenes):
         raise InputError(f"got {len(scenes)} scenes but {len(overrides)} override sets")
+    traced = list(traced) if traced is not None else [None] * len(scenes)
+    if len(traced) != len(scenes):
+        raise InputError(f"got {len(scenes)} scenes but {len(traced)} traces")
     built, gbs, masks = [], [], []
     obj_name = None
     from tqdm import tqdm
@@ -158,7 +166,7 @@ def prepare(
     bar = tqdm(total=len(scenes) + 1, desc="preparing views", unit="step", leave=False, disable=not progress,
                delay=0.5)
     try:
-        for src, ov in zip(scenes, overrides):
+        for src, ov, gb in zip(scenes, overrides, traced):
             original = _spec(src, ov, confine)
             spec, mat_name, obj_name = _substitute(original, model, object)
             sc = _scene.build(spec)
@@ -166,7 +174,10 @@ def prepare(
             # model: trace the scene as given (one compilation per scene, whatever model is fitted)
             # unless the object was glass, whose branches the substituted model no longer has.
             was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
-            gb = integrators.trace(sc if was_glass else _scene.build(original))
+            if was_glass:
+                gb = integrators.trace(sc)
+            elif gb is None:
+                gb = integrators.trace(_scene.build(original))
             built.append(sc)
             gbs.append(gb)
             bar.update(1)
@@ -238,6 +249,8 @@ def fit(
     overrides: Sequence[Mapping[str, Any] | None] | None = None,
     mask: Float[Array, "K H W"] | None = None,
     setup: Setup | None = None,
+    devices: Any = None,
+    split: str = "starts",
     **solver_options,
 ) -> tuple[FitResult, Setup]:
     """Recover `model`'s parameters for `object`'s material from target images.
@@ -248,6 +261,14 @@ def fit(
             negative beyond noise and at most MAX_TARGET (`check_targets`).
         mask: optional (K, H, W) weights multiplied into the default mask (the material's pixels).
         setup: a `prepare` result to reuse (skips building and tracing).
+        devices: None (default) or 1: the default device; an int N, "all" or a list of
+            `jax.devices()`: the fit is split over those devices as `split` says.
+        split: "starts" (default): the starts run at once, split over the devices
+            (`fitting.solve.fit_images`); "nodes": the starts run one after another and each
+            residual evaluation is split: every device shades its share of the fit buffer's nodes and
+            a `psum` adds the partial images (`fitting.compact.split_shader`), so the solver's
+            Jacobian products are summed over the devices by that collective and its iterates equal
+            the one-device fit's up to the order of the sum.
         **solver_options: fix, init, rgb, solver, starts, max_steps, rtol, atol, progress
             (see `fitting.solve.fit_images`).
 
@@ -263,13 +284,23 @@ def fit(
         raise InputError(f"targets have shape {targets.shape}; the scene renders {expect} (K, H, W, RGB)")
     check_targets(targets)
     m = setup.mask if mask is None else setup.mask * np.asarray(mask, np.float32)
-    result = fit_images(compact.shader(setup.model.name), setup.fitbuffer, targets, setup.model, mask=m,
-                        **solver_options)
+    if split not in ("starts", "nodes"):
+        raise InputError(f"split={split!r}: must be 'starts' or 'nodes'")
+    from fitting.solve import fit_devices
+
+    devs = fit_devices(devices)
+    if split == "nodes" and devs:
+        result = fit_images(compact.split_shader(setup.model.name, devs), compact.split(setup.fitbuffer, devs),
+                            targets, setup.model, mask=m, **solver_options)
+    else:
+        result = fit_images(compact.shader(setup.model.name), setup.fitbuffer, targets, setup.model, mask=m,
+                            devices=devs or None, **solver_options)
     return result, setup
 
 
 def cross_model_matrix(
-    setups: Mapping[str, Setup], targets_params: Mapping[str, Mapping[str, Any]], **solver_options
+    setups: Mapping[str, Setup], targets_params: Mapping[str, Mapping[str, Any]], *, devices: Any = None,
+    **solver_options
 ) -> np.ndarray:
     """Fit every model to targets rendered by every model (Ngan, Durand & Matusik 2005 style).
 
@@ -277,19 +308,40 @@ def cross_model_matrix(
         setups: model name -> `prepare` result, all of the same scene and object.
         targets_params: model name -> the parameters its target is rendered with (same keys/order as
             `setups`).
+        devices: None (default) or 1: one fit after another on the default device (`fit`); an int
+            N, "all" or a list of `jax.devices()`: whole fits split over those devices: for each
+            fitted model, its fits to every target run as one batch (`fitting.solve.solve_batch`),
+            the targets split over the devices.
         **solver_options: passed to `fit` (starts, max_steps, rgb, solver, progress).
 
     Returns:
         (n, n) RMSE of the best fit relative to the target's RMS over the object's pixels; row i is the
         target model, column j the fitted model.
     """
+    from fitting.solve import fit_devices, solve_batch
+
     names = list(setups)
     out = np.zeros((len(names), len(names)))
-    for i, src in enumerate(names):
+    targets, scales = [], []
+    for src in names:
         s = setups[src]
         target = np.asarray(render_with(s, s.model.params(**targets_params[src])))
-        scale = float(np.sqrt(np.mean(target[s.mask > 0] ** 2))) or 1.0
-        for j, dst in enumerate(names):
-            r, _ = fit(None, target, dst, setup=setups[dst], **solver_options)
-            out[i, j] = r.rmse / scale
+        targets.append(target)
+        scales.append(float(np.sqrt(np.mean(target[s.mask > 0] ** 2))) or 1.0)
+    if not fit_devices(devices):
+        for i, target in enumerate(targets):
+            for j, dst in enumerate(names):
+                r, _ = fit(None, target, dst, setup=setups[dst], **solver_options)
+                out[i, j] = r.rmse / scales[i]
+        return out
+    for t in targets:
+        check_targets(t)
+    for j, dst in enumerate(names):
+        s = setups[dst]
+        sols = solve_batch(compact.shader(s.model.name), s.fitbuffer, np.stack(targets), s.model, mask=s.mask,
+                           devices=devices, **solver_options)
+        # the mask is 0/1, so the loss ½Σr² is over the object's pixels and channels: the fit's RMSE
+        count = 3 * int(np.count_nonzero(s.mask > 0))
+        for i, sol in enumerate(sols):
+            out[i, j] = float(np.sqrt(2.0 * sol.loss / count)) / scales[i]
     return out

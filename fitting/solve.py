@@ -227,14 +227,24 @@ def _compiled_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, 
 
 
 @functools.lru_cache(maxsize=32)
-def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float,
-                           max_steps: int):
-    """The same solve vmapped over starts (inner axis) and target sets (outer axis), jitted once.
+def _starts_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
+    """The single-start solve vmapped over starts: (z0 leaves (S, ...), gbuffer, pixels, fixed) ->
+    (z, loss, steps, ok), each (S, ...); the unjitted function that several devices split
+    (`fit_images(devices=...)`), one object per solver configuration."""
+    one = _solve_one(shade, free, solver, rtol, atol, max_steps)
 
-    z0 leaves are (B, S, ...), targets (B, P, 3); the gbuffer, compared-entry indices, weights and fixed
-    values are shared. A vmapped while loop runs until its slowest lane stops; finished lanes keep
-    their values, so each lane's result is the one the single-start solve gives.
-    """
+    def solve(z0, gbuffer, pixels, fixed):
+        return jax.vmap(lambda z: one(z, gbuffer, pixels, fixed))(z0)
+
+    return solve
+
+
+@functools.lru_cache(maxsize=32)
+def _batch_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
+    """The single-start solve vmapped over starts (inner axis) and target sets (outer axis), unjitted:
+    z0 leaves are (B, S, ...), targets (B, P, 3); the gbuffer, compared-entry indices, weights and
+    fixed values are shared. A vmapped while loop runs until its slowest lane stops; finished lanes keep
+    their values, so each lane's result is the one the single-start solve gives."""
     one = _solve_one(shade, free, solver, rtol, atol, max_steps)
 
     def solve(z0, gbuffer, idx, targets, sqrt_w, fixed):
@@ -243,7 +253,15 @@ def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver:
 
         return jax.vmap(per_target)(z0, targets)
 
-    return _jit(solve, "batch_solve", shade, free, solver, rtol, atol, max_steps)
+    return solve
+
+
+@functools.lru_cache(maxsize=32)
+def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float,
+                           max_steps: int):
+    """`_batch_solve` jitted once (its traced program kept across processes where `shade` names itself)."""
+    return _jit(_batch_solve(shade, free, solver, rtol, atol, max_steps), "batch_solve", shade, free, solver, rtol,
+                atol, max_steps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -306,6 +324,7 @@ def fit_images(
     rtol: float = 1e-7,
     atol: float = 1e-9,
     progress: bool = True,
+    devices=None,
 ) -> FitResult:
     """Fit `model`'s free parameters so that `shade(params, gbuffer)` matches `targets`.
 
@@ -323,6 +342,13 @@ def fit_images(
         starts: number of starts: the first from `init`/defaults, the rest Halton points spread
             over each free parameter's typical range (`Param.typical_range`) on its natural scale.
         progress: show a progress bar over starts.
+        devices: None (default) or 1: the starts run one after another on the default device; an int
+            N, "all" or a list of `jax.devices()` (`jaxrt._devices.select`): the starts are split
+            over those devices, each running its share as one vmapped solve (`_devices.batched`:
+            padded to a multiple of N with copies of the last start, whose results are dropped).
+            Each start's solve is the same arithmetic either way, so the result equals the
+            one-device fit up to the rounding of a differently compiled program (see
+            `tests/integrators/test_devices_work.py` for the tolerance).
 
     Returns: FitResult with the best start's parameters, standard errors, error metrics and the
     parameters that end at a bound of their declared range (`at_bound`).
@@ -335,17 +361,24 @@ def fit_images(
         mask = np.ones(targets.shape[:-1], np.float32)
     pixels = _pixels(targets, mask)
 
-    solve = _compiled_solver(shade, free, solver, float(rtol), float(atol), int(max_steps))
+    devs = fit_devices(devices)
     total_steps = 0
     finals = []
     t0 = time.perf_counter()
     bar = _progress(len(prob.z_starts), f"fit {model.name}", progress)
-    for z0 in prob.z_starts:
-        z, loss, steps, ok = solve(z0, gbuffer, pixels, fixed)
-        total_steps += int(steps)
-        finals.append((float(loss), z, int(steps), bool(ok)))
-        bar.update(1)
-        bar.set_postfix(loss=f"{min(f[0] for f in finals):.3e}")
+    if devs:  # every start at once, split over the devices
+        finals = _starts_on_devices(shade, free, solver, rtol, atol, max_steps, prob.z_starts, gbuffer, pixels, fixed,
+                                    devs)
+        total_steps = sum(f[2] for f in finals)
+        bar.update(len(finals))
+    else:
+        solve = _compiled_solver(shade, free, solver, float(rtol), float(atol), int(max_steps))
+        for z0 in prob.z_starts:
+            z, loss, steps, ok = solve(z0, gbuffer, pixels, fixed)
+            total_steps += int(steps)
+            finals.append((float(loss), z, int(steps), bool(ok)))
+            bar.update(1)
+            bar.set_postfix(loss=f"{min(f[0] for f in finals):.3e}")
     bar.close()
     wall = time.perf_counter() - t0
 
@@ -414,6 +447,7 @@ def solve_batch(
     atol: float = 1e-9,
     batch: int | None = None,
     progress: bool = True,
+    devices=None,
 ) -> list[Solution]:
     """Fit `model` to each of B target sets that share one `gbuffer` (and one mask): `fit_images`'s
     solve, starts and standard errors, run as one compiled program vmapped over targets and starts.
@@ -426,6 +460,12 @@ def solve_batch(
             Jacobians, and shorten the wait for the slowest lane). A last, smaller chunk is padded
             with copies so that every call has one shape (one compilation).
         progress: a progress bar over the chunks.
+        devices: None (default) or 1: the default device; an int N, "all" or a list of `jax.devices()`
+            (`jaxrt._devices.select`): each chunk's target sets are split over those devices
+            (`_devices.batched`: the chunk is rounded up to a multiple of N, padded with copies), each
+            device running the vmapped solve and Jacobians of its own share with its own while loops.
+            Each lane computes what it computes on one device, so the fits equal the one-device
+            fits up to the rounding of a differently compiled program.
 
     Returns: one `Solution` per target set, in order.
     """
@@ -445,8 +485,26 @@ def solve_batch(
     s = len(prob.z_starts)
     z_starts = jax.tree.map(lambda *zs: jnp.stack(zs), *prob.z_starts)  # leaves (S, ...)
 
-    solve = _compiled_batch_solver(shade, free, solver, float(rtol), float(atol), int(max_steps))
-    jac = _compiled_batch_jacobian(shade, free)
+    devs = fit_devices(devices)
+    if devs:
+        from jaxrt import _devices
+
+        b = _devices.padded(b, devs)
+        # the shared arrays go to every device once, not with every call
+        on_each = _devices.put_each((gbuffer, idx, sqrt_w, fixed), devs)
+        batch_solve, batch_jac = _batch_solve(shade, free, solver, float(rtol), float(atol), int(max_steps)), \
+            _batch_jacobian(shade, free)
+
+        def solve(z0, gbuffer_, idx_, targets_, sqrt_w_, fixed_):
+            return _devices.batched(batch_solve, devs, (True, False, False, True, False, False), z0, gbuffer_, idx_,
+                                    targets_, sqrt_w_, fixed_, replicated=on_each)
+
+        def jac(theta, params_, gbuffer_, idx_, targets_, sqrt_w_):
+            return _devices.batched(batch_jac, devs, (True, True, False, False, True, False), theta, params_,
+                                    gbuffer_, idx_, targets_, sqrt_w_, replicated=[c[:3] for c in on_each])
+    else:
+        solve = _compiled_batch_solver(shade, free, solver, float(rtol), float(atol), int(max_steps))
+        jac = _compiled_batch_jacobian(shade, free)
     finish = _compiled_helpers(shade, free)[2]
     out = []
     bar = _progress(n, f"fit {model.name}", progress)
@@ -492,6 +550,32 @@ def solve_batch(
         bar.update(m)
     bar.close()
     return out
+
+
+def fit_devices(devices) -> tuple:
+    """The devices a fit is split over (`jaxrt._devices.select`), or () for the one-device path (None,
+    or the default device alone)."""
+    if devices is None:
+        return ()
+    from jaxrt import _devices
+
+    devs = _devices.select(devices)
+    return devs if _devices.sharded(devs) else ()
+
+
+def _starts_on_devices(shade, free, solver, rtol, atol, max_steps, z_starts, gbuffer, pixels, fixed, devs):
+    """(loss, z, steps, ok) of every start, the starts split over `devs` (`_devices.batched` of the
+    vmapped single-start solve; padded to a multiple of the device count, the padding dropped)."""
+    from jaxrt import _devices
+
+    s = len(z_starts)
+    z0 = _devices.pad_rows(jax.tree.map(lambda *zs: np.stack([np.asarray(z) for z in zs]), *z_starts),
+                           _devices.padded(s, devs))
+    zs, losses, steps, oks = _devices.batched(_starts_solve(shade, free, solver, float(rtol), float(atol),
+                                                            int(max_steps)), devs, (True, False, False, False),
+                                              z0, gbuffer, pixels, fixed)
+    return [(float(losses[k]), jax.tree.map(lambda v, k=k: jnp.asarray(v[k]), zs), int(steps[k]), bool(oks[k]))
+            for k in range(s)]
 
 
 def _pixels(targets, mask):
@@ -588,8 +672,9 @@ def _compiled_jacobian(shade: Callable, free: tuple[FreeParam, ...]):
 
 
 @functools.lru_cache(maxsize=32)
-def _compiled_batch_jacobian(shade: Callable, free: tuple[FreeParam, ...]):
-    """`_compiled_jacobian` vmapped over (θ, params, targets) with a shared gbuffer, indices and weights."""
+def _batch_jacobian(shade: Callable, free: tuple[FreeParam, ...]):
+    """Residuals and Jacobians (`_compiled_jacobian`) vmapped over (θ, params, targets) with a shared
+    gbuffer, indices and weights, unjitted."""
     resid = _resid_theta(shade, free)
 
     def both(theta, params, gbuffer, idx, targets, sqrt_w):
@@ -599,7 +684,13 @@ def _compiled_batch_jacobian(shade: Callable, free: tuple[FreeParam, ...]):
 
         return jax.vmap(one)(theta, params, targets)
 
-    return _jit(both, "batch_jacobian", shade, free)
+    return both
+
+
+@functools.lru_cache(maxsize=32)
+def _compiled_batch_jacobian(shade: Callable, free: tuple[FreeParam, ...]):
+    """`_batch_jacobian` jitted once."""
+    return _jit(_batch_jacobian(shade, free), "batch_jacobian", shade, free)
 
 
 def _standard_errors(shade, gbuffer, pixels, free, params):

@@ -45,7 +45,8 @@ from brdfs.errors import InputError
 from fitting import brdf_space as bs
 
 __all__ = [
-    "COLLECTIONS", "EVAL_RESOLUTION", "EXCLUDED", "FIT_RESOLUTION", "GRID_ROWS", "OUTPUTS", "Study",
+    "COLLECTIONS", "EVAL_RESOLUTION", "EXCLUDED", "FIT_RESOLUTION", "GRID_ROWS", "IMAGE_OUTPUTS", "OUTPUTS", "SPACES",
+    "Study",
     "check_output_dir", "csv_text", "default_batch", "grid_materials", "json_obj", "parse_materials",
     "parse_models", "parse_resolution", "rows", "run", "study_models", "summary", "summary_markdown", "write",
 ]
@@ -55,6 +56,9 @@ COLLECTIONS = ("merl", "rgl", "nielsen")
 EVAL_RESOLUTION = bs.EVAL_RESOLUTION
 FIT_RESOLUTION = bs.FIT_RESOLUTION
 OUTPUTS = ("study.csv", "study.json", "summary.md", "errors.png", "spheres.png")
+#: the image-space study's outputs (`fitting.study_image`): renders.png in place of spheres.png
+IMAGE_OUTPUTS = ("study.csv", "study.json", "summary.md", "errors.png", "renders.png")
+SPACES = ("brdf", "image")
 GRID_ROWS = 6
 
 
@@ -85,7 +89,8 @@ def parse_models(text: str | None) -> list[str]:
 
 
 def parse_materials(text: str) -> list[str]:
-    """merl | rgl | nielsen | all, or comma-separated material names ("merl/alum-bronze,...")."""
+    """merl | rgl | nielsen | all, or comma-separated material names ("merl/alum-bronze,...") or files
+    (NAME.h5 neural-BRDF weights, NAME.binary MERL tables; read when the study loads them)."""
     from brdfs import measured, measured_data
 
     if text == "all":
@@ -96,7 +101,11 @@ def parse_materials(text: str) -> list[str]:
     if not names:
         raise InputError("--materials: give merl, rgl, nielsen, all or comma-separated material names")
     for n in names:
-        measured_data.find_material(n)  # InputError with close matches for an unknown name
+        if Path(n).suffix:
+            if Path(n).suffix.lower() not in measured.SUFFIXES or not Path(n).is_file():
+                raise InputError(f"--materials: {n!r} is not a measured-material file (an existing .h5 or .binary)")
+        else:
+            measured_data.find_material(n)  # InputError with close matches for an unknown name
     if len(set(names)) != len(names):
         raise InputError(f"--materials: {text!r} names a material twice")
     return names
@@ -134,14 +143,27 @@ def check_output_dir(path: str | os.PathLike, flag: str = "-o") -> Path:
 
 @dataclasses.dataclass
 class Study:
-    """The fits of one study run; `fits[(material, model)]`."""
+    """The fits of one study run; `fits[(material, model)]` (`brdf_space.BrdfFit` in BRDF space,
+    `study_image.ImageFit` in image space). `images` (image space only): the first view of each target
+    (`(material, "target")`) and of each fit (`(material, model)`), (H, W, 3) linear RGB, and the
+    compared pixels of that view (`(material, "mask")`, (H, W))."""
 
     materials: list[str]
     models: list[str]
     metric: str
-    fits: dict[tuple[str, str], bs.BrdfFit]
+    fits: dict
     settings: dict
     wall_time_s: float
+    space: str = "brdf"
+    images: dict | None = None
+
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        return IMAGE_OUTPUTS if self.space == "image" else OUTPUTS
+
+    @property
+    def unit(self) -> str:
+        return self.settings.get("unit") or bs.UNITS[self.metric]
 
     def error(self, material: str, model: str) -> float:
         return self.fits[(material, model)].error
@@ -167,19 +189,27 @@ def default_batch(n: int) -> int:
 
 def run(materials: Sequence[str], models: Sequence[str], *, metric: str = "ngan",
         fit_resolution=FIT_RESOLUTION, eval_resolution=EVAL_RESOLUTION, starts: int = 6, max_steps: int = 100,
-        batch: int | None = None, progress: bool = True) -> Study:
+        batch: int | None = None, progress: bool = True, devices=None) -> Study:
     """Fit every model to every material (see the module docstring); `batch` materials per compiled
-    solve (default `default_batch`). A tqdm bar counts (material, model) fits."""
+    solve (default `default_batch`). A tqdm bar counts (material, model) fits.
+
+    `devices` (None: the default device; an int N, "all" or a list of `jax.devices()`) splits each
+    compiled solve's materials over several devices (`fitting.solve.solve_batch`); `batch` then counts
+    materials per device (default `default_batch` of each device's share), so a call solves
+    batch × N materials."""
     import jax
     from tqdm.auto import tqdm
 
+    from fitting.solve import fit_devices
+
     bs.check_metric(metric)
+    n_dev = max(1, len(fit_devices(devices)))
     t0 = time.perf_counter()
     samp = bs.sampling(*fit_resolution)
     ev = bs.sampling(*eval_resolution)
     if batch is None:
-        batch = default_batch(len(materials))
-    batch = max(1, min(batch, len(materials)))
+        batch = default_batch(-(-len(materials) // n_dev))
+    batch = max(1, min(batch * n_dev, len(materials)))
     bar = tqdm(total=len(materials) * len(models), desc="study", unit="fit", disable=not progress)
     bar.set_postfix_str("sampling the measured materials")
     f_fit = bs.measured_samples(materials, samp)
@@ -194,7 +224,7 @@ def run(materials: Sequence[str], models: Sequence[str], *, metric: str = "ngan"
             bar.set_postfix_str(f"{name}: {names[0]}…")
             chunk = bs.fit_samples(f_fit[lo: lo + batch], model, names=names, metric=metric, samp=samp,
                                    f_eval=f_eval[lo: lo + batch], eval_samp=ev, starts=starts,
-                                   max_steps=max_steps, batch=batch)
+                                   max_steps=max_steps, batch=batch, devices=devices if n_dev > 1 else None)
             fits.update({(f.material, name): f for f in chunk})
             bar.update(len(names))
         per_model[name] = time.perf_counter() - t_model
@@ -202,7 +232,7 @@ def run(materials: Sequence[str], models: Sequence[str], *, metric: str = "ngan"
     settings = {
         "metric": metric, "unit": bs.UNITS[metric], "metric_definition": bs.METRIC_DOC[metric],
         "fit_sampling": samp.describe(), "eval_sampling": ev.describe(), "starts": starts, "max_steps": max_steps,
-        "solver": f"Levenberg-Marquardt (optimistix), {bs.SOLVER}", "batch": batch,
+        "solver": f"Levenberg-Marquardt (optimistix), {bs.SOLVER}", "batch": batch, "devices": n_dev,
         "backend": jax.default_backend(), "device": jax.devices()[0].device_kind,
         "wall_s_sampling": t_sample, "wall_s_per_model": per_model,
         "models": {m: [dataclasses.asdict(p) for p in brdfs.get(m).spec] for m in models},
@@ -229,7 +259,7 @@ def rows(study: Study) -> list[dict]:
     for a in study.materials:
         for m in study.models:
             f = study.fits[(a, m)]
-            row = {"material": a, "model": m, "metric": f.metric, "error": f.error, "unit": f.unit,
+            row = {"material": a, "model": m, "space": study.space, "metric": f.metric, "error": f.error, "unit": f.unit,
                    "fit_error": f.fit_error,
                    **{f"error_{k}": v for k, v in f.errors.items()},
                    "converged": f.converged, "iterations": f.iterations, "starts_at_best": f.starts_at_best,
@@ -260,13 +290,20 @@ def summary(study: Study) -> dict[str, dict]:
 
 def summary_markdown(study: Study) -> str:
     s = summary(study)
-    unit = bs.UNITS[study.metric]
-    lines = [f"# BRDF-space study: {len(study.materials)} materials × {len(study.models)} models",
-             "",
-             f"Metric: {study.metric} — {bs.METRIC_DOC[study.metric]}; E in {unit}, evaluated on the "
-             f"{study.settings['eval_sampling']['samples']}-pair grid (fits on "
-             f"{study.settings['fit_sampling']['samples']} pairs, θ ≤ {study.settings['fit_sampling']['cutoff_deg']:g}°).",
-             "",
+    unit = study.unit
+    st = study.settings
+    if study.space == "image":
+        head = [f"# Image-space study: {len(study.materials)} materials × {len(study.models)} models",
+                "",
+                f"Metric: {study.metric} — {st['metric_definition']}; E in {unit}. Scene: {st['scene']} "
+                f"({st['size'][0]}×{st['size'][1]}, {st['pixels']} compared pixels over {len(st['lights'])} views)."]
+    else:
+        head = [f"# BRDF-space study: {len(study.materials)} materials × {len(study.models)} models",
+                "",
+                f"Metric: {study.metric} — {bs.METRIC_DOC[study.metric]}; E in {unit}, evaluated on the "
+                f"{st['eval_sampling']['samples']}-pair grid (fits on "
+                f"{st['fit_sampling']['samples']} pairs, θ ≤ {st['fit_sampling']['cutoff_deg']:g}°)."]
+    lines = head + ["",
              "| model | median E | quartiles (25 %, 75 %) | mean E | best for | ends at a bound | converged |",
              "|---|---|---|---|---|---|---|"]
     order = sorted(study.models, key=lambda m: s[m]["median"])
@@ -293,7 +330,7 @@ def csv_text(study: Study) -> str:
 
 
 def json_obj(study: Study) -> dict:
-    return {"materials": study.materials, "models": study.models, "metric": study.metric,
+    return {"space": study.space, "materials": study.materials, "models": study.models, "metric": study.metric,
             "settings": study.settings, "wall_time_s": study.wall_time_s, "summary": summary(study),
             "fits": [study.fits[(a, m)].to_json() for a in study.materials for m in study.models]}
 
@@ -309,8 +346,9 @@ def grid_materials(study: Study, n: int = GRID_ROWS) -> list[str]:
 
 
 def write(study: Study, out_dir: str | os.PathLike, grid: Sequence[str] | None = None) -> list[Path]:
-    """Write every output (`OUTPUTS`) into `out_dir`: all of them or, on any failure, none (each goes to a
-    temporary file first; the renames happen only after all were written)."""
+    """Write every output (`study.outputs`: `OUTPUTS`, or `IMAGE_OUTPUTS` for an image-space study) into
+    `out_dir`: all of them or, on any failure, none (each goes to a temporary file first; the renames
+    happen only after all were written)."""
     from fitting import report
     from jaxrt.fsutil import atomic_path
 
@@ -321,7 +359,7 @@ def write(study: Study, out_dir: str | os.PathLike, grid: Sequence[str] | None =
             raise InputError(f"--grid: {g!r} is not one of the study's materials")
     created = not out_dir.exists()
     out_dir.mkdir(exist_ok=True)
-    paths = [out_dir / n for n in OUTPUTS]
+    paths = [out_dir / n for n in study.outputs]
     try:
         with contextlib.ExitStack() as stack:
             tmp = {p.name: stack.enter_context(atomic_path(p)) for p in paths}
@@ -329,9 +367,13 @@ def write(study: Study, out_dir: str | os.PathLike, grid: Sequence[str] | None =
             tmp["study.json"].write_text(json.dumps(json_obj(study), indent=1))
             tmp["summary.md"].write_text(summary_markdown(study))
             report.study_errors_png(tmp["errors.png"], study.materials, study.models, study.table(),
-                                    study.metric, bs.UNITS[study.metric])
-            report.study_spheres_png(tmp["spheres.png"], grid, study.models,
-                                     {(a, m): study.fits[(a, m)] for a in grid for m in study.models})
+                                    study.metric, study.unit, space=study.space)
+            if study.space == "image":
+                report.study_renders_png(tmp["renders.png"], grid, study.models, study.images,
+                                         {(a, m): study.fits[(a, m)] for a in grid for m in study.models})
+            else:
+                report.study_spheres_png(tmp["spheres.png"], grid, study.models,
+                                         {(a, m): study.fits[(a, m)] for a in grid for m in study.models})
     except BaseException:
         if created:
             with contextlib.suppress(OSError):

@@ -4,6 +4,7 @@
     img = jaxrt.render("spheres")                       # (H, W, 3) linear radiance
     sc = jaxrt.load_scene("bunny", overrides={"camera.width": 128})
     img, aovs = jaxrt.frame(sc, aovs=True)              # the compiled frame of a built Scene
+    jaxrt.join_hosts()                                  # several hosts: JAXRT_COORDINATOR & co., first
 
 Packages (docs/ARCHITECTURE.md has the layout and data flow):
   scene        scene files -> validated spec -> `Scene` pytree; the one place that edits materials
@@ -13,10 +14,12 @@ Packages (docs/ARCHITECTURE.md has the layout and data flow):
   integrators  Whitted and path tracing behind one registry; the compiled `frame`
   cli          the `jaxrt` command, one module per subcommand
 Modules: camera, lights, envmap, image (EXR/PNG), render_tiles (rendering within a memory budget),
+glare (the aperture's diffraction glare, a post-process of the image),
 sweep (parameter sweeps), viewer, fsutil, errors.
 """
 
-from jaxrt import accel, cache, geometry, integrators, render_tiles, scene, shading
+from jaxrt import accel, cache, geometry, glare, integrators, render_tiles, scene, shading
+from jaxrt._devices import initialize as join_hosts
 from jaxrt.api import gbuffer, render, reshade
 from jaxrt.errors import InputError
 from jaxrt.integrators import frame, shade, trace
@@ -30,6 +33,6 @@ __version__ = "0.1.0"
 cache.enable_compilation_cache()
 
 __all__ = [
-    "InputError", "Scene", "accel", "cache", "frame", "gbuffer", "geometry", "integrators", "load_scene", "render",
-    "render_tiles", "reshade", "scene", "shade", "shading", "trace",
+    "InputError", "Scene", "accel", "cache", "frame", "gbuffer", "geometry", "glare", "integrators", "join_hosts",
+    "load_scene", "render", "render_tiles", "reshade", "scene", "shade", "shading", "trace",
 ]

@@ -17,6 +17,9 @@ standard library and `jaxrt.errors`, so anything may import it without pulling i
 | JAXRT_CACHE_SIZE | the cache folder's size bound; least recently used entries go first | bytes, or a number with K/M/G/T (binary units) (2G) |
 | JAXRT_MEMORY | the memory budget of `jaxrt render` and `jaxrt.render(memory="auto")` (`jaxrt.render_tiles`) | bytes, or a number with K/M/G/T (unset: derived from the device) |
 | JAXRT_CONFINE | refuse scene paths (meshes, textures, environment maps) outside the scene's folder and the data folder (`jaxrt.scene.parse`; the CLI's `--confine`) | as JAXRT_DEBUG (off) |
+| JAXRT_COORDINATOR | several hosts: the address of process 0's coordination service, host:port (`jax.distributed.initialize`, called by `jaxrt._devices.initialize` and the CLI) | host:port (unset: one process) |
+| JAXRT_PROCESS_COUNT | several hosts: how many processes take part, one per host | an integer ≥ 1 (required with JAXRT_COORDINATOR) |
+| JAXRT_PROCESS_ID | several hosts: this process's index; only process 0 writes output files (`jaxrt.fsutil`) | 0 .. JAXRT_PROCESS_COUNT − 1 (required with JAXRT_COORDINATOR) |
 
 Relative paths are taken relative to the current directory at the time of the call and returned
 absolute, so a value read once means the same folder after a ``chdir``.
@@ -42,7 +45,7 @@ DEFAULT_CACHE_SIZE = 2 << 30
 
 #: Every variable this module reads, in the order of the table above.
 VARIABLES = ("JAXRT_DATA", "JAXRT_DEBUG", "JAXRT_TRAVERSAL", "JAXRT_CACHE_DIR", "JAXRT_CACHE", "JAXRT_CACHE_SIZE",
-             "JAXRT_MEMORY", "JAXRT_CONFINE")
+             "JAXRT_MEMORY", "JAXRT_CONFINE", "JAXRT_COORDINATOR", "JAXRT_PROCESS_COUNT", "JAXRT_PROCESS_ID")
 
 _TRUE = ("1", "true", "yes", "on")
 _FALSE = ("", "0", "false", "no", "off")
@@ -62,6 +65,8 @@ class Config:
     cache_size:  JAXRT_CACHE_SIZE in bytes (0 stores nothing)
     memory:      JAXRT_MEMORY in bytes, or None (the renderer's memory budget, `jaxrt.render_tiles`)
     confine:     JAXRT_CONFINE
+    coordinator: JAXRT_COORDINATOR ("host:port"), or None for a single process
+    process_count, process_id: JAXRT_PROCESS_COUNT and JAXRT_PROCESS_ID (1 and 0 without a coordinator)
     """
 
     data: Path | None
@@ -72,6 +77,9 @@ class Config:
     cache_size: int
     memory: int | None
     confine: bool
+    coordinator: str | None = None
+    process_count: int = 1
+    process_id: int = 0
 
 
 def default_cache_dir(environ: Mapping[str, str] | None = None) -> Path:
@@ -113,13 +121,48 @@ def _path(env: Mapping[str, str], name: str) -> Path | None:
     return Path(os.path.abspath(Path(raw).expanduser()))
 
 
+_ADDRESS = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9][A-Za-z0-9.-]*):(\d{1,5})$")
+
+
+def _processes(env: Mapping[str, str]) -> tuple[str | None, int, int]:
+    """(coordinator, process count, process id) of a run over several hosts, or (None, 1, 0)."""
+    raw = env.get("JAXRT_COORDINATOR", "")
+    count_raw, id_raw = env.get("JAXRT_PROCESS_COUNT", ""), env.get("JAXRT_PROCESS_ID", "")
+    if not raw.strip():
+        for name, value in (("JAXRT_PROCESS_COUNT", count_raw), ("JAXRT_PROCESS_ID", id_raw)):
+            if value.strip():
+                raise InputError(f"{name}={value!r}: needs JAXRT_COORDINATOR (host:port of process 0) as well")
+        return None, 1, 0
+    addr = raw.strip()
+    m = _ADDRESS.match(addr)
+    if not m or not 0 < int(m.group(2)) < 65536:
+        raise InputError(f"JAXRT_COORDINATOR={raw!r}: must be host:port of process 0 (e.g. 10.0.0.1:1234), "
+                         f"a port from 1 to 65535")
+    try:
+        count = int(count_raw.strip())
+    except ValueError:
+        count = 0
+    if count < 1:
+        raise InputError(f"JAXRT_PROCESS_COUNT={count_raw!r}: with JAXRT_COORDINATOR, must be the number of "
+                         f"processes (one per host), 1 or more")
+    try:
+        pid = int(id_raw.strip())
+    except ValueError:
+        pid = -1
+    if not 0 <= pid < count:
+        raise InputError(f"JAXRT_PROCESS_ID={id_raw!r}: with JAXRT_COORDINATOR, must be this process's index, "
+                         f"0 to {count - 1}")
+    return addr, count, pid
+
+
 def config(environ: Mapping[str, str] | None = None) -> Config:
     """Read and validate every JAXRT_* variable of `environ` (default: os.environ) now.
 
     Raises InputError (one line naming the variable, its value and what is allowed) for: a
     JAXRT_DEBUG/JAXRT_CONFINE that is not a yes/no word, a JAXRT_TRAVERSAL not in `TRAVERSALS`,
-    a JAXRT_CACHE other than on/off, a JAXRT_CACHE_SIZE/JAXRT_MEMORY that is not a size, and a
-    JAXRT_CACHE_DIR that names an existing non-folder. JAXRT_DATA is not checked for existence here:
+    a JAXRT_CACHE other than on/off, a JAXRT_CACHE_SIZE/JAXRT_MEMORY that is not a size, a
+    JAXRT_CACHE_DIR that names an existing non-folder, a JAXRT_COORDINATOR that is not host:port, a
+    JAXRT_PROCESS_COUNT/JAXRT_PROCESS_ID missing or out of range with it, or either without it. JAXRT_DATA is not checked for existence here:
     `jaxrt.geometry.data.find` names it when a file is missing.
     """
     env = os.environ if environ is None else environ
@@ -148,7 +191,11 @@ def config(environ: Mapping[str, str] | None = None) -> Config:
     if memory == 0:
         raise InputError(f"JAXRT_MEMORY={mem_raw!r}: must be a positive size, e.g. 8G")
 
+    coordinator, count, pid = _processes(env)
     return Config(
+        coordinator=coordinator,
+        process_count=count,
+        process_id=pid,
         data=_path(env, "JAXRT_DATA"),
         debug=_flag(env, "JAXRT_DEBUG"),
         traversal=traversal,

@@ -1,4 +1,5 @@
-"""Several devices of one host for one render: the device choice, the mesh and the sharded tile program.
+"""Several devices, and several hosts, for one job: the device choice, the mesh, the sharded tile
+programs of renders and progressive passes, batches of fits split over devices, and joining hosts.
 
 `jaxrt.render_tiles` renders an image as independent tiles (`camera.Window`: a rectangle of pixels
 and a run of their samples, its origin traced, its extents static). On a mesh of D devices the same
@@ -24,6 +25,28 @@ does not depend on D, so renders on any D ≥ 2 devices are equal to each other 
 wherever the tile shape is the same, which it is up to MIN_TILES / TILES_PER_DEVICE = 8 devices
 unless the memory budget shrinks the tiles (on a CPU the budget is split between the devices).
 A mesh of one device compiles the one-device module and equals `integrators.tile` bit for bit.
+Progressive path-tracing passes (`pass_program`, `jaxrt.render_tiles.accumulate`) are the same tiles
+with the pass index a traced, replicated scalar.
+
+Fits
+----
+A batch of independent least-squares problems (the starts of one fit, one model's fits to several
+targets, the study's materials) is split by rows over the devices (`batched`): each device runs the
+one-device, vmapped program on its rows, with its own while loops, and nothing is exchanged until
+the rows are gathered. This is `shard_map`'s model without `shard_map`, which optimistix's solvers
+do not survive in this JAX (see `batched`). One fit's residual nodes can be split the other way
+round (`fitting.compact.split_shader`): only the shading runs inside a `shard_map`, ending in a
+`psum` of the partial images, and the solver runs outside it on the replicated residuals,
+differentiating through the collective.
+
+Several hosts
+-------------
+With JAXRT_COORDINATOR, JAXRT_PROCESS_COUNT and JAXRT_PROCESS_ID (`jaxrt._config`), `initialize`
+joins the processes (one per host) through `jax.distributed`; `jax.devices()` then lists every
+host's devices and the code above runs unchanged: host arrays are placed with
+`jax.make_array_from_callback` (each process its own devices' rows, `put_rows`, `replicate`),
+results are gathered to every process (`gather`, and `batched` gathers its rows with
+`process_allgather`), and `jaxrt.fsutil` lets process 0 alone write files.
 """
 
 from __future__ import annotations
@@ -37,12 +60,13 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Int
 
-from jaxrt import integrators
+from jaxrt import _config, integrators
 from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
-__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "mesh", "parse", "program", "replicate", "round_arrays", "select",
-           "sharded"]
+__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "gather", "initialize", "local", "mesh", "pad_rows",
+           "padded", "parse", "pass_program", "program", "put_each", "put_rows", "replicate",
+           "round_arrays", "select", "shard_map", "sharded"]
 
 AXIS = "devices"
 # A render on several devices is split into at least max(MIN_TILES, TILES_PER_DEVICE·D) tiles, so
@@ -59,6 +83,12 @@ except AttributeError:  # pragma: no cover - older JAX
     from jax.experimental.shard_map import shard_map as _shard_map
 
     _UNCHECKED = {"check_rep": False}
+
+
+def shard_map(f, *, mesh: Mesh, in_specs, out_specs):
+    """`jax.shard_map` of this JAX (the experimental one of older versions), without the replication
+    check (bodies here either use no collective or end in a `psum`)."""
+    return _shard_map(f, mesh=mesh, in_specs=in_specs, out_specs=out_specs, **_UNCHECKED)
 
 
 def _what(label: str, value: Any) -> str:
@@ -109,6 +139,48 @@ def select(devices: Any = None, label: str = "devices=") -> tuple[jax.Device, ..
     return chosen
 
 
+def initialize(environ=None) -> bool:
+    """Join a run over several hosts when JAXRT_COORDINATOR is set (`jaxrt._config`): one process per
+    host calls `jax.distributed.initialize` with the coordinator's host:port, the process count and
+    this process's id, after which `jax.devices()` lists every host's devices and the same code
+    splits its work over all of them (each process passes the same arguments; the results are
+    gathered to every process, and only process 0 writes files, `jaxrt.fsutil`). Must run before
+    anything else asks JAX for its devices; the CLI calls it first (in Python: `jaxrt.join_hosts`).
+    Every process should drive the same number of devices (results are gathered with
+    `process_allgather`, which needs equal shares). Returns whether it joined a run over several
+    hosts; a second call is a no-op."""
+    cfg = _config.config(environ)
+    if cfg.coordinator is None:
+        return False
+    if not jax.distributed.is_initialized():
+        jax.distributed.initialize(coordinator_address=cfg.coordinator, num_processes=cfg.process_count,
+                                   process_id=cfg.process_id)
+    return True
+
+
+def local(devices: Sequence[jax.Device]) -> list[jax.Device]:
+    """The devices of `devices` that this process drives (all of them on one host)."""
+    me = jax.process_index()
+    return [d for d in devices if d.process_index == me]
+
+
+def put_rows(x: np.ndarray, devices: Sequence[jax.Device]) -> jax.Array:
+    """A host array (the same on every process) split along its leading axis over a mesh of
+    `devices`, each process placing only its own devices' rows (works across hosts)."""
+    x = np.asarray(x)
+    return jax.make_array_from_callback(x.shape, NamedSharding(mesh(devices), PartitionSpec(AXIS)), lambda i: x[i])
+
+
+def gather(tree):
+    """Every leaf of `tree` (arrays split over a mesh, maybe over several hosts) as a whole numpy
+    array on this process: a plain transfer on one host, `process_allgather` across hosts."""
+    if jax.process_count() == 1:
+        return jax.tree.map(np.asarray, tree)
+    from jax.experimental import multihost_utils
+
+    return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
+
+
 def sharded(devices: Sequence[jax.Device]) -> bool:
     """Whether a render on `devices` takes the sharded path: several devices, or one that is not the
     default device (the one-device renderer runs on the default device)."""
@@ -121,8 +193,13 @@ def mesh(devices: Sequence[jax.Device]) -> Mesh:
 
 
 def replicate(tree, devices: Sequence[jax.Device]):
-    """`tree` (a scene) with every array on every device of `devices`."""
-    return jax.device_put(tree, NamedSharding(mesh(devices), PartitionSpec()))
+    """`tree` (a scene) with every array on every device of `devices` (across hosts, each process
+    places its own devices' copies of its own, equal, values)."""
+    sharding = NamedSharding(mesh(devices), PartitionSpec())
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sharding)
+    return jax.tree.map(lambda x: jax.make_array_from_callback(np.shape(x), sharding, lambda i: np.asarray(x)[i])
+                        if isinstance(x, (jax.Array, np.ndarray)) else x, tree)
 
 
 def _device_tile(scene, origin, samples, *, shape, aovs: bool):
@@ -133,6 +210,29 @@ def _device_tile(scene, origin, samples, *, shape, aovs: bool):
     window = Window(o[0], o[1], s[0], s[1], th, tw, sb)
     out = integrators.REGISTRY[scene.settings.integrator][0](scene, aovs=aovs, window=window)
     return jax.tree.map(lambda x: jax.lax.expand_dims(x, [0]), out)
+
+
+def _device_pass(scene, origin, samples, pass_index, *, shape):
+    # one device's tile of progressive path-tracing pass `pass_index` (jittered, as
+    # `integrators.path.accumulate`): the pass's random stream, the tile's pixels and samples
+    th, tw, sb = shape
+    o, s = jax.lax.squeeze(origin, [0]), jax.lax.squeeze(samples, [0])
+    window = Window(o[0], o[1], s[0], s[1], th, tw, sb)
+    out = integrators.path.render(scene, pass_index, jitter=True, window=window)
+    return jax.lax.expand_dims(out, [0])
+
+
+@functools.lru_cache(maxsize=32)
+def pass_program(devices: tuple[jax.Device, ...], shape: tuple[int, int, int]):
+    """`program` for one pass of progressive path tracing: ``f(scene, origins, samples, pass_index)``,
+    the pass index a replicated int32 scalar (traced: one compilation for every pass); returns each
+    device's tile of that pass, (D, th, tw, 3), Σ over the tile's samples / spp."""
+    m = mesh(devices)
+    rows, rep = PartitionSpec(AXIS), PartitionSpec()
+    body = functools.partial(_device_pass, shape=shape)
+    smap = _shard_map(body, mesh=m, in_specs=(rep, rows, rows, rep), out_specs=rows, **_UNCHECKED)
+    r, split = NamedSharding(m, rep), NamedSharding(m, rows)
+    return jax.jit(smap, in_shardings=(r, split, split, r), out_shardings=split)
 
 
 @functools.lru_cache(maxsize=32)
@@ -163,3 +263,82 @@ def round_arrays(steps: Sequence, n: int) -> tuple[Int[np.ndarray, "D 2"], Int[n
     samples = np.array([s[2] for s in steps] + [(steps[-1][2][0], 0)] * pad, np.int32)
     return origins, samples
 
+
+# ---- whole independent problems (fits) split over the devices -------------------------------------------
+
+
+def padded(n: int, devices: Sequence[jax.Device]) -> int:
+    """`n` rounded up to a multiple of the device count: the batch length a sharded call takes."""
+    d = max(1, len(devices))
+    return -(-int(n) // d) * d
+
+
+def pad_rows(tree, n: int):
+    """Every leaf of `tree` (leading axis m ≤ n) padded to n rows with copies of its last row, so that a
+    batch split over devices has one shape on every call; the caller drops the padded rows' results."""
+    def pad(x):
+        x = np.asarray(x)
+        m = x.shape[0]
+        return x if m == n else np.concatenate([x, np.repeat(x[-1:], n - m, axis=0)])
+
+    return jax.tree.map(pad, tree)
+
+
+def put_each(tree, devices: Sequence[jax.Device]) -> list:
+    """One copy of `tree` on each of `devices` that this process drives (the replicated arguments of
+    `batched`), in device order."""
+    return [jax.device_put(tree, d) for d in local(devices)]
+
+
+@functools.lru_cache(maxsize=64)
+def _jitted(fn):
+    return jax.jit(fn)
+
+
+def batched(fn, devices: Sequence[jax.Device], split: tuple[bool, ...], *args, replicated: Sequence | None = None):
+    """``fn(*args)`` for a batch of independent problems (`fn` vmapped over the leading axis, e.g. a
+    batch of least-squares solves), the batch split over `devices`: positional argument i is split
+    along its leading axis where ``split[i]`` (every leaf of that pytree), else the same for every
+    device. Returns the outputs as numpy arrays, the devices' rows concatenated back in order.
+
+    Each device runs the one-device program (`jax.jit(fn)`) on its own rows, dispatched
+    asynchronously one device after another, so the devices run at once, each with its own while
+    loops that stop when its own lanes have converged, and nothing communicates. (A `shard_map` of
+    an optimistix solve does not trace in this JAX: lineax compares the shapes of a linear
+    operator's input and output, and inside a manual mesh one side carries the mesh's sharding and
+    the other not, "Incompatible linear operator structures"; with the replication check on,
+    linearize meets tangents that are not marked as varying over the mesh.) The leading axis must be
+    a multiple of the device count (`padded`, `pad_rows`). `replicated`: `put_each` of the
+    non-split arguments (in order), to move them once for many calls.
+    """
+    n = len(devices)
+    run = _jitted(fn)
+    rows = {i: jax.tree.leaves(a)[0].shape[0] for i, a in enumerate(args) if split[i]}
+    total = next(iter(rows.values()))
+    if any(r != total for r in rows.values()) or total % n:
+        raise ValueError(f"split arguments of {total} rows for {n} devices: give a multiple of the device count")
+    k = total // n
+    mine = [j for j, d in enumerate(devices) if d.process_index == jax.process_index()]
+    shared = [a for i, a in enumerate(args) if not split[i]]
+    copies = replicated if replicated is not None else put_each(shared, [devices[j] for j in mine])
+    outs = []
+    for c, j in enumerate(mine):
+        it = iter(copies[c])
+        call = [jax.device_put(jax.tree.map(lambda x: np.asarray(x)[j * k:(j + 1) * k], a), devices[j]) if split[i]
+                else next(it) for i, a in enumerate(args)]
+        outs.append(run(*call))  # asynchronous: the next device starts while this one computes
+    out = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *outs)
+    if jax.process_count() == 1:
+        return out
+    # several hosts: every process computed its own devices' rows; each gets all of them, in device order
+    from jax.experimental import multihost_utils
+
+    every = multihost_utils.process_allgather(out)  # (processes, own rows, ...)
+    owner = [[j for j, d in enumerate(devices) if d.process_index == p] for p in range(jax.process_count())]
+    order = np.argsort([j for js in owner for j in js], kind="stable")
+
+    def place(x):
+        parts = [x[p, c * k:(c + 1) * k] for p, js in enumerate(owner) for c in range(len(js))]
+        return np.concatenate([parts[i] for i in order])
+
+    return jax.tree.map(lambda x: place(np.asarray(x)), every)

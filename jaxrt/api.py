@@ -8,7 +8,7 @@ from typing import Any
 
 from jaxtyping import Array, Float
 
-from jaxrt import integrators, render_tiles
+from jaxrt import glare, integrators, render_tiles
 from jaxrt import scene as _scene
 
 
@@ -42,6 +42,9 @@ def render(scene: Any, *, aovs: bool = False, overrides: dict | None = None, mem
             ulps of one device's, see `jaxrt._devices`). Given without `memory`, the render is tiled
             within the default budget ("auto"). A bad value is an InputError.
 
+    The scene's glare (`Scene.glare`, a scene file's [glare] table; `jaxrt.glare`) is applied to the
+    finished image (not to the AOVs); without it, the image is the renderer's, untouched.
+
     Returns:
         (H, W, 3) float32 linear RGB radiance, or (image, aovs dict) with `aovs=True`. Without
         `memory` and `devices`: JAX arrays from one device, differentiable (reverse mode: jax.grad,
@@ -52,7 +55,12 @@ def render(scene: Any, *, aovs: bool = False, overrides: dict | None = None, mem
     if memory is not None or devices is not None:
         return render_tiles.render(scene, memory="auto" if memory is None else memory, aovs=aovs,
                                    progress=progress, devices=devices)
-    return integrators.frame(scene, aovs=aovs)
+    if scene.glare is None:
+        return integrators.frame(scene, aovs=aovs)
+    out = integrators.frame(scene.without_glare(), aovs=aovs)  # the renderer's program, unchanged
+    if aovs:
+        return glare.apply(out[0], scene.glare), out[1]
+    return glare.apply(out, scene.glare)
 
 
 def gbuffer(scene: Any) -> "integrators.GBuffer":

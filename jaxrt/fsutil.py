@@ -1,12 +1,28 @@
-"""Atomic output files: nothing is ever half-written."""
+"""Atomic output files: nothing is ever half-written; in a run over several hosts only process 0
+writes (the others go through the same code and discard their temporary files)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+
+
+def writes() -> bool:
+    """Whether this process writes output files: True except in processes other than process 0 of a
+    run over several hosts (JAXRT_PROCESS_ID, or `jax.process_index()` once JAX is loaded, e.g.
+    after a `jax.distributed.initialize` of one's own)."""
+    from jaxrt import _config
+
+    if _config.config().process_id != 0:
+        return False
+    jax = sys.modules.get("jax")
+    if jax is not None and jax.distributed.is_initialized():
+        return jax.process_index() == 0
+    return True
 
 
 @contextlib.contextmanager
@@ -26,6 +42,8 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     tmp = Path(tmp)
     try:
         yield tmp
+        if not writes():
+            return
         # mkstemp makes the file private (0600); give the result the mode a plain open() would.
         umask = os.umask(0)
         os.umask(umask)
@@ -109,6 +127,8 @@ class Outputs:
                 os.close(fd)
                 tmps[p] = Path(tmp)
             yield tmps
+            if not writes():
+                return
             umask = os.umask(0)
             os.umask(umask)
             for p, tmp in tmps.items():

@@ -19,6 +19,7 @@ A progressive whole-frame integrator (`integrators.sppm`: each pass needs every 
 and the whole photon map) is not tiled: `render` runs its passes one compiled call at a time on the
 default device, the progress bar counting passes and Ctrl-C checked between them.
 
+
 Memory model
 ------------
 The budget B is `memory` (bytes or "2G"), else JAXRT_MEMORY, else `default_budget()`: on a GPU 90 %
@@ -83,11 +84,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt import _config, _devices, integrators
+from jaxrt import _config, _devices, glare, integrators
 from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
-__all__ = ["Plan", "compile_plan", "default_budget", "format_bytes", "plan", "render", "tile_cost"]
+__all__ = ["Plan", "accumulate", "compile_plan", "default_budget", "format_bytes", "plan", "render", "tile_cost"]
 
 BLOCK_PIXELS = 32  # one 8x4 block of `integrators.sample_order`: the smallest tile that keeps all spp
 # bytes per pixel of the host buffers: RGB float32; AOVs depth (f32), normal and albedo (3 f32), object_id (i32)
@@ -270,7 +271,8 @@ def _resolve_budget(memory, scene, devices=()) -> tuple[int, str]:
         if env is not None:
             return env, "JAXRT_MEMORY"
         if len(devices) > 1 and not _on_cpu(devices):  # per device: the one with the least free memory
-            return min((default_budget(d, scene) for d in devices), key=lambda b: b[0])
+            # (of this process's devices: another host's allocator cannot be asked from here)
+            return min((default_budget(d, scene) for d in _devices.local(devices)), key=lambda b: b[0])
         return default_budget(devices[0] if devices else None, scene=scene)
     if isinstance(memory, str):
         b = _config.parse_size(memory, "memory")
@@ -359,7 +361,7 @@ def _window(shape, origin, samples) -> Window:
 
 def _compile_tile(scene, p: Plan, aovs: bool):
     if p.devices:  # the sharded program: its memory analysis is that of one device's share
-        zeros = np.zeros((len(p.devices), 2), np.int32)
+        zeros = _devices.put_rows(np.zeros((len(p.devices), 2), np.int32), p.devices)
         return _devices.program(p.devices, p.shape, aovs).lower(scene, zeros, zeros).compile()
     return integrators.tile.lower(scene, _window(p.shape, (0, 0), (0, p.shape[2])), aovs=aovs).compile()
 
@@ -428,6 +430,9 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
             there (a Ctrl-C caught by another thread, as the CLI does).
         use_plan: a `Plan` from `plan` to use instead of planning again.
 
+    The scene's glare (`Scene.glare`; `jaxrt.glare`), if any, is applied to the assembled image (not
+    to the AOVs) after the last tile.
+
     Returns:
         (H, W, 3) float32 numpy image of linear radiance, or (image, AOV dict of numpy arrays) with
         `aovs`: as `integrators.frame` (see the module docstring for how equal).
@@ -436,8 +441,17 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
         InputError: the job cannot fit one tile in the budget (before any rendering).
         KeyboardInterrupt: between tiles, from Ctrl-C or `should_stop`.
     """
+    # glare is applied to the assembled image below; the compiled programs take the scene without it.
+    # It runs after the tiles, as the writers do: the budget keeps room for the larger of the two.
+    post, scene = scene.glare, scene.without_glare()
     if scene.settings.integrator == "sppm":
-        return _render_passes(scene, aovs, progress, should_stop)
+        out = _render_passes(scene, aovs, progress, should_stop)
+        if post is None:
+            return out
+        img, aov = out if aovs else (out, None)
+        img = np.asarray(glare.apply(img, post))
+        return (img, aov) if aovs else img
+    reserve = max(int(reserve), glare.work_bytes(scene.camera.height, scene.camera.width, post))
     p = use_plan or plan(scene, memory=memory, aovs=aovs, max_tile_rays=max_tile_rays, reserve=reserve,
                          budget_source=budget_source, devices=devices, devices_source=devices_source)
     bar, own = progress, False
@@ -466,10 +480,14 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
             _check_finite(img, where)
             if bar:
                 bar.update(1)
-            if not aovs:
-                return img
-            return img, {k: np.asarray(v) for k, v in aov.items()}
-        return _render_tiles(scene, p, aovs, bar, should_stop, where)
+            out = img if not aovs else (img, {k: np.asarray(v) for k, v in aov.items()})
+        else:
+            out = _render_tiles(scene, p, aovs, bar, should_stop, where)
+        if post is None:
+            return out
+        img, aov = out if aovs else (out, None)
+        img = np.asarray(glare.apply(img, post))  # the whole image: light crosses tile borders
+        return (img, aov) if aovs else img
     finally:
         if own:
             bar.close()
@@ -512,7 +530,46 @@ def _render_passes(scene, aovs, progress, should_stop):
             bar.close()
 
 
-def _render_tiles(scene, p: Plan, aovs, bar, should_stop, where):
+def accumulate(scene, state: integrators.Accumulation | None = None, *, devices: Any = None,
+               memory: int | str | None = None, use_plan: Plan | None = None) -> integrators.Accumulation:
+    """`jaxrt.integrators.accumulate` (one more progressive pass of `settings.spp` jittered path-traced
+    samples per pixel, pass P with random stream P) with the pass split into tiles over `devices`.
+
+    On the default device alone (`devices=1`, or a host with one device) this is
+    `integrators.accumulate` itself, bit for bit. On several devices (default: all of
+    `jax.devices()`) the pass is planned as `render` plans an image (`plan`: at least max(32, 4·N)
+    tiles, tile k·N + d on device d, the memory budget per device) and each call runs one tile of the
+    pass on each device (`jaxrt._devices.pass_program`, the pass index traced, so every pass reuses
+    one compiled program); the tiles are gathered and added on the host. A tile computes each path
+    with the random numbers of the same path of the whole pass, so the pass equals the one-device
+    pass up to the rounding of a differently compiled program, as tiled renders do (the tolerance
+    is tested on 4 virtual CPU devices); on any N ≥ 2 devices the passes are equal bit for bit.
+    The tiles are sized by `tile_cost`'s bound; unlike `render`, the compiled pass program is not
+    measured against the budget (`compile_plan` would compile the one-pass tile program as well).
+
+    Args:
+        scene: a path-traced `jaxrt.scene.Scene` (`settings.integrator == "path"`).
+        state: the accumulation so far, or None to start.
+        devices, memory: as for `plan`; use_plan: a `plan` of this scene to reuse across passes.
+
+    Raises:
+        InputError: a scene that is not path-traced; bad `devices` or `memory`.
+    """
+    if scene.settings.integrator != "path":
+        raise InputError(f"{scene.source}: progressive passes need integrator = \"path\", not "
+                         f"{scene.settings.integrator!r}")
+    p = use_plan or plan(scene, memory=memory, devices=devices)
+    if not p.devices:
+        return integrators.accumulate(scene, state)
+    cam, spp = scene.camera, scene.settings.spp
+    if state is None:
+        state = integrators.Accumulation(jnp.zeros((cam.height, cam.width, 3)), jnp.asarray(0), jnp.asarray(0))
+    scene = _devices.replicate(scene, p.devices)
+    img = _render_tiles(scene, p, False, None, None, f"{scene.source}", pass_index=int(state.passes))
+    return integrators.Accumulation(state.total + jnp.asarray(img) * spp, state.count + spp, state.passes + 1)
+
+
+def _render_tiles(scene, p: Plan, aovs, bar, should_stop, where, pass_index: int | None = None):
     """The plan's steps, one call at a time: on one device one tile a call (`integrators.tile`); on
     D devices D consecutive steps a call, step k·D + d on device d (`_devices.program`), so each
     device's tiles are interleaved with the others' over the whole image and the tiles of one call
@@ -525,6 +582,9 @@ def _render_tiles(scene, p: Plan, aovs, bar, should_stop, where):
     aov_out: dict[str, np.ndarray] | None = None
     n = len(p.devices) if p.devices else 1
     run = _devices.program(p.devices, p.shape, aovs) if p.devices else None
+    extra = ()
+    if pass_index is not None:  # a progressive path-tracing pass (`accumulate`, several devices)
+        run, extra = _devices.pass_program(p.devices, p.shape), (np.int32(pass_index),)
     for k in range(0, p.tiles, n):
         if should_stop is not None and should_stop():
             raise KeyboardInterrupt
@@ -536,11 +596,10 @@ def _render_tiles(scene, p: Plan, aovs, bar, should_stop, where):
             out = integrators.tile(scene, _window(p.shape, (r0, c0), (s0, count)), aovs=aovs)
             parts = [out if aovs else (out, None)]
         else:
-            out = run(scene, *_devices.round_arrays(steps, n))
-            # the one gather of this call's tiles: each device's shard comes to the host
-            img_d, aov_d = out if aovs else (out, None)
-            img_d = np.asarray(img_d)
-            aov_d = {key: np.asarray(v) for key, v in aov_d.items()} if aovs else None
+            out = run(scene, *(_devices.put_rows(a, p.devices) for a in _devices.round_arrays(steps, n)), *extra)
+            # the one gather of this call's tiles: each device's shard comes to the host (to every
+            # host's, when the devices span several)
+            img_d, aov_d = _devices.gather(out if aovs else (out, None))
             parts = [(img_d[j], {key: v[j] for key, v in aov_d.items()} if aovs else None)
                      for j in range(len(steps))]
         for ((r, c), (r0, c0), (s0, _)), (part, part_aov) in zip(steps, parts):

@@ -4,7 +4,9 @@ Each subcommand lives in its own module that defines `configure(parser)` and `ru
 this file only wires them together, so modules are imported only when their command runs.
 Bad input raises `InputError` (or `ValueError`/`FileNotFoundError` from validation) and is printed
 as one line with exit code 2; set JAXRT_DEBUG=1 for the full traceback. argparse's own errors (an
-unknown option, a value that is not a number) are one line with exit code 2 as well.
+unknown option, a value that is not a number) are one line with exit code 2 as well. With
+JAXRT_COORDINATOR (several hosts) the command first joins the other processes; processes other than
+0 run the same command but print nothing on stdout and write no files.
 """
 
 from __future__ import annotations
@@ -65,7 +67,18 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     debug = False
     try:
-        debug = _config.config().debug
+        cfg = _config.config()
+        debug = cfg.debug
+        if cfg.coordinator is not None:  # several hosts: join them before anything asks JAX for devices
+            import contextlib
+            import os
+
+            from jaxrt import _devices, fsutil
+
+            _devices.initialize()
+            if not fsutil.writes():  # process 0 reports (and writes) for all; errors still reach stderr
+                with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
+                    return int(args._run(args) or 0)
         return int(args._run(args) or 0)
     except (InputError, ValueError, FileNotFoundError) as e:
         if debug:

@@ -64,6 +64,9 @@ def add_common_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, default=200,
                    help=f"solver iterations per start, 1..{MAX_STEPS} (default 200)")
     p.add_argument("--grey", action="store_true", help="fit ρ parameters as one grey value instead of RGB")
+    p.add_argument("--devices", metavar="N", default="all",
+                   help="split the work over the first N devices of jax.devices() (default: all; 1: the default "
+                        "device alone): fit's starts, fit-matrix's fits of each model to every target")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
 
 
@@ -87,6 +90,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--demo", action="store_true",
                         help="render targets of the default scene with hidden parameters and fit "
                              f"{', '.join(DEMO_MODELS)}")
+    parser.add_argument("--split", choices=("starts", "nodes"), default="starts",
+                        help="with several devices: run the starts at once, split over them (starts, default), "
+                             "or split each residual evaluation's nodes over them (nodes)")
     add_common_options(parser)
 
 
@@ -116,6 +122,17 @@ def check_common(args) -> None:
         raise InputError(f"--starts: expected an integer in [1, {MAX_STARTS}], got {args.starts}")
     if not 1 <= args.max_steps <= MAX_STEPS:
         raise InputError(f"--max-steps: expected an integer in [1, {MAX_STEPS}], got {args.max_steps}")
+    args.devices = devices_option(args.devices)
+
+
+def devices_option(text: str):
+    """`--devices` of the fitting commands: the devices to split the work over (a tuple of
+    `jax.devices()`), or None for the default device alone; one-line errors naming the flag."""
+    from jaxrt import _devices
+
+    n = _devices.parse(text, "--devices")
+    devs = _devices.select("all" if n is None else n, "--devices")
+    return devs if _devices.sharded(devs) else None
 
 
 def check_outputs(*triples):
@@ -195,7 +212,8 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"{p}: target is {t.shape[1]}x{t.shape[0]} but the scene renders {expect[1]}x{expect[0]}")
     result, setup = fit_setup.fit(
         None, np.stack(targets), model, setup=setup, fix=fix, init=init, rgb=not args.grey, solver=args.solver,
-        starts=args.starts, max_steps=args.max_steps, progress=not args.quiet,
+        starts=args.starts, max_steps=args.max_steps, progress=not args.quiet, devices=args.devices,
+        split=args.split,
     )
     print(f"object {setup.object!r}, {int(setup.mask.sum())} pixels")
     print(report.format_result(result))
@@ -252,7 +270,8 @@ def _demo(args, outs) -> int:
         truth = hidden_params(model, seed=100 + i)
         target = fit_setup.render_with(setup, model.params(**truth))
         result, _ = fit_setup.fit(None, target, model, setup=setup, rgb=not args.grey, solver=args.solver,
-                                  starts=args.starts, max_steps=args.max_steps, progress=not args.quiet)
+                                  starts=args.starts, max_steps=args.max_steps, progress=not args.quiet,
+                                  devices=args.devices)
         print(report.format_result(result, truth=truth))
         print()
         targets.append(np.asarray(target[0]))

@@ -51,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
     setups = {m.name: fit_setup.prepare(args.scene, m, object=args.object, overrides=overrides) for m in models}
     truths = {m.name: hidden_params(m, seed=7 + i) for i, m in enumerate(models)}
     mat = fit_setup.cross_model_matrix(setups, truths, rgb=not args.grey, solver=args.solver, starts=args.starts,
-                                       max_steps=args.max_steps, progress=not args.quiet)
+                                       max_steps=args.max_steps, progress=not args.quiet,
+                                       devices=args.devices)
     width = max(len(n) for n in names) + 2
     print("relative RMSE of the best fit (rows: target model, columns: fitted model)")
     print(" " * width + "".join(f"{n[:10]:>11}" for n in names))

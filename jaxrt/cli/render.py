@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import threading
 import time
 
 from jaxrt.errors import InputError
-from jaxrt import integrators
+from jaxrt import glare, integrators
 from jaxrt.fsutil import Outputs
 from jaxrt.image import check_exposure
 from jaxrt.shading import AOV_NAMES
@@ -37,6 +38,10 @@ Devices: the tiles are spread over every device JAX sees (all GPUs of the host; 
 device unless XLA_FLAGS=--xla_force_host_platform_device_count=N), each device rendering its own
 tiles with the whole scene; --devices N uses the first N. The memory budget applies to each device.
 
+Glare: --glare on|off|KEY=VALUE,... adds (or removes) the diffraction glare of the camera's aperture,
+a post-process of the whole finished image that preserves its sum (the [glare] table of a scene file;
+README "Glare").
+
 Exit codes: 0 success, 2 bad input (unreadable or invalid scene, bad option, missing mesh, a memory
 budget too small), 130 interrupted (Ctrl-C stops within a fraction of a second and writes nothing).
 Errors are one line; set JAXRT_DEBUG=1 for a traceback.
@@ -44,6 +49,7 @@ Errors are one line; set JAXRT_DEBUG=1 for a traceback.
 Examples:
   jaxrt render spheres                        # spheres.exr + spheres.png, 512x384
   jaxrt render scenes/dragon.toml -o d.exr --png d.png --width 256 --height 256 --spp 4
+  jaxrt render spheres --glare aperture=polygon,blades=6,f_number=32
   jaxrt render caustics --passes 64 --photons 200000   # SPPM: the progress bar counts passes
 """
 
@@ -83,6 +89,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--devices", metavar="N", default="all",
                         help="spread the render's tiles over the first N devices of jax.devices() (default: all; "
                              "1 renders on the default device alone)")
+    parser.add_argument("--glare", metavar="SPEC",
+                        help="diffraction glare of the aperture, applied to the finished image: on (the scene's "
+                             "[glare] table, else the defaults), off, or KEY=VALUE[,KEY=VALUE...] with the keys of "
+                             "the [glare] table (turns glare on), e.g. aperture=polygon,blades=6,f_number=16 "
+                             "(default: the scene's; see README \"Glare\")")
     parser.add_argument("-q", "--quiet", action="store_true", help="print nothing on success (no progress bar)")
 
 
@@ -143,6 +154,32 @@ def _render_in_thread(work, bar):
     return box["value"]
 
 
+def parse_glare_option(text: str) -> tuple[str, dict]:
+    """`--glare on | off | KEY=VALUE[,KEY=VALUE...]` -> (mode, {key: value}): mode "on", "off" or
+    "set" (the values override the scene's [glare] table, which they create; the scene parser checks
+    their types and ranges). Values read as an integer, else a number, else a string."""
+    usage = (f"--glare {text}: expected on, off or KEY=VALUE[,KEY=VALUE...] with keys "
+             f"{', '.join(glare.FIELDS)}, e.g. --glare aperture=polygon,blades=6,f_number=16")
+    if text in ("on", "off"):
+        return text, {}
+    values: dict = {}
+    for item in text.split(","):
+        key, eq, raw = (part.strip() for part in item.partition("="))
+        if not eq or not key or not raw:
+            raise InputError(usage)
+        if key not in glare.FIELDS:
+            raise InputError(f"--glare {text}: unknown key {key!r}; allowed: {', '.join(glare.FIELDS)}")
+        for kind in (int, float):
+            try:
+                values[key] = kind(raw)
+                break
+            except ValueError:
+                continue
+        else:
+            values[key] = raw
+    return "set", values
+
+
 def run(args: argparse.Namespace) -> int:
     from jaxrt import _config
 
@@ -169,7 +206,15 @@ def run(args: argparse.Namespace) -> int:
     }
     if args.passes is not None:
         overrides["render.spp"] = args.passes
+    glare_mode = "scene"
+    if args.glare is not None:
+        glare_mode, glare_values = parse_glare_option(args.glare)
+        overrides.update({f"glare.{k}": v for k, v in glare_values.items()})
     spec = _scene.parse(path, overrides=overrides, confine=args.confine or None)  # input errors surface
+    if glare_mode == "off":
+        spec = dataclasses.replace(spec, glare=None)
+    elif glare_mode == "on" and spec.glare is None:
+        spec = dataclasses.replace(spec, glare=glare.Glare())
     exr, png = args.output, args.png                                              # here, before JAX work
     if exr is None and png is None:
         exr = outs.add(f"{path.stem}.exr", ".exr", "output")

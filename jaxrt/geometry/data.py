@@ -2,7 +2,9 @@
 
 `find(name)` looks the registry name up in, in this order,
 
-  1. the directory in the environment variable ``JAXRT_DATA`` (``.ci/run`` sets it),
+  1. the directory in the environment variable ``JAXRT_DATA`` (``.ci/run`` sets it), then its
+     ``meshes/`` folder, so that JAXRT_DATA may name either the mesh folder or the shared data root
+     that holds ``meshes/`` beside the measured materials' ``brdfs/`` (`brdfs.measured_data`),
   2. the user cache: ``$XDG_CACHE_HOME/jaxrt`` if XDG_CACHE_HOME is set, else ``~/.cache/jaxrt``,
 
 and returns the first existing file whose sha256 matches the registry. A missing or corrupt file
@@ -69,9 +71,10 @@ def names() -> tuple[str, ...]:
 
 
 def search_dirs() -> list[Path]:
-    """Directories `find` searches, in order: $JAXRT_DATA (if set), then the user cache."""
+    """Directories `find` searches, in order: $JAXRT_DATA and $JAXRT_DATA/meshes (if set), then the
+    user cache."""
     data = _config.config().data
-    return ([data] if data is not None else []) + [_config.default_cache_dir()]
+    return ([data, data / "meshes"] if data is not None else []) + [_config.default_cache_dir()]
 
 
 def sha256_of(path: str | os.PathLike) -> str:

@@ -21,9 +21,11 @@ def sphere(radius: float = 1.0, subdivisions: int = 4, name: str = "sphere") -> 
     """
     import trimesh  # loaded where first used: it is slow to import
 
-    tm = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    v = np.asarray(tm.vertices, np.float64)
-    n = v / np.linalg.norm(v, axis=1, keepdims=True)
+    # The unit sphere's vertices give the normals, then scale: normals stay exact for any radius the
+    # scene file allows (normalising vertices of a tiny sphere in floating point gives NaN).
+    tm = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    n = np.asarray(tm.vertices, np.float64)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
     # Latitude-longitude uv: u = 0.5 + atan2(x, z) / 2 pi around +y (u = 0.5 faces +z), v = 1 at the
     # north pole (+y), so an equirectangular image maps upright (textures use v = 1 for the top row).
     uv = np.stack([0.5 + np.arctan2(n[:, 0], n[:, 2]) / (2 * np.pi), 1.0 - np.arccos(np.clip(n[:, 1], -1, 1)) / np.pi], 1)
@@ -33,10 +35,11 @@ def sphere(radius: float = 1.0, subdivisions: int = 4, name: str = "sphere") -> 
     fu = uv[faces, 0]
     low = ((fu.max(1) - fu.min(1)) > 0.5)[:, None] & (fu < 0.5)
     dup = np.unique(faces[low])
-    remap = np.full(len(v), -1, np.int64)
-    remap[dup] = len(v) + np.arange(len(dup))
+    remap = np.full(len(n), -1, np.int64)
+    remap[dup] = len(n) + np.arange(len(dup))
     faces[low] = remap[faces[low]]
-    v, n = np.concatenate([v, v[dup]]), np.concatenate([n, n[dup]])
+    n = np.concatenate([n, n[dup]])
+    v = n * float(radius)
     uv = np.concatenate([uv, uv[dup] + np.array([1.0, 0.0])])
     return _mesh.Mesh.from_arrays(
         v.astype(np.float32), faces.astype(np.int32), normals=n.astype(np.float32),

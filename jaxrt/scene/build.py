@@ -54,7 +54,11 @@ def object_meshes(o: ObjectSpec, cache: dict):
 
 def _object_meshes(o: ObjectSpec, cache: dict):
     if o.primitive is not None:
-        m = shapes.PRIMITIVES[o.primitive](**o.primitive_args, name=o.name)
+        try:
+            m = shapes.PRIMITIVES[o.primitive](**o.primitive_args, name=o.name)
+        except InputError as e:  # e.g. a primitive too small for float32 triangles
+            detail = str(e).removeprefix(f"{o.name}: ")
+            raise InputError(f"object {o.name!r} ({o.primitive} {o.primitive_args}): {detail}") from None
         pieces = [(o.name, m, o.material)]
     else:
         key = (str(o.mesh), o.flat)
@@ -238,7 +242,7 @@ def build(spec: SceneSpec) -> Scene:
         radius=r.radius,
     )
     return Scene(geometry, materials, lights, camera, settings, source=spec.source, area_lights=area_lights,
-                 environment=environment)
+                 environment=environment, glare=spec.glare)
 
 
 

@@ -26,6 +26,7 @@ import numpy as np
 
 import brdfs
 from jaxrt import _config, integrators
+from jaxrt import glare as _glare
 from jaxrt.errors import InputError
 from jaxrt.scene.spec import (
     DELTA,
@@ -146,7 +147,8 @@ def parse(
         raise InputError(f"{file}: {e}") from None
 
     top = Table(file, "top level", doc)
-    for k in ("camera", "lights", "materials", "objects", "render", "description", "groups", "instances", "environment"):
+    for k in ("camera", "lights", "materials", "objects", "render", "description", "groups", "instances", "environment",
+              "glare"):
         top.used.add(k)
     top.done()
     if "description" in doc and not isinstance(doc["description"], str):
@@ -299,7 +301,36 @@ def parse(
     rc.raw("photons", None)
     rc.raw("radius", None)
     rc.done()
-    return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances, environment)
+    glare = parse_glare(Table(file, "glare", doc["glare"])) if "glare" in doc else None
+    return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances, environment,
+                     glare)
+
+
+def parse_glare(gc: Table) -> "_glare.Glare":
+    """The [glare] table: every key optional (`jaxrt.glare.FIELDS` holds defaults and ranges); its
+    presence turns glare on. Cross-key limits (the Airy radius against `size`) fail naming the table."""
+    values = {}
+    for name, (default, lo, hi, kind, _doc) in _glare.FIELDS.items():
+        if name not in gc.data:
+            gc.raw(name, None)
+            continue
+        if kind == "choice":
+            values[name] = gc.string(name, choices=_glare.APERTURES)
+        elif kind in ("int", "odd"):
+            values[name] = gc.integer(name, lo=lo, hi=hi)
+            if kind == "odd" and values[name] % 2 == 0:
+                gc.fail(name, f"{values[name]} must be odd (the PSF has a centre pixel)")
+        else:
+            values[name] = gc.number(name, lo=lo, hi=hi)
+    if values.get("aperture") == "circle":
+        for key in ("blades", "rotation"):
+            if key in values:
+                gc.fail(key, 'applies to aperture = "polygon" only')
+    gc.done()
+    try:
+        return _glare.Glare(**values)
+    except InputError as e:
+        gc.fail(None, str(e).removeprefix("glare: "))
 
 
 def parse_measured(mc: Table, name: str, paths: Paths) -> MaterialSpec:

@@ -119,6 +119,9 @@ class SceneSpec:
     groups: tuple = ()  # jaxrt.geometry.instanced.GroupSpec
     instances: tuple = ()  # jaxrt.geometry.instanced.InstanceSpec
     environment: EnvironmentSpec | None = None
+    # the [glare] table (`jaxrt.glare.Glare`: diffraction by the aperture, a post-process of the
+    # image); None when the scene has none (off, the default)
+    glare: Any = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -7,6 +7,7 @@ never recompiles the renderer.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -17,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from jaxrt import glare as _glare
 from jaxrt.camera import Camera
 from jaxrt.errors import InputError
 from jaxrt.geometry.base import AbstractGeometry
@@ -89,8 +91,23 @@ class Scene(eqx.Module):
     # tracer, and Whitted's escaping rays see the environment instead of `background`
     area_lights: AreaLights | None = None
     environment: Any = None
+    # glare (`jaxrt.glare.Glare`, None: off): a post-process of the finished image that
+    # `jaxrt.render` and `jaxrt.render_tiles.render` apply; the compiled render programs see the scene
+    # without it (`without_glare`), so glare settings never recompile the renderer
+    glare: Any = eqx.field(static=True, default=None)
 
     # ---- value updates (validated, never recompile) ----
+    def with_glare(self, glare: "_glare.Glare | None") -> "Scene":
+        """A copy with glare settings (a `jaxrt.glare.Glare`, or None: off). Static: the renderer's
+        programs do not depend on it (see `without_glare`); the glare program compiles per setting."""
+        if glare is not None and not isinstance(glare, _glare.Glare):
+            raise InputError(f"glare: expected a jaxrt.glare.Glare or None, got {type(glare).__name__}")
+        return dataclasses.replace(self, glare=glare)
+
+    def without_glare(self) -> "Scene":
+        """The scene the renderer's compiled programs take: the same, with glare off."""
+        return self if self.glare is None else dataclasses.replace(self, glare=None)
+
     def with_material(self, name: str, **values) -> "Scene":
         """A copy with material `name`'s parameters (or `delta`) changed; bounds-checked."""
         mats = self.materials

@@ -290,3 +290,28 @@ def test_brdf_report_cli(tmp_path, capsys):
     assert row.split()[1:].count("0.8000") >= 5
     rc = cli_main(["brdf-report", "-o", str(tmp_path / "nodir" / "x.png")])
     assert rc == 2
+
+
+@pytest.mark.slow  # the whole report again (every model's albedo and lobes compile), plus the measured row
+def test_brdf_report_adds_measured_materials(tmp_path, capsys):
+    """A MERL table of Lambert ρd = (0.2, 0.5, 0.8) as a measured row: its channel-mean albedo is 0.5 at
+    every view angle (the closed form), beside the analytic rows; a bad file is a one-line error."""
+    from brdfs import merl
+
+    lam = brdfs.get("lambert")
+    table = tmp_path / "lambert.binary"
+    merl.write(table, merl.tabulate(lam, lam.params(rho_d=[0.2, 0.5, 0.8])))
+    out = tmp_path / "report.png"
+    assert cli_main(["brdf-report", "-o", str(out), "--samples", "32", "--angles", "0", "45", "80",
+                     "--measured", str(table)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    text = capsys.readouterr().out
+    row = next(line for line in text.splitlines() if line.startswith(str(table)))
+    np.testing.assert_allclose([float(v) for v in row.split()[1:]], 0.5, atol=2e-3)
+    assert any(line.startswith("ward_duer") for line in text.splitlines())
+    bad = tmp_path / "bad.binary"
+    bad.write_bytes(b"\0" * 20)
+    assert cli_main(["brdf-report", "-o", str(tmp_path / "b.png"), "--measured", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--measured" in err and "bad.binary" in err, err
+    assert not (tmp_path / "b.png").exists()

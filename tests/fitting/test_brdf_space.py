@@ -209,7 +209,12 @@ def test_fit_brdf_cli_writes_both_outputs_or_none(brdf_data, tmp_path, monkeypat
     (["study", "--materials", "merl", "--models", "ward,glass", "-o", "{tmp}/s"], "glass"),
     (["study", "--materials", "merl", "-o", "{tmp}/missing/s"], "does not exist"),
     (["study", "--materials", "merl", "-o", "{tmp}/file.txt"], "not a folder"),
-    (["study", "--materials", "merl", "--space", "image", "-o", "{tmp}/s"], "not implemented"),
+    (["study", "--materials", "merl/alum-bronze,{tmp}/file.txt", "-o", "{tmp}/s"], ".binary"),
+    (["study", "--materials", "merl/alum-bronze", "--space", "image", "--metric", "log", "-o", "{tmp}/s"],
+     "brdf only"),
+    (["study", "--materials", "merl/alum-bronze", "--space", "image", "--size", "4,4", "-o", "{tmp}/s"], "between 8"),
+    (["study", "--materials", "merl/alum-bronze", "--space", "image", "--size", "64", "-o", "{tmp}/s"], "W,H"),
+    (["study", "--materials", "merl/alum-bronze", "--scene", "sphere", "-o", "{tmp}/s"], "image only"),
 ])
 def test_bad_input_is_one_line_and_writes_nothing(brdf_data, tmp_path, capsys, argv, message):
     (tmp_path / "file.txt").write_text("x")

@@ -133,3 +133,15 @@ def test_standard_errors_cover_truth_under_noise(gbuffer):
     z = np.abs(np.array(z))
     # For a correct standard error ~68% of |z| fall below 1 and ~95% below 2; 36 draws, loose bounds.
     assert 0.45 < np.mean(z < 1) and np.mean(z < 2.5) > 0.85, z
+
+
+def test_parameters_that_end_at_a_bound_are_reported(gbuffer):
+    """A target beyond the declared range (s = 3000 > 1000, a red channel with no diffuse term): the fit
+    ends at those bounds and says so, naming the channel; the parameters inside the range do not."""
+    from fitting import report
+
+    target = _eval({"rho_d": jnp.array([0.0, 0.4, 0.6]), "rho_s": jnp.array(0.3), "s": jnp.array(3000.0)},
+                   gbuffer["wi"], gbuffer["wo"]) * gbuffer["wi"][..., 2:3]
+    r = fit_images(shade, gbuffer, target, TOY, starts=4, progress=False)
+    assert r.at_bound == {"s": "upper", "rho_d[r]": "lower"}, (r.at_bound, r.params)
+    assert "at a bound" in report.format_result(r) and "s (upper)" in report.format_result(r)

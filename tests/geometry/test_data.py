@@ -15,7 +15,7 @@ def test_registry_names_and_real_files(data_dir, monkeypatch):
     assert {"bunny", "dragon", "dragon_res2", "dragon_res4", "cornell_box"} <= set(data.names())
     for name in ("dragon_res4", "cornell_box"):
         p = data.find(name)
-        assert p.parent == data_dir
+        assert p.parent in (data_dir, data_dir / "meshes")
         assert hashlib.sha256(p.read_bytes()).hexdigest() == data.REGISTRY[name].sha256
 
 
@@ -35,6 +35,22 @@ def test_lookup_order_env_then_cache(tmp_path, monkeypatch):
     assert data.find("fake") == cache / "jaxrt" / "fake.bin"
     (env / "fake.bin").write_bytes(b"good")
     assert data.find("fake") == env / "fake.bin"
+
+
+def test_jaxrt_data_may_name_the_data_root_holding_meshes(tmp_path, monkeypatch):
+    # CI may point JAXRT_DATA at the shared data root (meshes/ beside the measured BRDFs' brdfs/) or
+    # at the mesh folder itself: both find the meshes, the folder itself first
+    _fake_entry(monkeypatch, b"good")
+    root = tmp_path / "data"
+    (root / "meshes").mkdir(parents=True)
+    (root / "meshes" / "fake.bin").write_bytes(b"good")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    for env in (root, root / "meshes"):
+        monkeypatch.setenv("JAXRT_DATA", str(env))
+        assert data.find("fake") == root / "meshes" / "fake.bin"
+    (root / "fake.bin").write_bytes(b"good")
+    monkeypatch.setenv("JAXRT_DATA", str(root))
+    assert data.find("fake") == root / "fake.bin"
 
 
 def test_missing_file_says_where_to_get_it(tmp_path, monkeypatch):

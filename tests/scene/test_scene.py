@@ -188,3 +188,26 @@ def test_build_groups_materials_by_model():
     assert set(fmat[fobj == names.index("slab")]) == {m.index("glass")}
     with pytest.raises(InputError, match=r"floor.*rho_d.*\[0, 1\]"):
         scn.with_material("floor", rho_d=2.0)
+
+
+@pytest.mark.filterwarnings("ignore:.*zero-area")
+def test_a_sphere_too_small_for_float32_is_one_line_naming_the_object():
+    # a radius the parser accepts (> 0) but whose triangles underflow in float32: building gave NaN
+    # normals and an error naming neither the scene nor the object
+    d = copy.deepcopy(lab_dict())
+    d["objects"] = [{"name": "ball", "primitive": "sphere", "radius": 1e-30, "subdivisions": 1,
+                     "material": d["objects"][0]["material"]}]
+    spec = S.parse(d)
+    with pytest.raises(InputError) as e:
+        S.build(spec)
+    msg = str(e.value)
+    assert "\n" not in msg and "object 'ball'" in msg, msg
+
+
+def test_tiny_sphere_keeps_exact_normals():
+    # normals come from the unit sphere, then the vertices are scaled: exact at any radius
+    sph = shapes.sphere(radius=1e-12, subdivisions=1)
+    n = np.asarray(sph.normals, np.float64)
+    assert np.all(np.isfinite(n))
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(sph.vertices, np.float64), n * 1e-12, rtol=1e-5)

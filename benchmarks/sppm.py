@@ -4,6 +4,7 @@
     python benchmarks/sppm.py                                   # 128x96, 65536 photons, 8 passes
     python benchmarks/sppm.py --size 256 --photons 262144 --passes 8
     python benchmarks/sppm.py --equal-time 20                   # + error at 20 s each (area light only)
+    python benchmarks/sppm.py --picture docs/caustics.png --seconds 40   # the README's picture
 
 Throughput: compile time of one pass (`jaxrt.integrators.sppm.step`), then the median wall time of
 `passes` passes (block_until_ready each); passes/s = 1 / median; photons/s = photons per pass /
@@ -111,6 +112,27 @@ def equal_time(seconds: float, ref_spp: int) -> None:
     print(f"  path {n_p} passes of 16 spp in {t_p:.1f} s: relative RMS error {e_p:.3f}  (ratio {e_p / e_s:.1f}x)")
 
 
+def picture(out: str, seconds: float, size: int) -> None:
+    """The caustics scene, path tracer (left) and SPPM (right), each for `seconds` of rendering
+    after compilation, side by side with labels, sRGB PNG."""
+    from PIL import Image, ImageDraw
+
+    from jaxrt import image
+
+    over = {"camera.width": size, "camera.height": size * 3 // 4}
+    sp = S.load("caustics", overrides={**over, "render.photons": 100_000})
+    pt = S.load("caustics", overrides={**over, "render.integrator": "path", "render.spp": 4})
+    st, n_s, t_s = _run_for(seconds, lambda s: sppm.accumulate(sp, s), None)
+    acc, n_p, t_p = _run_for(seconds, lambda a: P.accumulate(pt, a), None)
+    left, right = image.to_srgb8(np.asarray(acc.image)), image.to_srgb8(np.asarray(st.image))
+    both = Image.fromarray(np.concatenate([left, np.full((left.shape[0], 4, 3), 255, np.uint8), right], 1))
+    draw = ImageDraw.Draw(both)
+    draw.text((4, 2), f"path tracing, {4 * n_p} spp, {t_p:.0f} s", fill=(255, 255, 255))
+    draw.text((left.shape[1] + 8, 2), f"SPPM, {n_s} passes, {t_s:.0f} s", fill=(255, 255, 255))
+    both.save(out)
+    print(f"wrote {out}: path {n_p} passes x 4 spp in {t_p:.1f} s, SPPM {n_s} passes x 100k photons in {t_s:.1f} s")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", type=int, default=128)
@@ -118,7 +140,12 @@ def main() -> None:
     ap.add_argument("--passes", type=int, default=8)
     ap.add_argument("--equal-time", type=float, default=0.0, metavar="SECONDS")
     ap.add_argument("--ref-spp", type=int, default=4096)
+    ap.add_argument("--picture", metavar="OUT.png", help="only write the path-vs-SPPM picture at equal time")
+    ap.add_argument("--seconds", type=float, default=40.0, help="rendering time of each half of --picture")
     a = ap.parse_args()
+    if a.picture:
+        picture(a.picture, a.seconds, a.size)
+        return
     throughput(a.size, a.photons, a.passes)
     if a.equal_time > 0:
         equal_time(a.equal_time, a.ref_spp)

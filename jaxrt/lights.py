@@ -55,7 +55,7 @@ class AreaLights(eqx.Module):
             emits on the side its winding's normal points to (one-sided, as in pbrt and Mitsuba).
         prims: (E,) int32 faces whose material emits at build time; E is static. The sampling
             table (areas and the CDF by area·luminance(emission)) is derived from the current
-            vertices and emission values inside the integrator (`jaxrt.integrators.path.emitter_table`), so it
+            vertices and emission values inside the integrator (`jaxrt.integrators.common.emitter_table`), so it
             never goes stale when a value changes.
     """
 

@@ -15,6 +15,11 @@ origin per device, `Plan.steps` taken N at a time, and the host gathers each cal
 budget then applies to each device (on a CPU, whose virtual devices share the RAM, it is split
 between them), and the image has at least max(32, 4·N) tiles for load balance.
 
+A progressive whole-frame integrator (`integrators.sppm`: each pass needs every pixel's visible point
+and the whole photon map) is not tiled: `render` runs its passes one compiled call at a time on the
+default device, the progress bar counting passes and Ctrl-C checked between them.
+
+
 Memory model
 ------------
 The budget B is `memory` (bytes or "2G"), else JAXRT_MEMORY, else `default_budget()`: on a GPU 90 %
@@ -439,6 +444,13 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
     # glare is applied to the assembled image below; the compiled programs take the scene without it.
     # It runs after the tiles, as the writers do: the budget keeps room for the larger of the two.
     post, scene = scene.glare, scene.without_glare()
+    if scene.settings.integrator == "sppm":
+        out = _render_passes(scene, aovs, progress, should_stop)
+        if post is None:
+            return out
+        img, aov = out if aovs else (out, None)
+        img = np.asarray(glare.apply(img, post))
+        return (img, aov) if aovs else img
     reserve = max(int(reserve), glare.work_bytes(scene.camera.height, scene.camera.width, post))
     p = use_plan or plan(scene, memory=memory, aovs=aovs, max_tile_rays=max_tile_rays, reserve=reserve,
                          budget_source=budget_source, devices=devices, devices_source=devices_source)
@@ -476,6 +488,43 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
         img, aov = out if aovs else (out, None)
         img = np.asarray(glare.apply(img, post))  # the whole image: light crosses tile borders
         return (img, aov) if aovs else img
+    finally:
+        if own:
+            bar.close()
+
+
+def _render_passes(scene, aovs, progress, should_stop):
+    """A progressive integrator's image (`integrators.sppm`): settings.spp passes of one compiled
+    whole-frame program, the progress bar counting passes and Ctrl-C (`should_stop`) checked between
+    them. Its working set is one pass's (visible points and photons); no tiles, no memory plan."""
+    sppm = integrators.sppm
+    sppm.check(scene)
+    passes = scene.settings.spp
+    bar, own = progress, False
+    if progress is True:
+        from tqdm import tqdm
+
+        bar, own = tqdm(total=passes, unit="pass", desc="compiling", leave=False, dynamic_ncols=True), True
+    elif progress is not False and progress is not None:
+        bar.total = passes
+        bar.unit = "pass"
+    try:
+        if bar:
+            bar.set_description_str("compiling")
+        state = None
+        for i in range(passes):
+            if should_stop is not None and should_stop():
+                raise KeyboardInterrupt
+            state = sppm.accumulate(scene, state)
+            state.passes.block_until_ready()
+            if bar:
+                bar.set_description_str("rendering")
+                bar.update(1)
+        img = np.asarray(state.image)
+        _check_finite(img, f"{scene.source}")
+        if not aovs:
+            return img
+        return img, {k: np.asarray(v) for k, v in sppm.first_aovs(scene).items()}
     finally:
         if own:
             bar.close()

@@ -20,6 +20,8 @@ Path-traced scenes (`[render] integrator = "path"`, or `integrator="path"` / `ja
 path`) render progressively: every change starts a new `jaxrt.integrators.path.Accumulation` with pass 0, each
 `refine()` (called by the window's idle timer) adds the next pass through the one compiled
 `jaxrt.integrators.path.samples_jit`, and `image` is the running mean, sum/count. The title shows the count.
+Photon-mapped scenes (`integrator = "sppm"`) refine the same way, one SPPM pass (`jaxrt.integrators.sppm.step`)
+per `refine()`.
 """
 
 from __future__ import annotations
@@ -112,7 +114,7 @@ class Viewer:
         self.sliders: dict[str, Any] = {}
         self.frame_time = float("nan")
         self._timer = None
-        self.progressive = self.scene.settings.integrator == "path"
+        self.progressive = self.scene.settings.integrator in ("path", "sppm")
         self.accumulation = None
         self.render()
 
@@ -150,12 +152,16 @@ class Viewer:
         from jaxrt.integrators import path as _path
         from jaxrt import integrators as _render
 
+        if self.scene.settings.integrator == "sppm":
+            return _render.sppm.step._cache_size()
         return (_path.samples_jit if self.progressive else _render.frame)._cache_size()
 
     @property
     def samples(self) -> int:
         if self.accumulation is None:
             return self.scene.settings.spp
+        if self.scene.settings.integrator == "sppm":  # one camera sample per pixel and pass
+            return int(self.accumulation.passes)
         return int(self.accumulation.count)
 
     def render(self) -> Float[np.ndarray, "H W 3"]:
@@ -178,11 +184,13 @@ class Viewer:
         accumulation and show the running mean; a Whitted viewer's image is final, so it returns
         it unchanged. The pass index is traced: no pass recompiles."""
         from jaxrt.integrators import path as _path
+        from jaxrt.integrators import sppm as _sppm
 
         if not self.progressive:
             return self.image
         t0 = time.perf_counter()
-        acc = _path.accumulate(self.scene, self.accumulation)
+        accumulate = _sppm.accumulate if self.scene.settings.integrator == "sppm" else _path.accumulate
+        acc = accumulate(self.scene, self.accumulation)
         img = acc.image
         img.block_until_ready()
         self.frame_time = time.perf_counter() - t0

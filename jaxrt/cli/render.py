@@ -18,7 +18,8 @@ from jaxrt.shading import AOV_NAMES
 
 EPILOG = """\
 SCENE is a path to a TOML scene file or the name of a shipped scene (spheres, bunny, dragon,
-cornell, showcase, instances, bunnies, and the path-traced cornell_area and furnace; `spheres`, `textured`,
+cornell, showcase, instances, bunnies, the path-traced cornell_area and furnace, and the photon-mapped
+caustics; `spheres`, `textured`, `caustics`,
 `instances` and `furnace` need no data files, the others need $JAXRT_DATA).
 
 Outputs: -o sets the EXR (linear float32 RGB, plus AOV channels with --aovs); --png sets the PNG
@@ -49,6 +50,7 @@ Examples:
   jaxrt render spheres                        # spheres.exr + spheres.png, 512x384
   jaxrt render scenes/dragon.toml -o d.exr --png d.png --width 256 --height 256 --spp 4
   jaxrt render spheres --glare aperture=polygon,blades=6,f_number=32
+  jaxrt render caustics --passes 64 --photons 200000   # SPPM: the progress bar counts passes
 """
 
 
@@ -63,8 +65,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spp", type=int, help="samples per pixel, jittered when > 1 (overrides [render] spp)")
     parser.add_argument("--max-depth", type=int, help="ray tree depth, 1 = direct light only (overrides [render])")
     parser.add_argument("--integrator", choices=integrators.names(),
-                        help="whitted (point lights, mirrors, glass) or path (path tracing with area and "
-                             "environment lights; overrides [render] integrator)")
+                        help="whitted (point lights, mirrors, glass), path (path tracing with area and "
+                             "environment lights) or sppm (photon mapping: caustics); overrides [render] integrator")
+    parser.add_argument("--passes", type=int, metavar="N",
+                        help="SPPM passes (integrator sppm: one camera sample per pixel and one photon pass "
+                             "each; the same setting as --spp, which it overrides)")
+    parser.add_argument("--photons", type=int, metavar="N",
+                        help="SPPM photons per pass (overrides [render] photons; default: the pixel count)")
+    parser.add_argument("--radius", type=float, metavar="R",
+                        help="SPPM initial gather radius in scene units (overrides [render] radius; default: "
+                             "2 x scene diagonal / max(width, height))")
     parser.add_argument("--seed", type=int, help="random seed for jittered samples (overrides [render] seed)")
     parser.add_argument("--exposure", type=float, default=0.0,
                         help="PNG exposure in stops: pixel values are scaled by 2^EXPOSURE (default 0)")
@@ -192,8 +202,10 @@ def run(args: argparse.Namespace) -> int:
     overrides = {
         "camera.width": args.width, "camera.height": args.height, "render.spp": args.spp,
         "render.max_depth": args.max_depth, "render.seed": args.seed,
-        "render.integrator": args.integrator,
+        "render.integrator": args.integrator, "render.photons": args.photons, "render.radius": args.radius,
     }
+    if args.passes is not None:
+        overrides["render.spp"] = args.passes
     glare_mode = "scene"
     if args.glare is not None:
         glare_mode, glare_values = parse_glare_option(args.glare)
@@ -256,7 +268,7 @@ def run(args: argparse.Namespace) -> int:
             image.write_png(tmp[png], img, exposure=args.exposure)
     if not args.quiet:
         wrote = " and ".join(str(p) for p in (exr, png) if p is not None)
-        print(f"{path.name}: {c.width}x{c.height}, {spec.render.spp} spp, "
+        print(f"{path.name}: {c.width}x{c.height}, {spec.render.spp} {'passes' if spec.render.integrator == 'sppm' else 'spp'}, "
               f"{scn.geometry.triangle_count} triangles; scene {t1:.2f} s, "
               f"render {times['render']:.2f} s (incl. compile); wrote {wrote}", file=sys.stdout)
     return 0

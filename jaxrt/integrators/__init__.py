@@ -1,4 +1,5 @@
-"""Integrators: Whitted ray tracing and path tracing, behind one registry.
+"""Integrators: Whitted ray tracing, path tracing and stochastic progressive photon mapping, behind one
+registry.
 
 `REGISTRY` maps each integrator's name (the `[render] integrator` of scene files and
 `jaxrt render --integrator`) to its frame function `render(scene, aovs=False, window=None)`; scene
@@ -23,7 +24,7 @@ import jax
 
 from jaxrt.programs import cached_jit
 from jaxrt.camera import Window
-from jaxrt.integrators import path, whitted
+from jaxrt.integrators import path, sppm, whitted
 from jaxrt.integrators.common import sample_order
 from jaxrt.integrators.path import Accumulation, accumulate
 from jaxrt.integrators.whitted import GBuffer
@@ -32,6 +33,8 @@ from jaxrt.integrators.whitted import GBuffer
 REGISTRY: dict[str, tuple[Callable, str]] = {
     "whitted": (whitted.whitted, "Whitted ray tracing: point lights, shadows, mirrors, glass (default)"),
     "path": (path.render, "path tracing with next-event estimation and MIS: area and environment lights"),
+    "sppm": (sppm.render, "stochastic progressive photon mapping: caustics from point and area lights; "
+                          "spp = passes"),
 }
 
 
@@ -65,5 +68,5 @@ shade = cached_jit(whitted.shade, name="integrators.shade", static_argnames=("ao
 
 __all__ = [
     "REGISTRY", "Accumulation", "GBuffer", "Window", "accumulate", "frame", "names", "path", "sample_order",
-    "shade", "tile", "trace", "whitted",
+    "shade", "sppm", "tile", "trace", "whitted",
 ]

@@ -1,14 +1,17 @@
 """What every integrator shares and no integrator owns: camera-ray order, ray queries with inactive
-slots, and the multiple-importance-sampling heuristic. Integrators import this module, never
+slots, the multiple-importance-sampling heuristic, and the sampling table of the emissive triangles. Integrators import this module, never
 each other.
 """
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 from jaxtyping import Array, Bool, Float
 
+from jaxrt import envmap
 from jaxrt.accel import Hit
 
 
@@ -48,3 +51,30 @@ def power_heuristic(a, b):
     b = jnp.minimum(b, 1e30)
     r = b / jnp.where(a > 0, a, 1.0)
     return jnp.where(a > 0, 1.0 / (1.0 + r * r), 0.0)
+
+
+class EmitterTable(eqx.Module):
+    """Sampling table of the emissive triangles (derived from current values, never stored).
+
+    cdf: (E + 1,) over emitters by area·luminance(emission); face_pdf: (F,) probability density per
+    unit area of choosing a point on each face (0 for non-emitters); total: () Σ area·luminance.
+    """
+
+    cdf: Float[Array, " E1"]
+    face_pdf: Float[Array, " F"]
+    total: Float[Array, ""]
+
+
+def emitter_table(scene) -> EmitterTable:
+    """Areas and selection probabilities of the scene's emissive triangles (detached values)."""
+    geo = lax.stop_gradient(scene.geometry)
+    al = lax.stop_gradient(scene.area_lights)
+    v0, v1, v2 = geo.triangles(al.prims)
+    area = 0.5 * jnp.linalg.norm(jnp.cross(v1 - v0, v2 - v0), axis=-1)
+    power = area * envmap.luminance(al.emission[geo.face_material(al.prims)])
+    total = jnp.sum(power)
+    norm = jnp.where(total > 0, total, 1.0)
+    cdf = jnp.concatenate([jnp.zeros(1), jnp.cumsum(power) / norm])
+    pdf_area = jnp.where(area > 0, power / norm / jnp.where(area > 0, area, 1.0), 0.0)
+    face_pdf = jnp.zeros(geo.face_count).at[al.prims].set(pdf_area)
+    return EmitterTable(cdf, face_pdf, total)

@@ -62,7 +62,7 @@ from jaxtyping import Array, Float, Int
 import brdfs
 from jaxrt import camera, envmap
 from jaxrt import lights as _lights
-from jaxrt.integrators.common import intersect_active, power_heuristic
+from jaxrt.integrators.common import emitter_table, intersect_active, power_heuristic
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, hit_params, glass_split, is_glass
 from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented, to_local
@@ -70,33 +70,6 @@ from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, norm
 RR_DEPTH = 3
 _NU = 8  # uniforms per path and bounce (see module docstring)
 _sg = lax.stop_gradient
-
-
-class EmitterTable(eqx.Module):
-    """Sampling table of the emissive triangles (derived from current values, never stored).
-
-    cdf: (E + 1,) over emitters by area·luminance(emission); face_pdf: (F,) probability density per
-    unit area of choosing a point on each face (0 for non-emitters); total: () Σ area·luminance.
-    """
-
-    cdf: Float[Array, " E1"]
-    face_pdf: Float[Array, " F"]
-    total: Float[Array, ""]
-
-
-def emitter_table(scene) -> EmitterTable:
-    """Areas and selection probabilities of the scene's emissive triangles (detached values)."""
-    geo = _sg(scene.geometry)
-    al = _sg(scene.area_lights)
-    v0, v1, v2 = geo.triangles(al.prims)
-    area = 0.5 * jnp.linalg.norm(jnp.cross(v1 - v0, v2 - v0), axis=-1)
-    power = area * envmap.luminance(al.emission[geo.face_material(al.prims)])
-    total = jnp.sum(power)
-    norm = jnp.where(total > 0, total, 1.0)
-    cdf = jnp.concatenate([jnp.zeros(1), jnp.cumsum(power) / norm])
-    pdf_area = jnp.where(area > 0, power / norm / jnp.where(area > 0, area, 1.0), 0.0)
-    face_pdf = jnp.zeros(geo.face_count).at[al.prims].set(pdf_area)
-    return EmitterTable(cdf, face_pdf, total)
 
 
 def _light_classes(scene):

@@ -238,6 +238,8 @@ def build(spec: SceneSpec) -> Scene:
         spp=r.spp,
         ray_budget=r.ray_budget if r.ray_budget is not None else (2 if has_glass else 1),
         glass_shadows=r.glass_shadows,
+        photons=r.photons,
+        radius=r.radius,
     )
     return Scene(geometry, materials, lights, camera, settings, source=spec.source, area_lights=area_lights,
                  environment=environment, glare=spec.glare)

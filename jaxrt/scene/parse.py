@@ -293,8 +293,13 @@ def parse(
         background=rc.vector("background", 3, default=[0.0, 0.0, 0.0], lo=0.0, scalar_ok=True),
         ray_budget=rc.integer("ray_budget", None, lo=1, hi=8) if "ray_budget" in rc.data else None,
         glass_shadows=rc.string("glass_shadows", GLASS_SHADOWS[0], choices=GLASS_SHADOWS),
+        # SPPM (`integrator = "sppm"`): photons per pass and initial gather radius [scene units]
+        photons=rc.integer("photons", 0, lo=1, hi=integrators.sppm.MAX_PHOTONS) if "photons" in rc.data else 0,
+        radius=rc.number("radius", 0.0, lo=0.0, lo_open=True) if "radius" in rc.data else 0.0,
     )
     rc.raw("ray_budget", None)
+    rc.raw("photons", None)
+    rc.raw("radius", None)
     rc.done()
     glare = parse_glare(Table(file, "glare", doc["glare"])) if "glare" in doc else None
     return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances, environment,

@@ -94,6 +94,8 @@ class RenderSpec:
     background: tuple
     ray_budget: int | None
     glass_shadows: str = "transmit"  # GLASS_SHADOWS
+    photons: int = 0  # SPPM photons per pass (0: the integrator's default)
+    radius: float = 0.0  # SPPM initial gather radius (0: the integrator's default)
 
 
 

@@ -73,6 +73,10 @@ class Settings(eqx.Module):
     ray_budget: int = eqx.field(static=True)
     # Whitted shadow rays through glass (`jaxrt.shading.shadows`): "transmit" or "opaque"
     glass_shadows: str = eqx.field(static=True, default="transmit")
+    # stochastic progressive photon mapping (`jaxrt.integrators.sppm`): photons per pass and the
+    # initial gather radius, 0 for the integrator's defaults (derived from the resolution and scene size)
+    photons: int = eqx.field(static=True, default=0)
+    radius: float = eqx.field(static=True, default=0.0)
 
 
 

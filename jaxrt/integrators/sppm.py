@@ -1,0 +1,695 @@
+"""Stochastic progressive photon mapping (T. Hachisuka and H. W. Jensen, "Stochastic progressive
+photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of point lights.
+
+`integrator = "sppm"`. A render is a sequence of passes; each pass has two halves:
+
+* Camera pass: one jittered camera ray per pixel follows mirror (δ lobe, chosen with probability δ)
+  and glass (reflection with probability R, transmission otherwise) bounces as the path tracer does
+  and stops at the first non-delta surface: the pixel's *visible point* for this pass (position,
+  shading frame, wo, material, throughput β and its vertex count j). Emission met along the way
+  (emissive triangles, the environment on escape) is added to the pixel's direct sum, and so is
+  next-event estimation at the visible point: every point light and one sample of the emissive
+  triangles or the environment, chosen as in the path tracer, light sampling only (no MIS: the
+  visible point never continues a BSDF-sampled ray). Shadow rays are blocked by glass, as in the
+  path tracer.
+* Photon pass: `[render] photons` photons leave the lights, the light chosen by its power
+  (luminance): a point light of intensity I emits 4π·I uniformly over the sphere, an emissive
+  triangle of radiance L_e and area A emits π·L_e·A cosine-distributed on its emitting side, an
+  environment sends π r²·∫L dω through the disk of the scene's bounding-sphere radius r facing each
+  direction (directions from its importance sampler, as pbrt-v4's infinite lights). Each
+  photon is traced through every BSDF (the models' `sample`/`pdf`, measured models included) and
+  the delta materials for at most max_depth − 1 scatterings, without Russian roulette, and
+  deposited at every non-delta hit *after its first scattering*: light reaching a surface straight
+  from a light is the next-event estimate's, light arriving after any scattering (diffuse
+  interreflection, caustics through glass) the photons'. A deposit after b scatterings counts at a
+  visible point of vertex count j only when b + j ≤ max_depth, so the longest paths are those of
+  the path tracer's max_depth (a scattering vertex count, pbrt's maxDepth).
+
+Gathering uses a hash grid built with array operations: cell size 2·r_max (the largest current
+radius), each deposit's cell hashed into a table of 2^k buckets, the
+deposits sorted by (bucket, a random key), bucket starts and ends by `searchsorted`. A
+visible point reads the 8 cells its radius-r ball can touch and, of each bucket, the first
+`CELL_PHOTONS` deposits; a bucket with n > CELL_PHOTONS deposits has its read deposits weighted by
+n / CELL_PHOTONS (they are a uniform random subset of the bucket, thanks to the random key), so
+the estimate of each cell's sum stays unbiased with static shapes. Deposits of another cell sharing
+the bucket are rejected by their cell coordinates.
+
+Progressive statistics per pixel (Hachisuka & Jensen 2009, eqs. 5-8) with M the photons found in
+radius r this pass and Φ = Σ β·f(wo, wi)·Φ_p their reflected flux:
+N' = N + α·M, r'² = r²·(N + α·M)/(N + M), τ' = (τ + Φ)·r'²/r², α = `ALPHA` = 0.7.
+The pixel's radiance after P passes of N_p photons each is direct/P + τ/(P·N_p·π·r²).
+
+Defaults: photons per pass = the pixel count, within [2^12, 2^20]; initial radius = 2 · (scene
+bounding-box diagonal) / max(width, height), a couple of pixels' footprint when the scene fills the
+view. The number of passes is `[render] spp` (one camera sample per pixel per pass), so
+`jaxrt render --passes N` and `--spp N` are the same setting.
+
+Not modelled: differentiation (the render is a Monte Carlo density estimate; gradients are not
+meaningful), tiles (a pass is one whole-frame program).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jaxtyping import Array, Float, Int
+
+import brdfs
+from jaxrt import camera, envmap
+from jaxrt import lights as _lights
+from jaxrt.errors import InputError
+from jaxrt.integrators.common import emitter_table, intersect_active
+from jaxrt.shading.aovs import build_aovs
+from jaxrt.shading.material import at_hits, glass_split, hit_params, is_glass
+from jaxrt.shading.surface import (dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented,
+                                   to_local)
+
+#: radius reduction α of the progressive update (Hachisuka & Jensen 2009 use 0.7)
+ALPHA = 0.7
+#: deposits read per grid cell and visible point (more are subsampled, see the module docstring)
+CELL_PHOTONS = 32
+#: the default photons per pass: the pixel count, within these bounds
+DEFAULT_PHOTONS = (1 << 12, 1 << 20)
+#: upper bound of `[render] photons`
+MAX_PHOTONS = 1 << 24
+_sg = lax.stop_gradient
+
+
+class SPPMState(eqx.Module):
+    """Progressive statistics of every pixel (row-major, S = H·W), carried across passes.
+
+    n: (S,) accumulated photon count N; r2: (S,) squared radius r²; tau: (S, 3) accumulated flux τ;
+    direct: (S, 3) Σ over passes of the directly estimated radiance; passes: () passes done."""
+
+    n: Float[Array, " S"]
+    r2: Float[Array, " S"]
+    tau: Float[Array, "S 3"]
+    direct: Float[Array, "S 3"]
+    passes: Int[Array, ""]
+    height: int = eqx.field(static=True)
+    width: int = eqx.field(static=True)
+    photons: int = eqx.field(static=True)
+
+    @property
+    def image(self) -> Float[Array, "H W 3"]:
+        """The radiance estimate after the passes so far, (H, W, 3) linear, finite."""
+        p = jnp.maximum(self.passes, 1).astype(jnp.float32)
+        r2 = jnp.where(self.r2 > 0, self.r2, 1.0)
+        indirect = jnp.where((self.r2 > 0)[:, None], self.tau / (p * self.photons * math.pi * r2)[:, None], 0.0)
+        img = (self.direct / p + indirect).reshape(self.height, self.width, 3)
+        return jnp.where(jnp.isfinite(img), img, 0.0)
+
+
+def photons_per_pass(scene) -> int:
+    """Photons per pass (static): `[render] photons`, else the pixel count within DEFAULT_PHOTONS."""
+    n = getattr(scene.settings, "photons", 0)
+    if n:
+        return int(n)
+    lo, hi = DEFAULT_PHOTONS
+    return int(min(max(scene.camera.num_pixels, lo), hi))
+
+
+def initial_radius(scene) -> Float[Array, ""]:
+    """Initial gather radius: `[render] radius`, else 2 · bounding-box diagonal / max(width, height)."""
+    r = getattr(scene.settings, "radius", 0.0)
+    if r:
+        return jnp.asarray(r, jnp.float32)
+    _, half_diag = _bounds(scene)
+    return 4.0 * half_diag / max(scene.camera.width, scene.camera.height)
+
+
+def check(scene) -> None:
+    """One-line InputError for an SPPM render that cannot run (before any JAX work on values)."""
+    n = getattr(scene.settings, "photons", 0)
+    if not isinstance(n, int) or n < 0 or n > MAX_PHOTONS:
+        raise InputError(f"{scene.source}: [render] photons = {n!r}: allowed 1..{MAX_PHOTONS} (0: default)")
+    r = getattr(scene.settings, "radius", 0.0)
+    if not (isinstance(r, (int, float)) and math.isfinite(r) and r >= 0):
+        raise InputError(f"{scene.source}: [render] radius = {r!r}: must be a positive finite length (0: default)")
+
+
+# ---------------------------------------------------------------------------------------------- BSDFs
+
+def _models(mats):
+    return [(k, brdfs.get(name)) for k, name in enumerate(mats.models) if not brdfs.get(name).delta]
+
+
+def _params(mats, s, k: int) -> dict:
+    uv = getattr(s, "uv", None)
+    return hit_params(mats, s.material, k) if uv is None else hit_params(mats, s.material, k, uv)
+
+
+def _eval_f(models, params, sel, wi_l, wo_l, extra_dims: int = 0):
+    """f(wi, wo) of each slot's model; 0 where either direction is below the local horizon."""
+    f = jnp.zeros(wi_l.shape)
+    for kk, model in models:
+        fk = at_hits(params[kk], lambda p, model=model: model.eval(p, wi_l, wo_l), extra_dims)
+        m = sel[kk].reshape((-1,) + (1,) * extra_dims)
+        f = jnp.where(m[..., None], fk, f)
+    up = (wi_l[..., 2] > 0) & (wo_l[..., 2] > 0)
+    return jnp.where(up[..., None], f, 0.0)
+
+
+def _scatter(scene, models, s, d, found, u):
+    """One scattering event of a batch of rays at their hits, as the path tracer samples it.
+
+    Returns (new origin, new direction, throughput factor (B, 3), ok, delta): delta marks mirror
+    and glass events (no visible point or deposit there)."""
+    mats = scene.materials
+    B = d.shape[0]
+    ng, ns, _ = oriented(s, d)
+    frame = local_frame(ns, s.tangent)
+    wo = to_local(-d, frame)
+    eps = offset_scale(s.p)
+    glass = found & is_glass(mats, s.material)
+    opaque = found & ~glass
+    q = jnp.where(opaque, mats.delta[s.material], 0.0)
+    params = {kk: _params(mats, s, kk) for kk, _ in models}
+    sel = {kk: mats.model_id[s.material] == kk for kk, _ in models}
+    wi_s = jnp.zeros((B, 3)).at[:, 2].set(1.0)
+    pdf_s = jnp.zeros(B)
+    for kk, model in models:
+        wk, _, pk = at_hits(params[kk], lambda p, model=model: model.sample(p, wo, u[:, 1:3]))
+        wi_s = jnp.where(sel[kk][:, None], wk, wi_s)
+        pdf_s = jnp.where(sel[kk], pk, pdf_s)
+    f_s = _eval_f(models, params, sel, wi_s, wo)
+    ok_s = pdf_s > 0
+    # the (1 - δ) of the BRDF part cancels the probability 1 - δ of choosing it
+    fac_b = f_s * (jnp.maximum(wi_s[:, 2], 0.0) / jnp.where(ok_s, pdf_s, 1.0))[:, None]
+    mirror = u[:, 0] < q
+    origin = s.p + ng * eps
+    new_d = jnp.where(mirror[:, None], mirror_dir(d, ng, ns), from_local(wi_s, frame))
+    ok = (mirror | ok_s) & (dot(new_d, ng) > 0)
+    fac = jnp.where(mirror[:, None], 1.0, fac_b)
+    new_o = origin
+    is_delta = opaque & mirror
+    for kk, name in enumerate(mats.models):
+        if not brdfs.get(name).delta:
+            continue
+        r, dr, dt, t_ok = glass_split(mats, s, d, kk)
+        pick_r = (u[:, 0] < r) | ~t_ok
+        here = glass & (mats.model_id[s.material] == kk)
+        new_d = jnp.where(here[:, None], jnp.where(pick_r[:, None], dr, dt), new_d)
+        new_o = jnp.where(here[:, None], jnp.where(pick_r[:, None], origin, s.p - ng * eps), new_o)
+        # a Fresnel choice with probability R carries weight R / R = 1
+        fac = jnp.where(here[:, None], 1.0, fac)
+        ok = jnp.where(here, True, ok)
+        is_delta = is_delta | here
+    return new_o, normalize(new_d), fac, ok & found, is_delta
+
+
+# ---------------------------------------------------------------------------------------------- lights
+
+def _bounds(scene):
+    """Centre and radius of the scene's bounding sphere (about its bounding box; detached)."""
+    geo = _sg(scene.geometry)
+    v = jnp.stack(geo.triangles(jnp.arange(geo.triangle_count)), 0).reshape(-1, 3)
+    lo, hi = jnp.min(v, axis=0), jnp.max(v, axis=0)
+    return 0.5 * (lo + hi), 0.5 * jnp.linalg.norm(hi - lo)
+
+
+def environment_radiant_exitance(env) -> Float[Array, "3"]:
+    """∫ L(ω) dω over the sphere of directions [W/m²] per channel: the power an environment sends
+    through a unit disk facing each direction, summed over directions (4π·L for a constant one)."""
+    tex = _sg(env.texels)
+    if env.uniform:
+        return 4.0 * math.pi * tex[0, 0]
+    h, w = tex.shape[:2]
+    theta = (jnp.arange(h) + 0.5) * (math.pi / h)
+    d_omega = (2.0 * math.pi / w) * (math.pi / h) * jnp.sin(theta)
+    return jnp.sum(tex * d_omega[:, None, None], axis=(0, 1))
+
+
+def _light_choice(scene):
+    """Selection weights of the photon sources by power (luminance): (L point lights, the emissive
+    triangles as one entry, the environment as one entry), the emitter table (None without emissive
+    triangles) and the bounding sphere (None without an environment)."""
+    L = scene.lights.count
+    w = [4.0 * math.pi * envmap.luminance(_sg(scene.lights.intensity))] if L else []
+    table = sphere = None
+    if scene.area_lights is not None and scene.area_lights.count > 0:
+        table = emitter_table(scene)
+        w.append(math.pi * table.total[None])
+    env = getattr(scene, "environment", None)
+    if env is not None:
+        sphere = _bounds(scene)
+        # the environment's photons cross a disk of the bounding sphere's radius facing them
+        w.append((math.pi * sphere[1] ** 2 * envmap.luminance(environment_radiant_exitance(env)))[None])
+    w = jnp.concatenate(w) if w else jnp.zeros(0)
+    return w, table, sphere
+
+
+def light_power(scene) -> Float[Array, "3"]:
+    """Total emitted flux [W] per channel of the point lights (4π·I) and emissive triangles (π·L_e·A)."""
+    total = 4.0 * math.pi * jnp.sum(scene.lights.intensity, axis=0)
+    if scene.area_lights is not None and scene.area_lights.count > 0:
+        geo, al = scene.geometry, scene.area_lights
+        v0, v1, v2 = geo.triangles(al.prims)
+        area = 0.5 * jnp.linalg.norm(jnp.cross(v1 - v0, v2 - v0), axis=-1)
+        total = total + math.pi * jnp.sum(area[:, None] * al.emission[geo.face_material(al.prims)], axis=0)
+    return total
+
+
+def emit(scene, u: Float[Array, "n 6"]):
+    """Photons leaving the lights, one per row of uniforms u.
+
+    Returns origins (n, 3), unit directions (n, 3) and powers (n, 3) [W], each photon's power its
+    light's emitted flux over the probability density of the photon, so the mean power over photons
+    is an unbiased estimate of `light_power` (exactly it for one light of one colour), plus, with an
+    environment, π r²·∫L dω, the power it sends into the bounding sphere of radius r."""
+    geo = _sg(scene.geometry)
+    n = u.shape[0]
+    w, table, sphere = _light_choice(scene)
+    nl = scene.lights.count
+    tot = jnp.sum(w)
+    if w.shape[0] == 0:
+        z = jnp.zeros((n, 3))
+        return z, z.at[:, 2].set(1.0), z
+    cdf = jnp.concatenate([jnp.zeros(1), jnp.cumsum(w) / jnp.where(tot > 0, tot, 1.0)])
+    pick = jnp.clip(jnp.searchsorted(cdf, u[:, 0], side="right") - 1, 0, w.shape[0] - 1)
+    p_pick = jnp.where(tot > 0, w[pick] / jnp.where(tot > 0, tot, 1.0), 0.0)
+    inv_p = jnp.where(p_pick > 0, 1.0 / jnp.where(p_pick > 0, p_pick, 1.0), 0.0)
+    # uniform direction on the sphere (point lights)
+    z = 1.0 - 2.0 * u[:, 4]
+    rr = jnp.sqrt(jnp.maximum(1.0 - z * z, 0.0))
+    phi = 2.0 * math.pi * u[:, 5]
+    d_sph = jnp.stack([rr * jnp.cos(phi), rr * jnp.sin(phi), z], axis=-1)
+    o = jnp.zeros((n, 3))
+    d = d_sph
+    power = jnp.zeros((n, 3))
+    if nl:
+        li = jnp.minimum(pick, nl - 1)
+        o = _sg(scene.lights.position)[li]
+        power = 4.0 * math.pi * _sg(scene.lights.intensity)[li] * inv_p[:, None]
+    if table is not None:
+        al = _sg(scene.area_lights)
+        j = jnp.clip(jnp.searchsorted(table.cdf, u[:, 1], side="right") - 1, 0, al.count - 1)
+        face = al.prims[j]
+        v0, v1, v2 = geo.triangles(face)
+        su = jnp.sqrt(u[:, 2])
+        b1, b2 = 1.0 - su, u[:, 3] * su
+        y = (1.0 - b1 - b2)[:, None] * v0 + b1[:, None] * v1 + b2[:, None] * v2
+        n_l = normalize(jnp.cross(v1 - v0, v2 - v0))
+        # cosine-distributed about the emitting side's normal
+        rc = jnp.sqrt(u[:, 4])
+        loc = jnp.stack([rc * jnp.cos(phi), rc * jnp.sin(phi), jnp.sqrt(jnp.maximum(1.0 - u[:, 4], 0.0))], -1)
+        t0 = normalize(v1 - v0)
+        d_tri = from_local(loc, local_frame(n_l, t0))
+        fp = table.face_pdf[face]
+        p_tri = jnp.where(fp > 0, math.pi / jnp.where(fp > 0, fp, 1.0), 0.0)
+        pw_tri = al.emission[geo.face_material(face)] * (p_tri * inv_p)[:, None]
+        area = pick == nl
+        o = jnp.where(area[:, None], y + n_l * offset_scale(y), o)
+        d = jnp.where(area[:, None], d_tri, d)
+        power = jnp.where(area[:, None], pw_tri, power)
+    if sphere is not None:
+        # from the environment (pbrt-v4's ImageInfiniteLight::SampleLe): a direction wi from the
+        # map's importance sampler, a uniform point on the disk of the bounding sphere's radius
+        # facing it, the photon travelling along −wi; power L(wi)·π r² / pdf(wi)
+        env = _sg(scene.environment)
+        centre, radius = sphere
+        wi_e, le_e, pdf_e = envmap.sample(env, u[:, 4:6])
+        t_e, b_e, _ = local_frame(wi_e, jnp.zeros_like(wi_e))
+        rd = radius * jnp.sqrt(u[:, 2])
+        ang = 2.0 * math.pi * u[:, 3]
+        o_e = centre + radius * wi_e + (rd * jnp.cos(ang))[:, None] * t_e + (rd * jnp.sin(ang))[:, None] * b_e
+        pw_e = le_e * (math.pi * radius**2 * jnp.where(pdf_e > 0, 1.0 / jnp.where(pdf_e > 0, pdf_e, 1.0), 0.0)
+                       * inv_p)[:, None]
+        sky = pick == w.shape[0] - 1
+        o = jnp.where(sky[:, None], o_e, o)
+        d = jnp.where(sky[:, None], -wi_e, d)
+        power = jnp.where(sky[:, None], pw_e, power)
+    return o, normalize(d), jnp.where(jnp.isfinite(power), power, 0.0)
+
+
+# ---------------------------------------------------------------------------------------------- photons
+
+class Deposits(eqx.Module):
+    """Photon deposits, flattened over (scattering count, photon): position, wi (unit, towards
+    where the photon came from), power [W], scatterings before the deposit, valid."""
+
+    p: Float[Array, "N 3"]
+    wi: Float[Array, "N 3"]
+    power: Float[Array, "N 3"]
+    bounce: Int[Array, " N"]
+    valid: Array
+
+
+def trace_photons(scene, key, n: int) -> Deposits:
+    """Emit `n` photons and trace them for max_depth − 1 scatterings; a deposit at every non-delta
+    hit after the first scattering (see the module docstring)."""
+    geo = _sg(scene.geometry)
+    mats = _sg(scene.materials)
+    scene = _sg(scene)
+    D = scene.settings.max_depth
+    models = _models(mats)
+    o, d, power = emit(scene, jax.random.uniform(jax.random.fold_in(key, 1 << 20), (n, 6)))
+    alive = jnp.any(power > 0, axis=-1)
+
+    def body(carry, k):
+        o, d, alive, beta = carry
+
+        def work(c):
+            o, d, alive, beta = c
+            u = jax.random.uniform(jax.random.fold_in(key, k), (n, 3))
+            hit = intersect_active(geo, o, d, alive)
+            prim = jnp.where(alive, hit.prim, -1)
+            found = prim >= 0
+            s = geo.surface(prim, hit.u, hit.v)
+            s = eqx.tree_at(lambda x: x.material, s, jnp.where(found, s.material, 0))
+            no, nd, fac, ok, is_delta = _scatter(scene, models, s, d, found, u)
+            dep_ok = found & ~is_delta & ~is_glass(mats, s.material) & (k >= 1) & (mats.delta[s.material] < 1.0)
+            dep = (s.p, -d, beta, dep_ok)
+            nb = beta * fac
+            good = ok & (k < D - 1) & jnp.all(jnp.isfinite(nb), axis=-1) & jnp.any(nb > 0, axis=-1)
+            return (no, nd, good, jnp.where(good[:, None], nb, 0.0)), dep
+
+        def idle(c):
+            z = jnp.zeros((n, 3))
+            return c, (z, z, z, jnp.zeros(n, bool))
+
+        return lax.cond(jnp.any(alive), work, idle, (o, d, alive, beta))
+
+    _, (p, wi, pw, ok) = lax.scan(body, (o, d, alive, power), jnp.arange(D))
+    steps = p.shape[0]
+    bounce = jnp.broadcast_to(jnp.arange(steps, dtype=jnp.int32)[:, None], (steps, n))
+    return Deposits(p.reshape(-1, 3), wi.reshape(-1, 3), pw.reshape(-1, 3), bounce.reshape(-1), ok.reshape(-1))
+
+
+# ---------------------------------------------------------------------------------------------- grid
+
+_CELL_RANGE = 1 << 20  # cell coordinates are clipped to ±2^20 (a 2^21-cell grid a side)
+
+
+def _cells(p, cell):
+    return jnp.clip(jnp.floor(p / cell), -_CELL_RANGE, _CELL_RANGE).astype(jnp.int32)
+
+
+def _fmix(h):
+    # MurmurHash3's 32-bit finaliser: a bijection whose every output bit depends on every input bit
+    h = (h ^ (h >> 16)) * jnp.uint32(0x85EBCA6B)
+    h = (h ^ (h >> 13)) * jnp.uint32(0xC2B2AE35)
+    return h ^ (h >> 16)
+
+
+def _hash(c, size: int):
+    """Bucket of integer cells (..., 3) in a table of `size` (a power of two) buckets: the finaliser
+    chained over the coordinates (offset to non-negative), so sign flips and permutations of a
+    cell's coordinates land in unrelated buckets (a masked XOR of coordinate multiples, Teschner et
+    al. 2003's hash for prime table sizes, maps (i, j, k) and (i, -j, -k) together for many cells)."""
+    u = (c + _CELL_RANGE).astype(jnp.uint32)
+    h = _fmix(u[..., 2] + jnp.uint32(0x9E3779B9))
+    h = _fmix(h ^ u[..., 1])
+    h = _fmix(h ^ u[..., 0])
+    return (h & jnp.uint32(size - 1)).astype(jnp.int32)
+
+
+class Grid(eqx.Module):
+    """The valid deposits sorted by hash bucket (random order within a bucket): bucket (N,) sorted
+    (`size` for invalid deposits, last), and each sorted entry's cell, position, wi, power and
+    scattering count; the cell edge () and the table size (static)."""
+
+    bucket: Int[Array, " N"]
+    cells: Int[Array, "N 3"]
+    p: Float[Array, "N 3"]
+    wi: Float[Array, "N 3"]
+    power: Float[Array, "N 3"]
+    bounce: Int[Array, " N"]
+    cell: Float[Array, ""]
+    size: int = eqx.field(static=True)
+
+
+def build_grid(dep: Deposits, cell, key) -> Grid:
+    """The hash grid of the valid deposits with cells of edge `cell`: one sort by (bucket, a random
+    32-bit key), so that a bucket's first entries are a uniform random subset of it."""
+    N = dep.p.shape[0]
+    size = 1 << max(int(2 * N - 1).bit_length(), 4)
+    cells = _cells(dep.p, cell)
+    b = jnp.where(dep.valid, _hash(cells, size), size)
+    rand = jax.random.bits(key, (N,), jnp.uint32)
+    b, _, order = lax.sort((b, rand, jnp.arange(N, dtype=jnp.int32)), num_keys=2)
+    return Grid(b, cells[order], dep.p[order], dep.wi[order], dep.power[order], dep.bounce[order], cell, size)
+
+
+def _candidates(grid: Grid, p, r2):
+    """The sorted entries read for every point p (S, 3): their indices (S, 8, K), whether each lies
+    in its cell and within radius r, and the bucket subsampling weight n / K of each cell (S, 8)."""
+    K = CELL_PHOTONS
+    N = grid.bucket.shape[0]
+    x = p / grid.cell
+    base = jnp.floor(x)
+    lo = base - jnp.where(x - base < 0.5, 1.0, 0.0)  # the 2x2x2 cells the ball of radius cell/2 touches
+    offs = jnp.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], jnp.float32)
+    cells = jnp.clip(lo[:, None, :] + offs[None], -_CELL_RANGE, _CELL_RANGE).astype(jnp.int32)  # (S, 8, 3)
+    hq = _hash(cells, grid.size)
+    start = jnp.searchsorted(grid.bucket, hq, side="left")
+    end = jnp.searchsorted(grid.bucket, hq, side="right")
+    j = start[..., None] + jnp.arange(K)  # (S, 8, K)
+    jc = jnp.clip(j, 0, N - 1)
+    same = jnp.all(grid.cells[jc] == cells[:, :, None, :], axis=-1)
+    dp = grid.p[jc] - p[:, None, None, :]
+    near = jnp.sum(dp * dp, axis=-1) < r2[:, None, None]
+    scale = (jnp.maximum(end - start, K) / K).astype(jnp.float32)
+    return jc, (j < end[..., None]) & same & near, scale
+
+
+def count_near(grid: Grid, p: Float[Array, "S 3"], r2: Float[Array, " S"], weighted: bool = False) -> Array:
+    """Deposits read within radius r of every point, (S,): all of them where no bucket holds more
+    than CELL_PHOTONS (r must not exceed the grid's cell / 2); with `weighted`, each read deposit
+    counts n / CELL_PHOTONS for its bucket's n, the unbiased estimate the gather uses."""
+    _, ok, scale = _candidates(grid, p, r2)
+    if weighted:
+        return jnp.sum(jnp.where(ok, scale[..., None], 0.0), axis=(1, 2))
+    return jnp.sum(ok, axis=(1, 2))
+
+
+def gather(scene, grid: Grid, vp: dict, r2: Float[Array, " S"]):
+    """(M, Φ): photons found within radius r of every visible point (bucket subsampling weights
+    included) and their reflected flux Σ β·f(wo, wi)·Φ_p, (S,) and (S, 3)."""
+    mats = scene.materials
+    models = _models(mats)
+    D = scene.settings.max_depth
+    K = CELL_PHOTONS
+    p = vp["p"]
+    S = p.shape[0]
+    jc, ok, scale = _candidates(grid, p, r2)
+    wi = grid.wi[jc]
+    front = dot(wi, vp["ng"][:, None, None, :]) > 0
+    short = grid.bounce[jc] + vp["depth"][:, None, None] <= D
+    ok = ok & front & short & vp["found"][:, None, None]
+    weight = jnp.where(ok, scale[..., None], 0.0).reshape(S, 8 * K)
+    frame = vp["frame"]
+    wi_l = to_local(wi.reshape(S, 8 * K, 3), tuple(a[:, None, :] for a in frame))
+    s = vp["surface"]
+    params = {kk: _params(mats, s, kk) for kk, _ in models}
+    sel = {kk: mats.model_id[s.material] == kk for kk, _ in models}
+    f = _eval_f(models, params, sel, wi_l, vp["wo"][:, None, :], extra_dims=1)
+    phi = jnp.sum(weight[..., None] * f * grid.power[jc].reshape(S, 8 * K, 3), axis=1) * vp["beta"]
+    m = jnp.sum(weight, axis=1)
+    return m, jnp.where(jnp.isfinite(phi), phi, 0.0)
+
+
+# ---------------------------------------------------------------------------------------------- camera
+
+def visible_points(scene, key):
+    """One camera ray per pixel to its visible point; returns (vp dict, direct (S, 3), first hits)."""
+    st, cam, mats = scene.settings, _sg(scene.camera), _sg(scene.materials)
+    geo = _sg(scene.geometry)
+    scene = _sg(scene)
+    D = st.max_depth
+    S = cam.num_pixels
+    models = _models(mats)
+    al = scene.area_lights
+    has_tri = al is not None and al.count > 0
+    env = getattr(scene, "environment", None)
+    kcam, kpath, knee = jax.random.split(key, 3)
+    o, d = camera.generate_rays(cam, 1, jax.random.bits(kcam, (), jnp.uint32), True)
+    d = normalize(d)
+    s0 = geo.surface(jnp.zeros(S, jnp.int32), jnp.zeros(S), jnp.zeros(S))
+    vp = dict(surface=s0, p=jnp.zeros((S, 3)), ng=jnp.zeros((S, 3)), wo=jnp.zeros((S, 3)).at[:, 2].set(1.0),
+              frame=(jnp.zeros((S, 3)),) * 3, beta=jnp.zeros((S, 3)), depth=jnp.zeros(S, jnp.int32),
+              found=jnp.zeros(S, bool))
+    first = dict(prim=jnp.full(S, -1, jnp.int32), u=jnp.zeros(S), v=jnp.zeros(S), t=jnp.zeros(S), d=d)
+    alive = jnp.ones(S, bool)
+    beta = jnp.ones((S, 3))
+    emitted = jnp.zeros((S, 3))
+    for k in range(D + 1):  # static: D is small and the camera chain usually ends at the first hit
+        u = jax.random.uniform(jax.random.fold_in(kpath, k), (S, 3))
+        hit = intersect_active(geo, o, d, alive)
+        prim = jnp.where(alive, hit.prim, -1)
+        found = prim >= 0
+        if k == 0:
+            first = dict(prim=prim, u=hit.u, v=hit.v, t=jnp.where(found, hit.t, 0.0), d=d)
+        s = geo.surface(prim, hit.u, hit.v)
+        s = eqx.tree_at(lambda x: x.material, s, jnp.where(found, s.material, 0))
+        if env is not None:
+            emitted = emitted + jnp.where((alive & ~found)[:, None], beta * envmap.radiance(env, d), 0.0)
+        if has_tri:
+            lit = found & (-dot(d, s.ng) > 0)
+            emitted = emitted + jnp.where(lit[:, None], beta * al.emission[s.material], 0.0)
+        if k == D:
+            break
+        no, nd, fac, ok, is_delta = _scatter(scene, models, s, d, found, u)
+        here = found & ~is_delta
+        ng, ns, _ = oriented(s, d)
+        frame = local_frame(ns, s.tangent)
+        new = dict(surface=s, p=s.p, ng=ng, wo=to_local(-d, frame), frame=frame, beta=beta,
+                   depth=jnp.full(S, k + 1, jnp.int32), found=here)
+        vp = jax.tree.map(lambda a, b: jnp.where(here.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), new, vp)
+        alive = found & is_delta & ok
+        beta = jnp.where(alive[:, None], beta * fac, 0.0)
+        o, d = no, nd
+    direct = emitted + vp["beta"] * _nee(scene, vp, models, knee)
+    return vp, jnp.where(jnp.isfinite(direct), direct, 0.0), first
+
+
+def _nee(scene, vp, models, key):
+    """Direct light at the visible points: every point light and one sample of the emissive
+    triangles or the environment (probability 1/2 each when both exist), light sampling only."""
+    geo, mats = scene.geometry, scene.materials
+    s = vp["surface"]
+    S = s.p.shape[0]
+    ng, frame, wo, found = vp["ng"], vp["frame"], vp["wo"], vp["found"]
+    eps = offset_scale(s.p)
+    origin = s.p + ng * eps
+    params = {kk: _params(mats, s, kk) for kk, _ in models}
+    sel = {kk: mats.model_id[s.material] == kk for kk, _ in models}
+    al, env = scene.area_lights, getattr(scene, "environment", None)
+    has_tri = al is not None and al.count > 0
+    n_cls = int(has_tri) + int(env is not None)
+    p_tri = (1.0 / n_cls) if has_tri else 0.0
+    u = jax.random.uniform(key, (S, 4))
+    out = jnp.zeros((S, 3))
+    rays_o, rays_d, rays_t, contrib = [], [], [], []
+    nl = scene.lights.count
+    if nl:
+        wi_p, dist_p, scale_p = _lights.incident(scene.lights, s.p)
+        lit = found[:, None] & (dot(wi_p, ng[:, None, :]) > 0)
+        wi_pl = to_local(wi_p, tuple(x[:, None, :] for x in frame))
+        f_p = _eval_f(models, params, sel, wi_pl, wo[:, None, :], extra_dims=1)
+        contrib.append((f_p * jnp.maximum(wi_pl[..., 2], 0.0)[..., None] * scale_p).reshape(-1, 3))
+        rays_o.append(jnp.broadcast_to(origin[:, None, :], wi_p.shape).reshape(-1, 3))
+        rays_d.append(wi_p.reshape(-1, 3))
+        rays_t.append(jnp.where(lit, dist_p - 2.0 * eps, -1.0).reshape(-1))
+    if n_cls:
+        wi_c = jnp.zeros((S, 3)).at[:, 2].set(1.0)
+        le_c = jnp.zeros((S, 3))
+        p_c = jnp.zeros(S)
+        dist_c = jnp.full(S, jnp.inf)
+        pick_tri = u[:, 0] < p_tri
+        if has_tri:
+            table = emitter_table(scene)
+            j = jnp.clip(jnp.searchsorted(table.cdf, u[:, 1], side="right") - 1, 0, al.count - 1)
+            face = al.prims[j]
+            v0, v1, v2 = geo.triangles(face)
+            su = jnp.sqrt(u[:, 2])
+            b1, b2 = 1.0 - su, u[:, 3] * su
+            y = (1.0 - b1 - b2)[:, None] * v0 + b1[:, None] * v1 + b2[:, None] * v2
+            n_l = normalize(jnp.cross(v1 - v0, v2 - v0))
+            to = y - origin
+            d2 = dot(to, to)
+            dist = jnp.sqrt(jnp.maximum(d2, 1e-30))
+            wi_t = to / dist[:, None]
+            cos_l = -dot(wi_t, n_l)
+            ok_t = (cos_l > 0) & (d2 > 1e-20) & (table.total > 0)
+            p_t = jnp.where(ok_t, p_tri * table.face_pdf[face] * d2 / jnp.where(ok_t, cos_l, 1.0), 0.0)
+            wi_c = jnp.where(pick_tri[:, None], wi_t, wi_c)
+            le_c = jnp.where((pick_tri & ok_t)[:, None], al.emission[geo.face_material(face)], le_c)
+            p_c = jnp.where(pick_tri, p_t, p_c)
+            dist_c = jnp.where(pick_tri, dist, dist_c)
+        if env is not None:
+            wi_e, le_e, pdf_e = envmap.sample(env, u[:, 2:4])
+            wi_c = jnp.where(pick_tri[:, None], wi_c, wi_e)
+            le_c = jnp.where(pick_tri[:, None], le_c, le_e)
+            p_c = jnp.where(pick_tri, p_c, (1.0 - p_tri) * pdf_e)
+        wi_cl = to_local(wi_c, frame)
+        f_c = _eval_f(models, params, sel, wi_cl, wo)
+        lit_c = found & (dot(wi_c, ng) > 0) & (p_c > 0)
+        contrib.append(f_c * (jnp.maximum(wi_cl[:, 2], 0.0) / jnp.where(p_c > 0, p_c, 1.0))[:, None] * le_c)
+        rays_o.append(origin)
+        rays_d.append(wi_c)
+        rays_t.append(jnp.where(lit_c, dist_c - 2.0 * eps[:, 0], -1.0))
+    if rays_o:
+        tmax = jnp.concatenate(rays_t)
+        occ = geo.occluded(jnp.concatenate(rays_o), jnp.concatenate(rays_d), tmax)
+        vis = ((tmax > 0) & ~occ)[:, None]
+        c = jnp.where(vis, jnp.concatenate(contrib), 0.0)
+        if nl:
+            out = out + jnp.sum(c[: S * nl].reshape(S, nl, 3), axis=1)
+        if n_cls:
+            out = out + c[S * nl:]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- passes
+
+def start(scene) -> SPPMState:
+    """The statistics before the first pass: N = 0, r = the initial radius, τ = 0."""
+    cam = scene.camera
+    S = cam.num_pixels
+    r0 = initial_radius(scene)
+    return SPPMState(jnp.zeros(S), jnp.full(S, r0 * r0, jnp.float32), jnp.zeros((S, 3)), jnp.zeros((S, 3)),
+                     jnp.asarray(0, jnp.int32), cam.height, cam.width, photons_per_pass(scene))
+
+
+def _pass(scene, state: SPPMState, with_first: bool = False):
+    # pass P's random numbers: fold_in(key(seed), P), split between camera, photons and the grid
+    key = jax.random.fold_in(jax.random.key(jnp.asarray(scene.settings.seed, jnp.uint32)),
+                             state.passes.astype(jnp.uint32))
+    kvp, kph, kgrid = jax.random.split(key, 3)
+    vp, direct, first = visible_points(scene, kvp)
+    dep = trace_photons(scene, kph, state.photons)
+    r_max = jnp.sqrt(jnp.max(jnp.where(vp["found"], state.r2, 0.0)))
+    grid = build_grid(dep, jnp.maximum(2.0 * r_max, 1e-6), kgrid)
+    m, phi = gather(scene, grid, vp, state.r2)
+    n_new = state.n + ALPHA * m
+    ratio = jnp.where(state.n + m > 0, n_new / jnp.where(state.n + m > 0, state.n + m, 1.0), 1.0)
+    r2_new = state.r2 * ratio
+    tau = (state.tau + phi) * ratio[:, None]
+    new = SPPMState(n_new, r2_new, tau, state.direct + direct, state.passes + 1, state.height, state.width,
+                    state.photons)
+    return (new, first) if with_first else new
+
+
+#: One pass (camera pass, photon pass, hash grid, gather, progressive update), compiled once per scene
+#: structure: `step(scene, state)` -> the next `SPPMState` (the pass index is the state's, traced).
+step = jax.jit(_pass)
+
+
+def _first_aovs(scene):
+    key = jax.random.fold_in(jax.random.key(jnp.asarray(scene.settings.seed, jnp.uint32)), jnp.uint32(0))
+    _, _, first = visible_points(scene, jax.random.split(key, 3)[0])
+    cam = scene.camera
+    return build_aovs(scene, *(first[k] for k in ("prim", "u", "v", "t", "d")), shape=(cam.height, cam.width))
+
+
+#: The AOVs (depth, normal, albedo, object_id) of the first pass's camera hits, compiled.
+first_aovs = jax.jit(_first_aovs)
+
+
+def accumulate(scene, state: SPPMState | None = None) -> SPPMState:
+    """Add one pass to `state` (None: start); the compiled pass is reused (the pass index is traced)."""
+    if state is None:
+        check(scene)
+        state = start(scene)
+    return step(scene, state)
+
+
+def render(scene, *, aovs: bool = False, window: camera.Window | None = None):
+    """`settings.spp` passes of SPPM in one program: the (H, W, 3) image; with `aovs` a pair (image,
+    AOVs of the first pass's camera hits). SPPM has no tiles (a pass is one whole-frame program)."""
+    if window is not None:
+        raise InputError(f"{scene.source}: integrator 'sppm' renders whole frames, not tiles")
+    check(scene)
+    state0 = start(scene)
+    state, first = _pass(scene, state0, with_first=True)
+    state = lax.fori_loop(1, scene.settings.spp, lambda i, st: _pass(scene, st), state)
+    img = state.image
+    if not aovs:
+        return img
+    cam = scene.camera
+    return img, build_aovs(scene, *(first[k] for k in ("prim", "u", "v", "t", "d")), shape=(cam.height, cam.width))

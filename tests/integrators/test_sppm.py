@@ -1,0 +1,345 @@
+"""Stochastic progressive photon mapping (jaxrt.integrators.sppm).
+
+Independent references: the lights' emitted flux written out from the scene's numbers (4π·I for a
+point light, π·L_e·A for an emissive quad); the paraxial ball-lens focus (f = nR / (2(n − 1)) from
+the centre and the thin-lens equation about the centre, the ball's principal planes); the path
+tracer's image of a diffuse scene (a different estimator of the same integral).
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxrt as R
+from jaxrt.errors import InputError
+from jaxrt.integrators import path, sppm
+
+LIGHTS = [((0.5, 3.0, -0.2), (2.0, 1.0, 0.5)), ((-1.0, 2.0, 0.7), (0.3, 0.9, 1.6))]
+QUAD, EMISSION = (0.4, 0.25), (5.0, 3.0, 1.0)
+
+
+def diffuse_scene(width=24, height=18, lights=LIGHTS, quad=True, **render):
+    """A floor, a back wall and a sphere (Lambert) under point lights and an emissive quad."""
+    objects = [
+        {"name": "floor", "primitive": "plane", "size": [4.0, 4.0], "material": "white"},
+        {"name": "wall", "primitive": "plane", "size": [4.0, 3.0], "rotate": [90.0, 0.0, 0.0],
+         "translate": [0.0, 1.5, -2.0], "material": "red"},
+        {"name": "ball", "primitive": "sphere", "radius": 0.5, "subdivisions": 3, "translate": [0.3, 0.5, -0.5],
+         "material": "white"},
+    ]
+    materials = {"white": {"model": "lambert", "rho_d": 0.7}, "red": {"model": "lambert", "rho_d": [0.7, 0.2, 0.2]}}
+    if quad:
+        materials["lamp"] = {"model": "lambert", "rho_d": 0.0, "emission": list(EMISSION)}
+        objects.append({"name": "lamp", "primitive": "plane", "size": list(QUAD), "rotate": [180.0, 0.0, 0.0],
+                        "translate": [-0.5, 2.2, 0.0], "material": "lamp"})
+    return {
+        "camera": {"position": [0.0, 1.6, 3.5], "look_at": [0.0, 0.6, -0.5], "vfov": 45.0,
+                   "width": width, "height": height},
+        "lights": [{"position": list(p), "intensity": list(i)} for p, i in lights],
+        "materials": materials,
+        "objects": objects,
+        "render": {"integrator": "sppm", "max_depth": 4, **render},
+    }
+
+
+# ---------------------------------------------------------------------------------------------- power
+
+def test_photon_power_sums_to_light_power():
+    """Mean photon power = Σ 4π·I over point lights + π·L_e·A of the quad, per channel (the sum over
+    photons / count is an unbiased estimate; here within 4 standard errors of 100k photons)."""
+    scene = R.load_scene(diffuse_scene())
+    closed = 4 * math.pi * np.sum([i for _, i in LIGHTS], axis=0) + math.pi * np.array(EMISSION) * QUAD[0] * QUAD[1]
+    n = 100_000
+    _, d, power = jax.jit(sppm.emit)(scene, jax.random.uniform(jax.random.key(3), (n, 6)))
+    power = np.asarray(power, np.float64)
+    mean, se = power.mean(0), power.std(0) / math.sqrt(n)
+    assert np.all(np.abs(mean - closed) < 4 * se + 1e-6 * closed), (mean, closed, se)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(d), axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(sppm.light_power(scene)), closed, rtol=1e-5)
+
+
+def test_photon_power_exact_for_one_white_light():
+    """One grey point light, or one grey quad alone: every photon carries the whole power (exact)."""
+    for lights, quad, want in (([((0.0, 2.0, 0.0), (3.0, 3.0, 3.0))], False, 4 * math.pi * 3.0),
+                               ([], True, None)):
+        d = diffuse_scene(lights=lights, quad=quad)
+        if quad:
+            d["materials"]["lamp"]["emission"] = 2.0
+            want = math.pi * 2.0 * QUAD[0] * QUAD[1]
+        scene = R.load_scene(d)
+        _, _, power = jax.jit(sppm.emit)(scene, jax.random.uniform(jax.random.key(0), (1000, 6)))
+        np.testing.assert_allclose(np.asarray(power), want, rtol=1e-5)
+
+
+def test_area_photons_leave_the_emitting_side_cosine_distributed():
+    """Quad photons start on the quad (y = 2.2, emitting down) with cos θ distributed as 2cosθ·sinθ:
+    E[cos θ] = 2/3, E[cos² θ] = 1/2."""
+    scene = R.load_scene(diffuse_scene(lights=[]))
+    n = 50_000
+    o, d, _ = jax.jit(sppm.emit)(scene, jax.random.uniform(jax.random.key(1), (n, 6)))
+    o, d = np.asarray(o), np.asarray(d)
+    assert np.all(np.abs(o[:, 1] - 2.2) < 1e-3) and np.all(np.abs(o[:, 0] + 0.5) <= QUAD[0] / 2 + 1e-4)
+    c = -d[:, 1]
+    assert c.min() >= 0
+    assert abs(c.mean() - 2 / 3) < 4 * c.std() / math.sqrt(n)
+    assert abs((c * c).mean() - 0.5) < 4 * (c * c).std() / math.sqrt(n)
+
+
+def test_environment_photons_carry_its_power_into_the_bounding_sphere():
+    """A constant environment of radiance L sends π r²·4π·L through the disk of the bounding
+    sphere's radius r (here the scene's box: x, z in [-2, 2], y in [0, 3]: r = √41 / 2); with one
+    grey point light of intensity I the mean photon power is 4π·I + that (within 4 standard errors)."""
+    d = diffuse_scene(lights=[((0.0, 2.0, 0.0), (3.0, 3.0, 3.0))], quad=False)
+    d["environment"] = {"radiance": [0.5, 0.5, 0.5]}
+    scene = R.load_scene(d)
+    r = math.sqrt(41.0) / 2
+    want = 4 * math.pi * 3.0 + math.pi * r * r * 4 * math.pi * 0.5
+    n = 100_000
+    o, dirs, power = jax.jit(sppm.emit)(scene, jax.random.uniform(jax.random.key(5), (n, 6)))
+    power, o, dirs = np.asarray(power, np.float64), np.asarray(o), np.asarray(dirs)
+    mean, se = power.mean(0), power.std(0) / math.sqrt(n)
+    # (grey sources chosen by power: every photon carries the whole power, up to float32 rounding)
+    assert np.all(np.abs(mean - want) < 4 * se + 1e-5 * want), (mean, want, se)
+    sky = np.linalg.norm(o - [0.0, 2.0, 0.0], axis=1) > 1e-3
+    assert 0.3 < sky.mean() < 1.0
+    # environment photons start on the sphere's tangent disks, heading into the sphere
+    c = np.array([0.0, 1.5, 0.0])
+    along = np.sum((o[sky] - c) * -dirs[sky], axis=1)
+    np.testing.assert_allclose(along, r, rtol=1e-4)
+    lateral = np.linalg.norm((o[sky] - c) - along[:, None] * -dirs[sky], axis=1)
+    assert lateral.max() <= r * (1 + 1e-4)
+
+
+# ---------------------------------------------------------------------------------------------- input
+
+@pytest.mark.parametrize("key,value", [("photons", -5), ("photons", 0), ("photons", 1.5), ("photons", 1 << 30),
+                                       ("radius", -1.0), ("radius", 0.0), ("radius", "big"),
+                                       ("radius", float("inf"))])
+def test_bad_settings_are_one_line_errors(key, value):
+    with pytest.raises(InputError) as e:
+        R.load_scene(diffuse_scene(**{key: value}))
+    msg = str(e.value)
+    assert "\n" not in msg and key in msg and "render" in msg
+
+
+def test_cli_bad_photons_exit_2(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "jaxrt.cli", "render", "caustics", "--photons", "-3",
+                        "-o", str(tmp_path / "x.exr")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "photons" in lines[0]
+    assert not (tmp_path / "x.exr").exists()
+
+
+def test_settings_reach_the_integrator():
+    scene = R.load_scene(diffuse_scene(photons=777, radius=0.125))
+    assert sppm.photons_per_pass(scene) == 777
+    assert float(sppm.initial_radius(scene)) == 0.125
+    default = R.load_scene(diffuse_scene(width=40, height=30))
+    assert sppm.photons_per_pass(default) == sppm.DEFAULT_PHOTONS[0]
+    # the scene's bounding box: x, z in [-2, 2] (floor), y in [0, 3] (wall): diagonal sqrt(41)
+    np.testing.assert_allclose(float(sppm.initial_radius(default)), 2 * math.sqrt(41.0) / 40, rtol=1e-5)
+
+
+# ---------------------------------------------------------------------------------------------- hash grid
+
+def test_gather_finds_every_photon_in_radius():
+    """The hash-grid gather counts exactly the deposits within r of each point (brute force), when
+    no cell holds more than CELL_PHOTONS of them (no subsampling)."""
+    rng = np.random.default_rng(0)
+    n, S = 2500, 200
+    pts = rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32)  # about 10 per cell of edge 0.16
+    vp_p = rng.uniform(-0.6, 0.6, (S, 3)).astype(np.float32)
+    r2 = rng.uniform(0.03, 0.08, S).astype(np.float32) ** 2
+    dep = sppm.Deposits(jnp.asarray(pts), jnp.zeros((n, 3)).at[:, 2].set(1.0), jnp.ones((n, 3)),
+                        jnp.zeros(n, jnp.int32), jnp.asarray(rng.random(n) < 0.9))
+    grid = sppm.build_grid(dep, 2 * math.sqrt(r2.max()), jax.random.key(0))
+    counts = np.asarray(sppm.count_near(grid, jnp.asarray(vp_p), jnp.asarray(r2)))
+    valid = np.asarray(dep.valid)
+    brute = (((pts[None] - vp_p[:, None]) ** 2).sum(-1) < r2[:, None]) & valid[None]
+    np.testing.assert_array_equal(counts, brute.sum(1))
+    assert brute.sum() > 150
+
+
+def test_gather_subsampling_of_full_cells_is_unbiased():
+    """Cells of ~1000 deposits, of which CELL_PHOTONS are read: over random bucket orders the
+    weighted count's mean is the brute-force count (within 4 standard errors of 64 orders)."""
+    rng = np.random.default_rng(1)
+    n, S = 8000, 40
+    pts = rng.uniform(-0.15, 0.15, (n, 3)).astype(np.float32)
+    vp_p = rng.uniform(-0.1, 0.1, (S, 3)).astype(np.float32)
+    r2 = np.full(S, 0.05**2, np.float32)
+    dep = sppm.Deposits(jnp.asarray(pts), jnp.zeros((n, 3)), jnp.ones((n, 3)), jnp.zeros(n, jnp.int32),
+                        jnp.ones(n, bool))
+
+    def one(key):
+        grid = sppm.build_grid(dep, 0.1, key)
+        return sppm.count_near(grid, jnp.asarray(vp_p), jnp.asarray(r2), weighted=True)
+
+    est = np.asarray(jax.jit(jax.vmap(one))(jax.random.split(jax.random.key(0), 64)))
+    brute = (((pts[None] - vp_p[:, None]) ** 2).sum(-1) < r2[:, None]).sum(1)
+    assert brute.min() > sppm.CELL_PHOTONS  # more than one bucket's reads: subsampled
+    mean, se = est.mean(0), est.std(0, ddof=1) / 8
+    assert np.all(np.abs(mean - brute) < 4 * se + 1e-3), (mean - brute) / se
+    assert np.abs((mean - brute).sum()) < 4 * np.sqrt((se ** 2).sum())
+
+
+# ---------------------------------------------------------------------------------------------- images
+
+N_GLASS, R_BALL, D_LIGHT, HOLE = 1.5, 1.0, 2.5, 0.05
+CAUSTIC_W = CAUSTIC_H = 21
+PIXEL = 0.1  # screen units per pixel at the camera's distance 4
+
+
+def caustic_scene(passes=6, photons=200_000):
+    """A point light on the axis (y) above a glass ball behind a black stop with a square hole of
+    half-width HOLE (paraxial rays only), and a diffuse screen in the plane z = 0 below the ball,
+    seen face on: every refracted ray meets that plane where it crosses the axis, so the screen
+    shows the axial caustic, which the stop confines to near the paraxial focus."""
+    side = 3.0
+    stop_y = R_BALL + 0.2
+    focus = 1.0 / (1.0 / (N_GLASS * R_BALL / (2 * (N_GLASS - 1))) - 1.0 / D_LIGHT)
+    objects = [
+        {"name": "ball", "primitive": "sphere", "radius": R_BALL, "subdivisions": 5, "material": "glass"},
+        {"name": "screen", "primitive": "plane", "size": [1.2, focus + 1.3 - R_BALL - 0.05],
+         "rotate": [90.0, 0.0, 0.0], "translate": [0.0, -(R_BALL + 0.05 + focus + 1.3) / 2, 0.0],
+         "material": "screen"},
+    ]
+    w = side - HOLE
+    for i, (sx, sz, tx, tz) in enumerate([(w, 2 * side, -(HOLE + side) / 2, 0.0), (w, 2 * side, (HOLE + side) / 2, 0.0),
+                                          (2 * HOLE, w, 0.0, -(HOLE + side) / 2), (2 * HOLE, w, 0.0, (HOLE + side) / 2)]):
+        objects.append({"name": f"stop{i}", "primitive": "plane", "size": [sx, sz],
+                        "translate": [tx, stop_y, tz], "material": "stop"})
+    half = PIXEL * CAUSTIC_H / 2
+    return {
+        "camera": {"position": [0.0, -focus, 4.0], "look_at": [0.0, -focus, 0.0],
+                   "vfov": math.degrees(2 * math.atan(half / 4.0)), "width": CAUSTIC_W, "height": CAUSTIC_H},
+        "lights": [{"position": [0.0, D_LIGHT, 0.0], "intensity": 50.0}],
+        "materials": {"glass": {"model": "glass", "n_t": N_GLASS}, "screen": {"model": "lambert", "rho_d": 0.8},
+                      "stop": {"model": "lambert", "rho_d": 0.0}},
+        "objects": objects,
+        # light -> ball (1) -> ball (2) -> screen: three scattering vertices
+        "render": {"integrator": "sppm", "max_depth": 3, "spp": passes, "photons": photons, "radius": 0.05},
+    }, focus
+
+
+@pytest.mark.slow
+def test_point_light_caustic_at_paraxial_focus():
+    """The brightest screen pixel is the one centred on the paraxial image of the light through the
+    ball, on the axis: 1/s_o + 1/s_i = 1/f about the centre with f = nR/(2(n − 1)), here s_o = 2.5 R
+    and s_i = 3.75 R; the camera is centred on that point (pixels 0.1 R, gather radius 0.05 R). The
+    stop keeps the rays within about 0.06 R of the axis, so their crossings (the axial caustic) lie
+    within about 0.04 R before the paraxial focus (spherical aberration ∝ height²), inside that
+    pixel; the pixel beyond the focus stays dark (no ray crosses the axis past the paraxial focus,
+    and a visible point there is at least the radius away from it)."""
+    d, focus = caustic_scene()
+    img = np.asarray(R.render(R.load_scene(d)))
+    assert np.isfinite(img).all() and img.min() >= 0
+    lum = img.mean(-1)
+    r, c = np.unravel_index(np.argmax(lum), lum.shape)
+    mid = CAUSTIC_H // 2
+    assert (r, c) == (mid, CAUSTIC_W // 2), ((r, c), lum[mid - 3:mid + 4, c])
+    assert lum[mid + 1, c] < 0.1 * lum[r, c]  # the row below: past the focus
+    # a real focus: the peak stands far above the rest of the screen
+    assert lum[r, c] > 10 * np.mean(lum)
+
+
+def _path_reference(scene, spp, batches):
+    """The path tracer's per-pixel mean and standard error from `batches` passes of `spp` samples."""
+    s = R.load_scene(dict(scene, render=dict(scene["render"], integrator="path", spp=spp)))
+    passes = [np.asarray(path.render_jit(s, i, jitter=True)) for i in range(batches)]
+    return np.mean(passes, 0), np.std(passes, 0, ddof=1) / math.sqrt(batches)
+
+
+def _blocks(img, k=6):
+    h, w = img.shape[:2]
+    return img[: h - h % k, : w - w % k].reshape(h // k, k, w // k, k, 3).mean((1, 3))
+
+
+@pytest.mark.slow
+def test_diffuse_scene_converges_to_path_tracer():
+    """Diffuse-only scene with point lights and an area light: after 24 passes the SPPM image's
+    mean and 6x6-pixel blocks agree with the path tracer's within combined standard errors (path
+    tracer: spread of its passes; SPPM: spread over 3 independent seeds; a 1 % allowance for the
+    remaining radius bias), and the block error to the path tracer shrinks from pass 4 to 24 (the
+    large initial radius's bias, blurred indirect light, fades as the radii shrink)."""
+    d = diffuse_scene(width=24, height=18, photons=10_000, radius=0.3)
+    ref, ref_se = _path_reference(d, 32, 8)
+    runs = {4: [], 24: []}
+    for seed in range(3):
+        s = R.load_scene(dict(d, render=dict(d["render"], seed=seed)))
+        state = None
+        for p in range(1, 25):
+            state = sppm.accumulate(s, state)
+            if p in runs:
+                img = np.asarray(state.image)
+                assert np.isfinite(img).all() and img.min() >= 0
+                runs[p].append(img)
+    late = np.array(runs[24])
+    se_mean = np.sqrt(late.mean((1, 2)).std(0, ddof=1) ** 2 / 3 + ref_se.mean((0, 1)) ** 2)
+    assert np.all(np.abs(late.mean((0, 1, 2)) - ref.mean((0, 1))) < 4 * se_mean + 0.01 * ref.mean((0, 1)))
+    b_late = np.array([_blocks(x) for x in late])
+    b_ref = _blocks(ref)
+    b_ref_se = np.sqrt(_blocks(ref_se ** 2) / 36)  # pixels' errors are independent
+    se = np.sqrt(b_late.std(0, ddof=1) ** 2 / 3 + b_ref_se ** 2)
+    z = np.abs(b_late.mean(0) - b_ref) / (se + 0.01 * b_ref + 1e-6)
+    assert np.all(z < 4), z.max()
+    err = {p: np.sqrt(np.mean((np.array([_blocks(x) for x in runs[p]]).mean(0) - b_ref) ** 2)) for p in runs}
+    assert err[24] < err[4], err
+
+
+@pytest.mark.slow
+def test_white_furnace_with_glass_stays_one():
+    """A Lambert ρ = 1 floor and sphere and a closed glass sphere in a constant environment of
+    radiance 1: the exact solution is 1 everywhere (every surface reflects or transmits all it
+    receives). The floor around and under the spheres is lit by light that scattered first
+    (environment photons: interreflection, and the caustic under the glass). 6x6-pixel blocks are 1
+    within 4 standard errors (from the spread of their pixels: the exact field is constant) plus
+    2 % (the max_depth 12 truncation, the radius bias at edges), and so is the image mean."""
+    d = {
+        "camera": {"position": [0.0, 1.8, 3.2], "look_at": [0.0, 0.3, 0.0], "vfov": 40.0, "width": 24, "height": 18},
+        "environment": {"radiance": 1.0},
+        "materials": {"white": {"model": "lambert", "rho_d": 1.0}, "glass": {"model": "glass", "n_t": 1.5}},
+        "objects": [
+            {"name": "floor", "primitive": "plane", "size": [3.0, 3.0], "material": "white"},
+            {"name": "ball", "primitive": "sphere", "radius": 0.4, "subdivisions": 3, "translate": [-0.5, 0.4, 0.0],
+             "material": "white"},
+            {"name": "glass", "primitive": "sphere", "radius": 0.4, "subdivisions": 4, "translate": [0.5, 0.4, 0.0],
+             "material": "glass"},
+        ],
+        "render": {"integrator": "sppm", "max_depth": 12, "photons": 20_000, "radius": 0.1},
+    }
+    s = R.load_scene(d)
+    state = None
+    for _ in range(24):
+        state = sppm.accumulate(s, state)
+    img = np.asarray(state.image, np.float64)[..., 0]
+    assert np.isfinite(img).all()
+    h, w = img.shape
+    b = img.reshape(h // 6, 6, w // 6, 6).transpose(0, 2, 1, 3).reshape(h // 6, w // 6, 36)
+    se = b.std(-1, ddof=1) / 6
+    assert np.all(np.abs(b.mean(-1) - 1.0) < 4 * se + 0.02), (b.mean(-1), se)
+    assert abs(img.mean() - 1.0) < 4 * img.std(ddof=1) / np.sqrt(img.size) + 0.02
+
+
+@pytest.mark.slow
+def test_caustics_scene_renders_finite(tmp_path):
+    """The shipped caustics scene through the CLI at a small size: finite, lit, with AOVs."""
+    out = tmp_path / "c.exr"
+    r = subprocess.run([sys.executable, "-m", "jaxrt.cli", "render", "caustics", "--width", "32", "--height", "24",
+                        "--passes", "2", "--photons", "4096", "--aovs", "-q", "-o", str(out)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    from jaxrt import image
+
+    ch = image.read_exr(out, channels=True)
+    rgb = ch["RGB"]
+    assert rgb.shape == (24, 32, 3) and np.isfinite(rgb).all() and rgb.max() > 0
+    assert "depth" in ch

@@ -445,7 +445,9 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
     # It runs after the tiles, as the writers do: the budget keeps room for the larger of the two.
     post, scene = scene.glare, scene.without_glare()
     if scene.settings.integrator == "sppm":
-        out = _render_passes(scene, aovs, progress, should_stop)
+        _, step = check_passes(scene, memory=memory, aovs=aovs, reserve=max(int(reserve), glare.work_bytes(
+            scene.camera.height, scene.camera.width, post)), budget_source=budget_source)
+        out = _render_passes(scene, step, aovs, progress, should_stop)
         if post is None:
             return out
         img, aov = out if aovs else (out, None)
@@ -493,12 +495,47 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
             bar.close()
 
 
-def _render_passes(scene, aovs, progress, should_stop):
-    """A progressive integrator's image (`integrators.sppm`): settings.spp passes of one compiled
-    whole-frame program, the progress bar counting passes and Ctrl-C (`should_stop`) checked between
-    them. Its working set is one pass's (visible points and photons); no tiles, no memory plan."""
+def check_passes(scene, *, memory: int | str | None = None, aovs: bool = False, reserve: int = 0,
+                 budget_source: str | None = None) -> tuple[int, Callable]:
+    """(bytes, compiled pass): the bytes one pass of a progressive whole-frame integrator (`integrators.sppm`) needs, checked
+    against the memory budget before any pass runs: the scene, the per-pixel statistics, the compiled
+    pass's temporaries and outputs (`memory_analysis()` of the program compiled for the scene's
+    shapes; the statistics are described by `jax.eval_shape`, never allocated) and the host image.
+    Such a pass cannot be tiled (every visible point meets the whole photon map), so a frame that does
+    not fit is refused here with one line instead of running out of memory. The program measured is
+    the one the passes run (`step(scene, state)`), so checking costs no extra compilation.
+
+    Raises:
+        InputError: the pass does not fit in the budget.
+    """
+    budget, source = _resolve_budget(memory, scene)
+    source = budget_source or source
     sppm = integrators.sppm
     sppm.check(scene)
+    state = jax.eval_shape(sppm.start, scene)
+    cam = scene.camera
+    host = cam.height * cam.width * (RGB_BYTES + (AOV_BYTES if aovs else 0)) + int(reserve)
+    state_bytes = sum(int(np.prod(x.shape)) * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
+    fixed = _tree_bytes(scene) + state_bytes + host
+    what = (f"{scene.source}: {cam.width}x{cam.height}, {sppm.photons_per_pass(scene)} photons per pass "
+            f"(integrator sppm)")
+    need, compiled = fixed, None
+    if fixed <= budget:  # else refused without compiling: the arrays alone are too large
+        compiled = sppm.step.lower(scene, state).compile()
+        need += _compiled_bytes(compiled)
+    if need > budget:
+        raise InputError(f"{what} needs {format_bytes(need)} per pass (a pass is one whole-frame program, not "
+                         f"tiled) but the memory budget is {format_bytes(budget)} ({source}); render a smaller "
+                         f"image, use fewer photons (--photons) or raise the budget with --memory or JAXRT_MEMORY")
+    return need, compiled
+
+
+def _render_passes(scene, step, aovs, progress, should_stop):
+    """A progressive integrator's image (`integrators.sppm`): settings.spp passes of one compiled
+    whole-frame program, the progress bar counting passes and Ctrl-C (`should_stop`) checked between
+    them, `step` the compiled pass (`check_passes`). Its working set is one pass's (visible points and
+    photons), checked against the budget before."""
+    sppm = integrators.sppm
     passes = scene.settings.spp
     bar, own = progress, False
     if progress is True:
@@ -511,11 +548,11 @@ def _render_passes(scene, aovs, progress, should_stop):
     try:
         if bar:
             bar.set_description_str("compiling")
-        state = None
+        state = sppm.start(scene)
         for i in range(passes):
             if should_stop is not None and should_stop():
                 raise KeyboardInterrupt
-            state = sppm.accumulate(scene, state)
+            state = step(scene, state)
             state.passes.block_until_ready()
             if bar:
                 bar.set_description_str("rendering")

@@ -138,6 +138,30 @@ def test_cli_bad_photons_exit_2(tmp_path):
     assert not (tmp_path / "x.exr").exists()
 
 
+def test_a_pass_larger_than_the_memory_budget_is_refused_before_any_pass():
+    # a pass is one whole-frame program (not tiled): its arrays and the compiled pass's temporaries
+    # are checked against the budget before rendering; refused in one line, nothing run
+    from jaxrt import render_tiles
+
+    scene = R.load_scene(diffuse_scene(width=64, height=48, photons=4096))
+    with pytest.raises(InputError) as e:
+        render_tiles.render(scene, memory=200_000, should_stop=lambda: pytest.fail("a pass ran"))
+    msg = str(e.value)
+    assert "\n" not in msg and "sppm" in msg and "memory budget" in msg, msg
+    need, step = render_tiles.check_passes(scene, memory="4G")
+    # at least the statistics (8 floats per pixel) and the host image (12 bytes per pixel)
+    assert need >= 64 * 48 * (8 * 4 + 12) and step is not None
+
+
+def test_a_huge_frame_is_refused_without_compiling():
+    from jaxrt import render_tiles
+
+    scene = R.load_scene(diffuse_scene(width=16384, height=16384, photons=4096))
+    with pytest.raises(InputError) as e:
+        render_tiles.check_passes(scene, memory="1G")
+    assert "16384x16384" in str(e.value)
+
+
 def test_settings_reach_the_integrator():
     scene = R.load_scene(diffuse_scene(photons=777, radius=0.125))
     assert sppm.photons_per_pass(scene) == 777

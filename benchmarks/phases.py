@@ -1,6 +1,7 @@
 """Where a process's time to first frame goes: import, scene load, trace+lower, compile, first frame,
 image write, each phase timed in one process (run it twice with the same JAXRT_CACHE_DIR for the
-cold and the warm figure), with the slowest functions of the load and lower phases (cProfile).
+cold and the warm figure), in wall and in CPU seconds (all threads; steadier on a shared machine),
+with the slowest functions of each phase (cProfile).
 
     JAXRT_DATA=../shared/data/meshes python benchmarks/phases.py dragon --size 1024 [--profile 12]
 """

@@ -25,7 +25,6 @@ from jaxtyping import Array, Float, Int
 
 import brdfs
 from jaxrt import integrators
-from jaxrt.programs import cached_jit
 from jaxrt.scene import edit
 from jaxrt.shading.direct import direct_terms
 
@@ -46,14 +45,13 @@ class FitBuffer(eqx.Module):
     constant: Float[Array, "K H W 3"]
 
 
-# Both kept across processes (`jaxrt.programs.cached_jit`): a warm fit's `prepare` traces neither.
-@cached_jit(name="fitting.compact.face_material")
+@jax.jit
 def face_material(geometry, prim):
     """Material id of faces `prim` (one compiled call; eager, it would compile every op)."""
     return geometry.face_material(prim)
 
 
-@cached_jit(name="fitting.compact.node_terms")
+@jax.jit
 def _node_terms(scene, prim, u, v, d, vis):
     return direct_terms(scene, scene.geometry.surface(prim, u, v), d, vis)
 

@@ -538,26 +538,29 @@ def _shaped_host(v, fp: FreeParam) -> np.ndarray:
 @functools.lru_cache(maxsize=32)
 def _compiled_helpers(shade: Callable, free: tuple[FreeParam, ...]):
     """Jitted conversions around the solve (start points, the final parameters and image, normalised
-    values for comparing starts): run eagerly they would compile every small op of every call. Kept
-    across processes like the solver (`_jit`), so a warm process does not trace them either."""
+    values for comparing starts): run eagerly they would compile every small op of every call.
+    Plain `jax.jit`, not stored programs: programs this small trace faster than a stored one loads
+    (deserialize, lower the exported module, read the executable), measured on a warm `fit --demo`."""
 
+    @jax.jit
     def z_of(values):
         return {fp.param.name: to_unconstrained(fp.param, _shaped(values[fp.param.name], fp)) for fp in free}
 
+    @jax.jit
     def z_of_unit(row):
         return {fp.param.name: to_unconstrained(fp.param, _shaped(typical_point(fp.param, t), fp))
                 for fp, t in zip(free, row)}
 
+    @jax.jit
     def finish(z, fixed, gbuffer):
         params = _params_from_z(free, z, fixed)
         return params, shade(params, gbuffer)
 
+    @jax.jit
     def normalised(z):
         return jnp.concatenate([jnp.ravel(normalise(fp.param, from_unconstrained(fp.param, z[fp.param.name])))
                                 for fp in free])
 
-    z_of, z_of_unit, finish, normalised = (_jit(f, f.__name__, shade, free)
-                                           for f in (z_of, z_of_unit, finish, normalised))
     return z_of, z_of_unit, finish, normalised
 
 

@@ -155,10 +155,10 @@ def test_ahead_of_time_lowering_returns_the_stored_program(cdir):
 
 @pytest.mark.slow
 def test_a_second_process_fits_from_stored_programs_without_importing_the_solver_library(tmp_path):
-    """Every program of a fit (the G-buffer's node terms, the target render, start points, solver,
-    final image) is stored: a second process traces none of them, so it never imports optimistix
-    (imported where a solver is first built), and recovers the same parameters bit for bit, as
-    `jax.jit` does with the cache off."""
+    """A fit's large programs (the target render, the solver and its Jacobians) are stored: a second
+    process traces none of them, so it never imports optimistix (imported where a solver is first
+    built), and recovers the same parameters and target bit for bit, as `jax.jit` does with the
+    cache off."""
     code = """
     import hashlib, json, sys
     import numpy as np

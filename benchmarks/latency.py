@@ -6,7 +6,9 @@
     python benchmarks/latency.py --preview-wiring        # as if the CLI and scenes used jaxrt.cache already
     python benchmarks/latency.py --no-mitsuba            # skip the Mitsuba 3 column
 
-A case is one process start to exit (files written), timed from outside; the CLI cases are the
+A case is one process start to exit (files written), timed from outside (wall seconds and the CPU
+seconds of the process and its threads, which a loaded shared machine disturbs far less; `--warm-runs N`
+reports the medians of N warm processes); the CLI cases are the
 commands exactly as typed (`python -m jaxrt.cli` for `jaxrt`, run in an empty folder, so
 `jaxrt render` writes its default EXR and PNG); scripted cases also print
 their phases (load / compile / first frame, prepare / first fit / solve). Each case runs with
@@ -30,7 +32,9 @@ import dataclasses
 import json
 import os
 import platform
+import resource
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -236,11 +240,15 @@ def _run(argv: tuple[str, ...], cache_dir: Path, cwd: Path, preview: bool, timeo
         argv = ("-c", PREVIEW + "import sys; from jaxrt.cli import main; sys.exit(main(sys.argv[1:]))", *argv[2:])
     elif preview and argv[0] == "-c":
         argv = ("-c", PREVIEW + argv[1], *argv[2:])
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
     p = subprocess.run([sys.executable, *argv], env=_env(cache_dir), cwd=cwd, capture_output=True, text=True,
                        timeout=timeout, check=False)
     wall = time.perf_counter() - t
-    out = {"wall": wall, "rc": p.returncode}
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    # CPU seconds of the process and its threads: on a shared, loaded machine far steadier than the wall time
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    out = {"wall": wall, "cpu": cpu, "rc": p.returncode}
     for line in p.stdout.splitlines():
         if line.startswith(PHASES):
             out["phases"] = json.loads(line[len(PHASES):])
@@ -293,6 +301,21 @@ def _mitsuba_args(kind: str, size: int, variant: str, tmp: Path) -> tuple[str, d
     return (MITSUBA_FIT if kind == "mitsuba-fit" else MITSUBA_RENDER), a
 
 
+def _median(runs: list[dict]) -> dict:
+    """One run's record with the median wall and CPU time of `runs` (the first failure, if any)."""
+    bad = [r for r in runs if r["rc"] != 0]
+    if bad or len(runs) == 1:
+        return (bad or runs)[0]
+    out = dict(runs[0])
+    for k in ("wall", "cpu"):
+        out[k] = statistics.median(r[k] for r in runs)
+    if all("phases" in r for r in runs):
+        out["phases"] = {k: statistics.median(r["phases"][k] for r in runs) if isinstance(v, float) else v
+                         for k, v in runs[0]["phases"].items()}
+    out["runs"] = len(runs)
+    return out
+
+
 def _fmt(r: dict | None) -> str:
     if r is None:
         return ""
@@ -302,7 +325,7 @@ def _fmt(r: dict | None) -> str:
         return f"aborted by signal {-r['rc']} ({r.get('error', '')[:60]})"
     if r["rc"] != 0:
         return f"failed ({r.get('error', '')})"
-    s = f"{r['wall']:.2f} s"
+    s = f"{r['wall']:.2f} s" + (f" [cpu {r['cpu']:.2f} s]" if "cpu" in r else "")
     ph = r.get("phases")
     if ph:
         s += " (" + ", ".join(f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in ph.items()
@@ -321,6 +344,8 @@ def main(argv=None) -> int:
                     help="enable jaxrt.cache in each process (compilation cache, mesh and BVH cache) before the work")
     ap.add_argument("--no-mitsuba", action="store_true", help="skip the Mitsuba 3 column")
     ap.add_argument("--timeout", type=float, default=1800, help="seconds per process (default 1800)")
+    ap.add_argument("--warm-runs", type=int, default=1, metavar="N",
+                    help="run the warm process N times and report the median wall and CPU time (default 1)")
     ap.add_argument("--json", metavar="OUT.json", help="also write every measurement as JSON")
     args = ap.parse_args(argv)
     table = cases(args)
@@ -348,8 +373,11 @@ def main(argv=None) -> int:
                 work = tmp / f"work-{name}"
                 work.mkdir()
                 for phase in ("cold", "warm"):
-                    res[phase] = _run(case.argv, cdir, work, args.preview_wiring, args.timeout)
-                    print(f"  {name} {phase}: {_fmt(res[phase])}; cache entries {res[phase]['entries']}", flush=True)
+                    runs = [_run(case.argv, cdir, work, args.preview_wiring, args.timeout)
+                            for _ in range(args.warm_runs if phase == "warm" else 1)]
+                    for r in runs:
+                        print(f"  {name} {phase}: {_fmt(r)}; cache entries {r['entries']}", flush=True)
+                    res[phase] = _median(runs)
                 shutil.rmtree(cdir, ignore_errors=True)
             if case.peer and variant and has_data:
                 size = {"mitsuba-render": 256 if args.quick else args.dragon_size, "mitsuba-frame": 128 if args.quick

@@ -18,7 +18,6 @@ import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -28,6 +27,7 @@ from brdfs.base import Model
 from fitting import compact
 from fitting.solve import FitResult, fit_images
 from jaxrt import integrators
+from jaxrt.programs import cached_jit
 from jaxrt import scene as _scene
 from jaxrt.scene import edit
 from jaxrt.errors import InputError
@@ -237,7 +237,10 @@ def render_with(setup: Setup, params: Mapping[str, Array]) -> Float[Array, "K H 
 
 @functools.lru_cache(maxsize=None)
 def _jitted_shader(model_index: int, row: int):
-    return jax.jit(shader(model_index, row))
+    # kept across processes (`jaxrt.programs`): a warm `jaxrt fit` renders its targets and fitted
+    # images without tracing the shading of every view
+    shade = shader(model_index, row)
+    return cached_jit(shade, name=f"fitting.setup.render_with[{shade.program_key}]")
 
 
 def fit(

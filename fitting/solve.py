@@ -29,27 +29,40 @@ from collections.abc import Callable, Mapping
 
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Float, PyTree
 
 from brdfs.base import Model, Param, Params
 from fitting import metrics
 from fitting.transforms import from_unconstrained, normalise, to_unconstrained, typical_point
 
+
+def _optx():
+    """optimistix, imported where a solver is first built: a process whose solver programs are
+    already in the cache (`jaxrt.programs`) never traces one, and the import (with lineax) costs
+    0.3-0.6 s."""
+    import optimistix
+
+    return optimistix
+
+
+def _lm_normal(rtol: float, atol: float):
+    import lineax as lx
+
+    return _optx().LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
+
+
 SOLVERS: dict[str, Callable[[float, float], object]] = {
-    "lm": lambda rtol, atol: optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+    "lm": lambda rtol, atol: _optx().LevenbergMarquardt(rtol=rtol, atol=atol),
     # Levenberg–Marquardt on the normal equations (JᵀJ + λI) δ = Jᵀr by Cholesky instead of a QR of the
     # stacked [J; √λ I]: for tall Jacobians (residuals ≫ parameters) a step costs about what the
     # residuals and the Jacobian cost (BRDF-space fits on the CPU: 0.9 ms against 16 ms a step with QR,
     # 3826 direction pairs × 3 channels, 8 parameters), at the price of squaring JᵀJ's condition
     # number, which the damping λ bounds; a failed Cholesky gives a rejected step and more damping.
-    "lm_normal": lambda rtol, atol: optx.LevenbergMarquardt(rtol=rtol, atol=atol,
-                                                            linear_solver=lx.Normal(lx.Cholesky())),
-    "gauss_newton": lambda rtol, atol: optx.GaussNewton(rtol=rtol, atol=atol),
-    "dogleg": lambda rtol, atol: optx.Dogleg(rtol=rtol, atol=atol),
-    "bfgs": lambda rtol, atol: optx.BFGS(rtol=rtol, atol=atol),
+    "lm_normal": _lm_normal,
+    "gauss_newton": lambda rtol, atol: _optx().GaussNewton(rtol=rtol, atol=atol),
+    "dogleg": lambda rtol, atol: _optx().Dogleg(rtol=rtol, atol=atol),
+    "bfgs": lambda rtol, atol: _optx().BFGS(rtol=rtol, atol=atol),
 }
 
 # A fit is "ill-conditioned" when the column-scaled Gauss-Newton matrix JᵀJ has a condition number
@@ -193,6 +206,7 @@ def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: 
         return _residuals(shade(_params_from_z(free, z, fixed), gbuffer), pixels)
 
     def solve(z0, gbuffer, pixels, fixed):
+        optx = _optx()
         sol = optx.least_squares(
             residuals,
             SOLVERS[solver](rtol, atol),
@@ -608,7 +622,9 @@ def _shaped_host(v, fp: FreeParam) -> np.ndarray:
 @functools.lru_cache(maxsize=32)
 def _compiled_helpers(shade: Callable, free: tuple[FreeParam, ...]):
     """Jitted conversions around the solve (start points, the final parameters and image, normalised
-    values for comparing starts): run eagerly they would compile every small op of every call."""
+    values for comparing starts): run eagerly they would compile every small op of every call.
+    Plain `jax.jit`, not stored programs: programs this small trace faster than a stored one loads
+    (deserialize, lower the exported module, read the executable), measured on a warm `fit --demo`."""
 
     @jax.jit
     def z_of(values):

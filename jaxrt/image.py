@@ -1,4 +1,4 @@
-"""Image I/O: linear EXR through OpenEXR, display PNG through colour-science's sRGB encoding.
+"""Image I/O: linear EXR through OpenEXR, display PNG through the sRGB encoding of IEC 61966-2-1.
 
 Both writers go through `jaxrt.fsutil.atomic_path`, so a failed or interrupted write never leaves
 a half-written file. Images are (H, W, 3) linear RGB; extra single-channel AOVs (H, W) can be
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import functools
 import os
-import threading
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -107,49 +106,34 @@ def check_exposure(exposure: float, flag: str = "exposure") -> float:
     return ev
 
 
-def prefetch() -> None:
-    """Start importing colour-science in a background thread (once per process).
+def srgb_decode(v: np.ndarray) -> np.ndarray:
+    """The sRGB decoding curve (IEC 61966-2-1:1999, the EOTF): encoded values in [0, 1] -> linear, float64.
 
-    `import colour` also imports its plotting module and with it matplotlib.pyplot: 1.3 s on an
-    H200 host, 2-4 s on a busy 2-core CPU, most of a warm render's wait. A command that will write
-    a PNG calls this first, so the import overlaps the render (which mostly waits on compiled code,
-    outside the interpreter lock); `to_srgb8` then finds the module imported.
-    """
-    global _prefetch
-    with _prefetch_lock:
-        if _prefetch is None:
-            _prefetch = threading.Thread(target=_import_colour, name="jaxrt-import-colour", daemon=True)
-            _prefetch.start()
+    The arithmetic of colour-science's `eotf_sRGB` (the same break point, the linear segment's value at
+    0.0031308, and the same operations), so the values are colour-science's bit for bit, without its
+    import: `import colour` loads scipy and matplotlib, 1.5-2 CPU seconds, more than a small render."""
+    v = np.asarray(v, np.float64)
+    return np.where(_SRGB_BREAK >= v, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
 
 
-def _import_colour():
-    try:
-        import colour  # noqa: F401
-    except Exception:  # noqa: BLE001 -- the import in to_srgb8 reports it
-        pass
-
-
-_prefetch: threading.Thread | None = None
-_prefetch_lock = threading.Lock()
+#: The encoded value of the linear break point 0.0031308 (≈ 0.04045): the encoding's linear segment there.
+_SRGB_BREAK = 0.0031308 * 12.92
 
 
 @functools.cache
 def _srgb_thresholds() -> np.ndarray:
     """The 255 linear values at which the 8-bit sRGB code steps up: code k covers linear values in
-    [t[k-1], t[k]), t[k] = sRGB⁻¹((k + ½)/255) (IEC 61966-2-1, through colour-science's decoding curve).
+    [t[k-1], t[k]), t[k] = sRGB⁻¹((k + ½)/255) (IEC 61966-2-1, `srgb_decode`).
 
     Encoding by lookup in this table gives round(255 · sRGB(x)) (the sRGB curve is increasing), in
-    float32 and without colour-science's float64 temporaries; the tests compare it with the direct
-    encoding."""
-    import colour
-
+    float32 and without float64 temporaries; the tests compare it with the direct encoding."""
     mid = (np.arange(255, dtype=np.float64) + 0.5) / 255.0
-    return np.asarray(colour.cctf_decoding(mid, function="sRGB"), np.float64).astype(np.float32)
+    return srgb_decode(mid).astype(np.float32)
 
 
 def to_srgb8(image: Float[np.ndarray, "H W 3"], exposure: float = 0.0) -> np.ndarray:
-    """Linear RGB -> 8-bit sRGB: scale by 2^exposure, clip to [0, 1], sRGB transfer (colour-science's
-    curve, applied as a 256-level lookup: `_srgb_thresholds`)."""
+    """Linear RGB -> 8-bit sRGB: scale by 2^exposure, clip to [0, 1], sRGB transfer (IEC 61966-2-1,
+    applied as a 256-level lookup: `_srgb_thresholds`)."""
     check_exposure(exposure)
     img = _finite_rgb(image, "image")
     t = _srgb_thresholds()

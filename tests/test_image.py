@@ -50,6 +50,24 @@ def test_srgb_lookup_equals_the_direct_encoding_away_from_code_boundaries():
     assert got[0] == 0 and got[400_002] == 255  # 0 and 1 map to the end codes
 
 
+def test_srgb_decoding_is_colour_sciences_bit_for_bit():
+    """`srgb_decode` (no colour-science import) gives colour-science's sRGB EOTF exactly: every 8- and
+    16-bit code, the values around the curve's break point, and the PNG encoder's 255 code edges."""
+    import colour
+
+    brk = 0.0031308 * 12.92
+    v = np.concatenate([np.arange(256) / 255, np.arange(65536) / 65535,
+                        np.nextafter(brk, np.array([0.0, 1.0])), [brk], (np.arange(255) + 0.5) / 255])
+    ref = np.asarray(colour.cctf_decoding(v, function="sRGB"), np.float64)
+    got = image.srgb_decode(v)
+    assert got.dtype == np.float64 and np.array_equal(got, ref)
+    # the lookup table of `to_srgb8`, hence every PNG, is the one colour-science's curve gives
+    edges = (np.arange(255) + 0.5) / 255
+    assert np.array_equal(image.to_srgb8(np.repeat(
+        np.asarray(colour.cctf_decoding(edges, function="sRGB")).astype(np.float32)[None, :, None], 3, -1))[0, :, 0],
+        np.arange(1, 256))
+
+
 def test_non_finite_images_are_refused_and_nothing_is_written(tmp_path):
     img = np.zeros((2, 2, 3), np.float32)
     img[0, 0, 1] = np.nan

@@ -8,6 +8,7 @@ never imports the code it checks.
 from __future__ import annotations
 
 import ast
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -202,3 +203,33 @@ def test_no_geometry_kind_dispatch_above_the_geometry_layer():
         src = path.read_text()
         bad += [f"{name}: {k}" for k in kinds if k in src]
     assert bad == []
+
+
+# Packages that cost a second or more to import on a small machine (colour-science alone loads scipy
+# and matplotlib) or that only some commands need: each is imported where it is first used, so
+# `import jaxrt`, `import brdfs` and `import fitting` pay for JAX and the project's own modules only.
+HEAVY = ("matplotlib", "colour", "scipy", "trimesh", "OpenEXR", "h5py", "optimistix", "lineax", "ipywidgets",
+         "tqdm", "jax.experimental.pallas.triton")
+
+
+def test_package_imports_and_png_writing_leave_heavy_modules_unloaded(tmp_path):
+    code = ("import json, sys\n"
+            "import numpy as np\n"
+            "heavy = lambda: sorted(m for m in sys.argv[2:] if m in sys.modules)\n"
+            "out = {}\n"
+            "import brdfs\n"
+            "out['brdfs'] = heavy()\n"
+            "import fitting\n"
+            "out['fitting'] = heavy()\n"
+            "import jaxrt\n"
+            "out['jaxrt'] = heavy()\n"
+            "from jaxrt import image\n"
+            "image.write_png(sys.argv[1], np.linspace(0, 2, 24, dtype=np.float32).reshape(2, 4, 3))\n"
+            "out['png'] = heavy()\n"
+            "out['probe'] = [m for m in ('PIL', 'jax') if m not in sys.modules]\n"
+            "print(json.dumps(out))\n")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "a.png"), *HEAVY], cwd=ROOT, capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out == {"brdfs": [], "fitting": [], "jaxrt": [], "png": [], "probe": []}

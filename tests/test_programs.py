@@ -152,3 +152,37 @@ def test_ahead_of_time_lowering_returns_the_stored_program(cdir):
     assert list(_stats() - s0) == [0, 0, 0] and len(f._programs) == 1
     ref = jax.jit(_fun, static_argnames=("power",))(p, x, power=3)
     assert np.array_equal(np.asarray(out["y"]), np.asarray(ref["y"])) and np.array_equal(again["y"], out["y"])
+
+
+@pytest.mark.slow
+def test_a_second_process_fits_from_stored_programs_without_importing_the_solver_library(tmp_path):
+    """A fit's large programs (the target render, the solver and its Jacobians) are stored: a second
+    process traces none of them, so it never imports optimistix (imported where a solver is first
+    built), and recovers the same parameters and target bit for bit, as `jax.jit` does with the
+    cache off."""
+    code = """
+    import hashlib, json, sys
+    import numpy as np
+    import brdfs
+    from fitting import setup as scene_fit
+    from jaxrt import programs as _programs
+    model = brdfs.get("cook_torrance")
+    setup = scene_fit.prepare([scene_fit.variant("spheres", camera={"width": 20, "height": 14})], model)
+    truth = model.params(rho_d=0.3, rho_s=0.6, m=0.25, eta=1.8)
+    target = np.asarray(scene_fit.render_with(setup, truth))
+    r, _ = scene_fit.fit(None, target, model, setup=setup, rgb=False, starts=1, progress=False, fix={"eta": 1.8})
+    s = _programs.program_stats()
+    print(json.dumps(dict(hits=s.hits, misses=s.misses, fallbacks=s.fallbacks, solver="optimistix" in sys.modules,
+                          params={k: np.asarray(v).tolist() for k, v in r.params.items()},
+                          target=hashlib.sha256(target.tobytes()).hexdigest())))
+    """
+    d = tmp_path / "cache"
+    first, second = _py(code, d), _py(code, d)
+    assert first["misses"] > 0 and first["solver"]
+    assert second["misses"] == 0 and second["hits"] == first["misses"] + first["hits"]
+    assert not second["solver"]
+    assert second["params"] == first["params"] and second["target"] == first["target"]
+    off = _py(code, tmp_path / "off", JAXRT_CACHE="off")
+    assert off["hits"] == off["misses"] == 0 and off["fallbacks"] > 0
+    assert off["params"] == first["params"] and off["target"] == first["target"]
+    assert abs(first["params"]["m"] - 0.25) < 1e-3  # the fit itself worked

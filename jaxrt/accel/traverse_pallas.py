@@ -36,8 +36,6 @@ import functools
 import jax
 import jax.numpy as jnp
 from jax import lax
-from jax.experimental import pallas as pl
-from jax.experimental.pallas import triton as plgpu
 from jaxtyping import Array, Float
 
 from jaxrt.accel.predicates import FAR_SCALE, edge_products, edge_sign, opaque, opaque_zero, pick3, ray_constants
@@ -235,6 +233,8 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
     # One block of consecutive rays per program, traced until the slowest of them ends. The per-ray
     # constants are computed here (the XLA path's own function, bit for bit) rather than read: an XLA
     # pass writing 14 columns cost as much as a fifth of a shadow launch.
+    from jax.experimental import pallas as pl  # see `traverse`: imported where a kernel is built
+
     i3 = (pl.program_id(0) * block + jnp.arange(block, dtype=jnp.int32)) * 3
     inv, shear, kx, ky, kz, cls = ray_constants(*(d_r[i3 + k] for k in range(3)))
     ray = (*(o_r[i3 + k] for k in range(3)), *inv, *shear, kx, ky, kz, cls, tmin_r[...])
@@ -379,6 +379,11 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
         box = jnp.concatenate([body, lax.bitcast_convert_type(leaf, jnp.float32), jnp.zeros((nn, 1), jnp.float32)],
                               axis=1)
         leaf, tri = leaf[:1], tri[:1]
+    # Pallas (and its Triton back end) is imported where a kernel is built, not with the module: the
+    # import costs 0.2-0.3 s and a CPU process never builds one (it only packs node tables here).
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as plgpu
+
     tables = [box.reshape(-1), leaf.reshape(-1), links.reshape(-1), tri.reshape(-1)]
     whole = lambda x: pl.BlockSpec(x.shape, lambda i: (0,))  # noqa: E731
     f32 = jax.ShapeDtypeStruct((n_pad,), jnp.float32)

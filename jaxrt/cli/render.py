@@ -222,8 +222,6 @@ def run(args: argparse.Namespace) -> int:
 
     from jaxrt import image, render_tiles
 
-    if png is not None:
-        image.prefetch()  # colour-science's import overlaps the render
     c = spec.camera
     npix = c.width * c.height
     # the writers run one after the other, after the render

@@ -18,8 +18,8 @@ Lookup conventions (`lookup(tex, uv)`):
   constant in uv).
 
 Files (`read_image`): PNG (8 or 16 bit, via Pillow) and OpenEXR (via `jaxrt.image.read_exr`, linear).
-PNG values are decoded from sRGB to linear with colour-science for RGB parameters (colours), and
-read as linear values v / (2^bits - 1) for scalar parameters (roughness-like maps are data, not
+PNG values are decoded from sRGB to linear (IEC 61966-2-1, `jaxrt.image.srgb_decode`) for RGB
+parameters (colours), and read as linear values v / (2^bits - 1) for scalar parameters (roughness-like maps are data, not
 colours). A scalar parameter needs a one-channel image (grey PNG, or an EXR with a Y or a single
 channel), an RGB parameter a three-channel one (an alpha channel is ignored; a grey image is
 broadcast to RGB). Values outside the parameter's declared
@@ -138,9 +138,9 @@ def read_image(path: str | os.PathLike, rgb: bool, where: str) -> np.ndarray:
         if chans in (2, 4):  # drop alpha
             vals = vals[..., :-1]
         if rgb:
-            import colour
+            from jaxrt.image import srgb_decode
 
-            vals = np.asarray(colour.cctf_decoding(vals, function="sRGB"), np.float64)
+            vals = srgb_decode(vals)
     elif ext == ".exr":
         from jaxrt.image import read_exr
 

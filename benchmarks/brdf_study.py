@@ -1,4 +1,4 @@
-"""Timing of the BRDF-space study (issue 16): N measured materials × every study model, the whole
+"""Timing of the BRDF-space study (Ngan et al. 2005): N measured materials × every study model, the whole
 pipeline of `jaxrt study` without the pictures (sampling the materials on both grids, the batched
 fits, the errors on the evaluation grid).
 

@@ -1,4 +1,4 @@
-"""Issue 7's benchmark in one call: build, check and time rays and Whitted frames on this backend.
+"""The GPU benchmark in one call: build, check and time rays and Whitted frames on this backend.
 
     JAXRT_DATA=../shared/data/meshes python benchmarks/gpu.py                # GPU: 1024², both traversals
     JAXRT_DATA=../shared/data/meshes python benchmarks/gpu.py --cpu          # CPU: small sizes, + Embree

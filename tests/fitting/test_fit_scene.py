@@ -61,7 +61,7 @@ def test_noise_free_recovery_from_default_start(bunny_setups, name):
 @pytest.mark.data
 @pytest.mark.parametrize("name", BAR_MODELS)
 def test_issue_bar_bunny_256(data_dir, name):
-    """Issue 5's bar: 20 random draws at 256²; ≥95% from the default start, 100% with multi-start."""
+    """The recovery bar: 20 random draws at 256²; ≥95% from the default start, 100% with multi-start."""
     setup = fit_setup.prepare(bunny_views(256, 256), name)
     model = brdfs.get(name)
     single, multi = 0, 0

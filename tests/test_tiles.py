@@ -357,7 +357,10 @@ def _start_render(tmp_path, *extra):
     scene = tmp_path / "scene.toml"
     scene.write_text(SCENE_TOML)
     cmd = [sys.executable, "-m", "jaxrt.cli", "render", str(scene), "-o", str(tmp_path / "out.exr"), *extra]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # SIGINT back to its default in the child: a test run started in the background of a non-interactive
+    # shell ignores SIGINT, the child would inherit that, and Python then installs no Ctrl-C handler
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     err = bytearray()
 
     def pump():

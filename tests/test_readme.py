@@ -41,9 +41,13 @@ def test_the_readme_has_python_examples():
     assert small('{"camera.width": 256, "camera.height": 192}') == '{"camera.width": 16, "camera.height": 12}'
 
 
+SLOW_EXAMPLES = ("grad(", "fit_measured(", "sppm.")
+
+
 def _param(block: str):
-    # examples that differentiate the renderer compile its gradient (minutes on 2 cores): slow pass
-    marks = [pytest.mark.slow] if "grad(" in block else []
+    # examples that compile a minute or more on 2 cores (the renderer's gradient, a batched measured
+    # fit, photon-mapping passes) run in the slow pass
+    marks = [pytest.mark.slow] if any(k in block for k in SLOW_EXAMPLES) else []
     return pytest.param(block, marks=marks, id=block.strip().splitlines()[-1][:40])
 
 

@@ -13,6 +13,7 @@ from jaxtyping import Array, Bool, Float
 
 from jaxrt import envmap
 from jaxrt.accel import Hit
+from jaxrt.shading.surface import normalize
 
 
 def intersect_active(geometry, origins: Float[Array, "B 3"], directions: Float[Array, "B 3"],
@@ -78,3 +79,19 @@ def emitter_table(scene) -> EmitterTable:
     pdf_area = jnp.where(area > 0, power / norm / jnp.where(area > 0, area, 1.0), 0.0)
     face_pdf = jnp.zeros(geo.face_count).at[al.prims].set(pdf_area)
     return EmitterTable(cdf, face_pdf, total)
+
+
+def sample_emitter_point(geo, al, table: EmitterTable, u: Float[Array, "B 3"]):
+    """A point on the emissive triangles, chosen by `table` (u[:, 0]) and uniform over the chosen
+    triangle's area (u[:, 1:3], the square-root warp of Shirley & Chiu): (face, its vertices
+    (v0, v1, v2), point y, geometric normal n of the triangle's winding). Shared by next-event
+    estimation and photon emission."""
+    j = jnp.clip(jnp.searchsorted(table.cdf, u[:, 0], side="right") - 1, 0, al.count - 1)
+    face = al.prims[j]
+    v0, v1, v2 = geo.triangles(face)
+    su = jnp.sqrt(u[:, 1])
+    b1, b2 = 1.0 - su, u[:, 2] * su
+    y = (1.0 - b1 - b2)[:, None] * v0 + b1[:, None] * v1 + b2[:, None] * v2
+    n_l = normalize(jnp.cross(v1 - v0, v2 - v0))
+    return face, (v0, v1, v2), y, n_l
+

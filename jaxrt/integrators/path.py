@@ -62,7 +62,7 @@ from jaxtyping import Array, Float, Int
 import brdfs
 from jaxrt import camera, envmap
 from jaxrt import lights as _lights
-from jaxrt.integrators.common import emitter_table, intersect_active, power_heuristic
+from jaxrt.integrators.common import emitter_table, intersect_active, power_heuristic, sample_emitter_point
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, hit_params, glass_split, is_glass
 from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented, to_local
@@ -223,13 +223,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             dist_c = jnp.full(B, jnp.inf)
             pick_tri = u[:, 0] < p_tri
             if table is not None:
-                j = jnp.clip(jnp.searchsorted(table.cdf, u[:, 1], side="right") - 1, 0, al.count - 1)
-                face = al.prims[j]
-                v0, v1, v2 = geo.triangles(face)
-                su = jnp.sqrt(u[:, 2])
-                b1, b2 = 1.0 - su, u[:, 3] * su
-                y = (1.0 - b1 - b2)[:, None] * v0 + b1[:, None] * v1 + b2[:, None] * v2
-                n_l = normalize(jnp.cross(v1 - v0, v2 - v0))
+                face, _, y, n_l = sample_emitter_point(geo, al, table, u[:, 1:4])
                 # aim from the offset origin: a ray parallel to y - p would meet the light's plane
                 # eps/cosθ early, short of the shadow ray's end, and count as occluded
                 to = y - origin

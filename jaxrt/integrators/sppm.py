@@ -62,7 +62,7 @@ import brdfs
 from jaxrt import camera, envmap
 from jaxrt import lights as _lights
 from jaxrt.errors import InputError
-from jaxrt.integrators.common import emitter_table, intersect_active
+from jaxrt.integrators.common import emitter_table, intersect_active, sample_emitter_point
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, glass_split, hit_params, is_glass
 from jaxrt.shading.surface import (dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented,
@@ -287,13 +287,7 @@ def emit(scene, u: Float[Array, "n 6"]):
         power = 4.0 * math.pi * _sg(scene.lights.intensity)[li] * inv_p[:, None]
     if table is not None:
         al = _sg(scene.area_lights)
-        j = jnp.clip(jnp.searchsorted(table.cdf, u[:, 1], side="right") - 1, 0, al.count - 1)
-        face = al.prims[j]
-        v0, v1, v2 = geo.triangles(face)
-        su = jnp.sqrt(u[:, 2])
-        b1, b2 = 1.0 - su, u[:, 3] * su
-        y = (1.0 - b1 - b2)[:, None] * v0 + b1[:, None] * v1 + b2[:, None] * v2
-        n_l = normalize(jnp.cross(v1 - v0, v2 - v0))
+        face, (v0, v1, v2), y, n_l = sample_emitter_point(geo, al, table, u[:, 1:4])
         # cosine-distributed about the emitting side's normal
         rc = jnp.sqrt(u[:, 4])
         loc = jnp.stack([rc * jnp.cos(phi), rc * jnp.sin(phi), jnp.sqrt(jnp.maximum(1.0 - u[:, 4], 0.0))], -1)
@@ -583,13 +577,7 @@ def _nee(scene, vp, models, key):
         pick_tri = u[:, 0] < p_tri
         if has_tri:
             table = emitter_table(scene)
-            j = jnp.clip(jnp.searchsorted(table.cdf, u[:, 1], side="right") - 1, 0, al.count - 1)
-            face = al.prims[j]
-            v0, v1, v2 = geo.triangles(face)
-            su = jnp.sqrt(u[:, 2])
-            b1, b2 = 1.0 - su, u[:, 3] * su
-            y = (1.0 - b1 - b2)[:, None] * v0 + b1[:, None] * v1 + b2[:, None] * v2
-            n_l = normalize(jnp.cross(v1 - v0, v2 - v0))
+            face, _, y, n_l = sample_emitter_point(geo, al, table, u[:, 1:4])
             to = y - origin
             d2 = dot(to, to)
             dist = jnp.sqrt(jnp.maximum(d2, 1e-30))

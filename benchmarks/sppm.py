@@ -278,7 +278,7 @@ def make_reference(spp: int, out: str, size: int, chunk_spp: int | None, max_sec
           f"{seconds:.1f} s ({rate:.2f} Msamples/s) after {compile_s:.1f} s compiling, on {meta['device']}")
     print(f"  caustic region {int(region.sum())} px, mean radiance {m:.4g}; reference relative RMS standard error "
           f"there {_ref_noise(ref.mean, ref.se, region):.4f} (its region mean's: "
-          f"{np.sqrt((ref.se[region] ** 2).sum()) / ref.se[region].size / m:.2e})")
+          f"{_region_mean_se(ref.se, region) / m:.2e})")
 
 
 def caustic_region(mean, direct, on_floor):
@@ -289,6 +289,12 @@ def caustic_region(mean, direct, on_floor):
         return floor
     threshold = REGION_FACTOR * np.median(_lum(mean)[floor])
     return floor & (_lum(mean - direct) > threshold)
+
+
+def _region_mean_se(se, region):
+    """Standard error of the region mean (over pixels and channels): pixels are independent (their
+    own paths), a pixel's three channels counted as fully correlated (the same paths)."""
+    return float(np.sqrt(np.sum(se[region].mean(-1) ** 2)) / region.sum())
 
 
 def _ref_noise(mean, se, region):
@@ -390,7 +396,7 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
                                       np.float64)[region].mean()))
     mu = statistics.fmean(means)
     se_s = statistics.stdev(means) / math.sqrt(len(means))
-    se_r = float(np.sqrt((se[region] ** 2).sum()) / se[region].size)
+    se_r = _region_mean_se(se, region)
     comb = math.hypot(se_s, se_r)
     print(f"bias: SPPM region mean after {T:g} s over {len(means)} seeds {mu:.4g} ± {se_s:.2g}, reference {m:.4g} ± "
           f"{se_r:.2g}: difference {(mu - m) / m:+.2%} of the reference, {(mu - m) / comb:+.1f} combined standard "

@@ -2,12 +2,12 @@
 and SPPM against the path tracer at equal wall time.
 
 Commands. On one NVIDIA H200 the two GPU lines take about 3.5 minutes together (start-up, BVH build
-and compilation included: the reference stops after 120 s of rendering, the table renders 4 s per
+and compilation included: the reference stops after 100 s of rendering, the table renders 4 s per
 integrator plus 3 x 4 s for the bias check); the CPU line (2 cores) about 3 minutes plus compilation,
 with the reference file made on the GPU:
 
     # GPU: the reference, then the equal-time table and the bias check
-    python benchmarks/sppm.py --make-reference 4194304 --max-seconds 120 --out caustic_ref.npz
+    python benchmarks/sppm.py --make-reference 4194304 --max-seconds 100 --out caustic_ref.npz
     python benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 --reference caustic_ref.npz
     # CPU, with the GPU's caustic_ref.npz (the scene and settings are checked on load)
     python benchmarks/sppm.py --equal-time 5,10,20,40 --reference caustic_ref.npz --bias-seeds 0

@@ -34,6 +34,10 @@ stage() {  # stage NAME LIMIT_S COMMAND...
 for s in "$@"; do
     case $s in
         frames)   stage frames 150 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip check --json "$OUT/frames.json" ;;
+        glass)    # the same frames with Whitted's glass shadows transmitting (default) and opaque, one run
+                  stage glass-transmit 80 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip rays check --scenes showcase dragon
+                  stage glass-opaque 80 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip rays check --scenes showcase dragon \
+                      --override render.glass_shadows=opaque ;;
         study)    stage study 240 python3 benchmarks/brdf_study.py --materials 100 --json "$OUT/study.json" ;;
         path)     stage path 80 python3 benchmarks/path.py --size 512 --spp 4 --passes 5 --no-mitsuba ;;
         sppm)     stage sppm 90 python3 benchmarks/sppm.py --size 128 --passes 8 ;;

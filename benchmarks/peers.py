@@ -24,6 +24,7 @@ printed alone (as with --no-mitsuba). Stanford meshes need $JAXRT_DATA.
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import os
 import statistics
@@ -80,6 +81,7 @@ def direct_doc(name: str) -> dict:
     return doc
 
 
+@functools.lru_cache(maxsize=None)  # the direct and ray rows share a scene (one BVH build)
 def load_direct(name: str, size: int):
     base = S.find_scene(name).parent
     return S.load(direct_doc(name), base_dir=base, overrides={"camera.width": size, "camera.height": size})

@@ -35,14 +35,20 @@ for s in "$@"; do
     case $s in
         frames)   stage frames 150 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip check --json "$OUT/frames.json" ;;
         glass)    # the same frames with Whitted's glass shadows transmitting (default) and opaque, one run
-                  stage glass-transmit 80 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip rays check --scenes showcase dragon
-                  stage glass-opaque 80 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip rays check --scenes showcase dragon \
+                  stage glass-transmit 70 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip rays check --scenes showcase dragon
+                  stage glass-opaque 70 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip rays check --scenes showcase dragon \
                       --override render.glass_shadows=opaque ;;
         study)    stage study 240 python3 benchmarks/brdf_study.py --materials 100 --json "$OUT/study.json" ;;
         path)     stage path 80 python3 benchmarks/path.py --size 512 --spp 4 --passes 5 --no-mitsuba ;;
         sppm)     stage sppm 90 python3 benchmarks/sppm.py --size 128 --passes 8 ;;
         latency)  stage latency 300 python3 benchmarks/latency.py --no-mitsuba --json "$OUT/latency.json" \
                       --cases render-dragon render-spheres fit-bunny fit-demo import-jaxrt ;;
+        caustic)  # a converged path-traced reference of the area-light caustic, then SPPM vs path at equal time
+                  stage caustic-ref 170 python3 benchmarks/sppm.py --make-reference 4194304 --max-seconds 100 \
+                      --out "$OUT/caustic_ref.npz"
+                  stage caustic-equal-time 110 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                      --reference "$OUT/caustic_ref.npz" ;;
+        peers)    stage peers 110 python3 benchmarks/peers.py --size 1024 --no-mitsuba ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

@@ -15,10 +15,8 @@ warm `jaxrt render`). `cached_jit(fun)` removes that step for calls that repeat 
      `lax.platform_dependent` keeps one branch) and the serialized program (StableHLO plus its
      calling convention) is stored as an array entry of `jaxrt.cache` (sha256-checked, atomic, under
      the cache's size bound).
-  4. On a hit the program is deserialized (milliseconds) and its compiled executable, stored beside
-     it (`jax.experimental.serialize_executable`, keyed also by device and XLA flags), is loaded
-     without lowering or compiling; where there is none yet, `jax.jit` of the deserialized program
-     lowers in ~0.1 s, compiles (from the persistent cache) and the executable is stored.
+  4. On a hit the program is deserialized (milliseconds) and called through `jax.jit`, whose small
+     wrapper module lowers in ~0.1 s and whose compilation comes from the persistent cache.
 
 Results are those of `jax.jit(fun)`: the same program runs (the tests compare bit for bit). Calls
 that cannot use a stored program fall back to `jax.jit(fun)` with identical semantics: under a JAX
@@ -60,28 +58,26 @@ _PACKAGES = ("jaxrt", "brdfs", "fitting")
 _CUSTOM_CALL = re.compile(r"custom_call @([\w$.\-]+)")
 
 _lock = threading.Lock()
-_counts = {"hits": 0, "misses": 0, "exports": 0, "fallbacks": 0, "executables": 0}
+_counts = {"hits": 0, "misses": 0, "exports": 0, "fallbacks": 0}
 
 
 class ProgramStats:
     """This process's `cached_jit` counters: `hits` (a stored program was used), `misses` (traced and
     stored), `fallbacks` (a call ran through plain `jax.jit`: under a transformation, on several
-    devices, cache off, or a program export cannot serialize), `executables` (hits whose compiled
-    executable was loaded as stored, without lowering or compiling)."""
+    devices, cache off, or a program export cannot serialize)."""
 
-    __slots__ = ("hits", "misses", "fallbacks", "executables")
+    __slots__ = ("hits", "misses", "fallbacks")
 
-    def __init__(self, hits: int, misses: int, fallbacks: int, executables: int = 0):
-        self.hits, self.misses, self.fallbacks, self.executables = hits, misses, fallbacks, executables
+    def __init__(self, hits: int, misses: int, fallbacks: int):
+        self.hits, self.misses, self.fallbacks = hits, misses, fallbacks
 
     def __repr__(self) -> str:
-        return (f"ProgramStats(hits={self.hits}, misses={self.misses}, fallbacks={self.fallbacks}, "
-                f"executables={self.executables})")
+        return f"ProgramStats(hits={self.hits}, misses={self.misses}, fallbacks={self.fallbacks})"
 
 
 def program_stats() -> ProgramStats:
     with _lock:
-        return ProgramStats(_counts["hits"], _counts["misses"], _counts["fallbacks"], _counts["executables"])
+        return ProgramStats(_counts["hits"], _counts["misses"], _counts["fallbacks"])
 
 
 def _count(name: str) -> None:
@@ -244,50 +240,7 @@ class _CachedJit:
                 warnings.warn(f"jaxrt: {self._name[:80]}: program not stored ({type(e).__name__}: {str(e)[:400]})",
                               RuntimeWarning, stacklevel=3)
             return None
-        return _executable(key, exp, leaves, device, cfg)
-
-
-def _executable(key: dict, exp, leaves, device, cfg):
-    """The compiled executable of a stored program, itself kept in the cache.
-
-    Compiling `exp.call` for the leaves lowers the deserialized module again and looks it up in JAX's
-    compilation cache (which hashes the module): ~0.1 s a program on a CPU host, the larger part of a
-    warm process's program load when a fit loads thirty of them. The executable serialized by
-    `jax.experimental.serialize_executable` skips both. It is bound to the device it was compiled
-    for and to XLA's flags, which join the key; anything that fails here falls back to compiling.
-    """
-    import os
-
-    from jax.experimental import serialize_executable
-
-    from jaxrt import cache
-
-    ekey = {**key, "device_id": device.id, "processes": jax.process_count(),
-            "xla_flags": os.environ.get("XLA_FLAGS", "")}
-    compiled: list = []
-
-    def build():
-        c = jax.jit(exp.call).lower(*leaves).compile()
-        compiled.append(c)
-        payload, _, _ = serialize_executable.serialize(c)
-        return {"executable": np.frombuffer(payload, np.uint8)}
-
-    try:
-        arrays = cache.cached_arrays("executable", ekey, build)
-        if compiled:
-            return compiled[0]
-        in_tree = jax.tree_util.tree_structure((tuple(leaves), {}))
-        loaded = serialize_executable.deserialize_and_load(arrays["executable"].tobytes(), in_tree, exp.out_tree,
-                                                           execution_devices=[device])
-        _count("executables")
-        return loaded
-    except Exception as e:  # noqa: BLE001 -- an executable that cannot be stored or loaded is compiled
-        if cfg.debug:
-            import warnings
-
-            warnings.warn(f"jaxrt: executable not stored ({type(e).__name__}: {str(e)[:400]})", RuntimeWarning,
-                          stacklevel=3)
-        return compiled[0] if compiled else jax.jit(exp.call).lower(*leaves).compile()
+        return jax.jit(exp.call).lower(*leaves).compile()
 
 
 class _Lowered:

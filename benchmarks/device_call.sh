@@ -48,6 +48,11 @@ for s in "$@"; do
                       --out "$OUT/caustic_ref.npz"
                   stage caustic-equal-time 110 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
                       --reference "$OUT/caustic_ref.npz" ;;
+        caustic-small)  # the same with a 0.1 m lamp of the same power (9x smaller solid angle)
+                  stage caustic-small-ref 150 python3 benchmarks/sppm.py --lamp 0.1 --make-reference 4194304 \
+                      --max-seconds 90 --out "$OUT/caustic_ref_small.npz"
+                  stage caustic-small-equal-time 100 python3 benchmarks/sppm.py --lamp 0.1 --equal-time 0.25,1,4 \
+                      --reference "$OUT/caustic_ref_small.npz" --bias-seeds 2 ;;
         peers)    stage peers 110 python3 benchmarks/peers.py --size 1024 --no-mitsuba ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac

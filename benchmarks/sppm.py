@@ -156,9 +156,11 @@ def picture(out: str, seconds: float, size: int, name: str = "caustics") -> None
     print(f"wrote {out}: path {n_p} passes x 4 spp in {t_p:.1f} s, SPPM {n_s} passes x 100k photons in {t_s:.1f} s")
 
 
-def caustic_doc(size: int, max_depth: int = MAX_DEPTH) -> dict:
+def caustic_doc(size: int, max_depth: int = MAX_DEPTH, lamp: float | None = None) -> dict:
     """The equal-time scene as a scene dict: scenes/caustics.toml without its point light, the lamp
-    at LAMP, the camera at CAMERA, size x size*3/4 pixels."""
+    at LAMP, the camera at CAMERA, size x size*3/4 pixels. `lamp`: the lamp's side in metres (default
+    the shipped 0.3 m), its radiance scaled by the inverse area so that its power stays the same: a
+    smaller lamp only makes the path tracer's BSDF-sampled caustic paths hit it less often."""
     with open(S.find_scene("caustics"), "rb") as f:
         doc = tomllib.load(f)
     doc.pop("lights", None)
@@ -168,6 +170,11 @@ def caustic_doc(size: int, max_depth: int = MAX_DEPTH) -> dict:
     for o in doc["objects"]:
         if o["name"] == "lamp":
             o["translate"] = list(LAMP)
+            if lamp is not None:
+                scale = (o["size"][0] * o["size"][1]) / (lamp * lamp)
+                o["size"] = [lamp, lamp]
+                mat = doc["materials"][o["material"]]
+                mat["emission"] = [e * scale for e in mat["emission"]]
     return doc
 
 
@@ -242,7 +249,8 @@ class _Welford:
         return np.sqrt(self.m2 / max(self.n - 1, 1) / max(self.n, 1))
 
 
-def make_reference(spp: int, out: str, size: int, chunk_spp: int | None, max_seconds: float | None) -> None:
+def make_reference(spp: int, out: str, size: int, chunk_spp: int | None, max_seconds: float | None,
+                   lamp: float | None = None) -> None:
     """The path-traced reference of the equal-time scene (see the module docstring), saved to `out`."""
     try:
         from tqdm import tqdm
@@ -251,7 +259,7 @@ def make_reference(spp: int, out: str, size: int, chunk_spp: int | None, max_sec
     chunk_spp = chunk_spp or _default(256, 16)
     if spp < 2 * chunk_spp:
         _fail(f"--make-reference {spp}: needs at least 2 chunks of --chunk-spp {chunk_spp} (a standard error)")
-    doc = caustic_doc(size)
+    doc = caustic_doc(size, lamp=lamp)
     scn = _build(doc, integrator="path", spp=chunk_spp)
     direct_scn = _build(doc, integrator="path", spp=chunk_spp, max_depth=1)
     floor = scn.geometry.object_names.index("floor")
@@ -332,7 +340,7 @@ def _ref_noise(mean, se, region):
     return float(np.sqrt(np.mean(se[region] ** 2)) / mean[region].mean())
 
 
-def load_reference(path: str, size: int) -> dict:
+def load_reference(path: str, size: int, lamp: float | None = None) -> dict:
     """The reference file, checked against this run's scene; one line and exit 2 if it differs."""
     try:
         z = np.load(path)
@@ -342,7 +350,7 @@ def load_reference(path: str, size: int) -> dict:
         _fail(f"{path}: not a reference file of benchmarks/sppm.py --make-reference ({e})")
     if meta.get("format") != REF_FORMAT:
         _fail(f"{path}: reference format {meta.get('format')!r}, this script reads {REF_FORMAT}; remake it")
-    doc = caustic_doc(size)
+    doc = caustic_doc(size, lamp=lamp)
     if meta["scene"] != _canonical(doc):
         made = json.loads(meta["scene"])
         diff = _diff(made, doc)
@@ -381,8 +389,8 @@ def _run_until(marks, step):
 
 
 def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: float, path_spp: int | None,
-               bias_seeds: int) -> None:
-    ref = load_reference(ref_path, size)
+               bias_seeds: int, lamp: float | None = None) -> None:
+    ref = load_reference(ref_path, size, lamp)
     meta, doc = ref["meta"], ref["doc"]
     photons = photons or _default(1 << 18, 1 << 16)
     path_spp = path_spp or _default(256, 16)
@@ -451,6 +459,8 @@ def main() -> None:
     ap.add_argument("--reference", metavar="FILE", help="the --make-reference file for --equal-time")
     ap.add_argument("--radius", type=float, default=0.03, help="SPPM initial radius for --equal-time [m]")
     ap.add_argument("--path-spp", type=int, default=None, help="path samples per pass (GPU 256, CPU 16)")
+    ap.add_argument("--lamp", type=float, default=None, metavar="METRES",
+                    help="side of the equal-time scene's square lamp (default 0.3 as shipped; same power)")
     ap.add_argument("--bias-seeds", type=int, default=4, help="SPPM runs of the longest time for the bias check")
     ap.add_argument("--picture", metavar="OUT.png", help="only write the path-vs-SPPM picture at equal time")
     ap.add_argument("--seconds", type=float, default=40.0, help="rendering time of each half of --picture")
@@ -459,7 +469,7 @@ def main() -> None:
     if a.picture:
         picture(a.picture, a.seconds, a.size or 128, a.scene)
     elif a.make_reference:
-        make_reference(a.make_reference, a.out, a.size or 96, a.chunk_spp, a.max_seconds)
+        make_reference(a.make_reference, a.out, a.size or 96, a.chunk_spp, a.max_seconds, a.lamp)
     elif a.equal_time:
         try:
             marks = [float(t) for t in a.equal_time.split(",")]
@@ -469,7 +479,7 @@ def main() -> None:
             _fail(f"--equal-time {a.equal_time!r}: expected positive seconds separated by commas")
         if not a.reference:
             _fail("--equal-time needs --reference FILE (made with --make-reference)")
-        equal_time(marks, a.reference, a.size or 96, a.photons, a.radius, a.path_spp, a.bias_seeds)
+        equal_time(marks, a.reference, a.size or 96, a.photons, a.radius, a.path_spp, a.bias_seeds, a.lamp)
     else:
         throughput(a.size or 128, a.photons or 65536, a.passes)
 

@@ -88,8 +88,10 @@ MAX_DEPTH = 6
 REF_PASS0 = 1 << 20
 #: the caustic region's threshold, in median floor radiances (see the module docstring)
 REGION_FACTOR = 5.0
-#: the reference file's format version (a file of another version is refused)
+#: the reference file's format version (a file of another version is refused); format 1 files (without
+#: the even and odd chunks' means) are still read, their error estimated from the chunks' spread alone
 REF_FORMAT = 2
+_READS_FORMATS = (1, 2)
 
 
 def throughput(size: int, photons: int, passes: int) -> None:
@@ -256,7 +258,7 @@ def make_reference(spp: int, out: str, size: int, chunk_spp: int | None, max_sec
         from tqdm import tqdm
     except ImportError:  # a bare machine: a line every 10% instead of a bar
         tqdm = _Lines
-    chunk_spp = chunk_spp or _default(256, 16)
+    chunk_spp = chunk_spp or _default(1024, 16)
     if spp < 2 * chunk_spp:
         _fail(f"--make-reference {spp}: needs at least 2 chunks of --chunk-spp {chunk_spp} (a standard error)")
     doc = caustic_doc(size, lamp=lamp)
@@ -345,11 +347,12 @@ def load_reference(path: str, size: int, lamp: float | None = None) -> dict:
     try:
         z = np.load(path)
         meta = json.loads(str(z["meta"]))
-        ref = {k: z[k] for k in ("mean", "se", "direct", "floor", "even", "odd")}
+        ref = {k: z[k] for k in ("mean", "se", "direct", "floor")}
+        ref.update({k: z[k] for k in ("even", "odd") if k in z.files})
     except (OSError, KeyError, ValueError) as e:
         _fail(f"{path}: not a reference file of benchmarks/sppm.py --make-reference ({e})")
-    if meta.get("format") != REF_FORMAT:
-        _fail(f"{path}: reference format {meta.get('format')!r}, this script reads {REF_FORMAT}; remake it")
+    if meta.get("format") not in _READS_FORMATS:
+        _fail(f"{path}: reference format {meta.get('format')!r}, this script reads {_READS_FORMATS}; remake it")
     doc = caustic_doc(size, lamp=lamp)
     if meta["scene"] != _canonical(doc):
         made = json.loads(meta["scene"])
@@ -400,8 +403,8 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
         _fail(f"{ref_path}: empty caustic region")
     m = mean[region].mean()
     s_chunks = _ref_noise(mean, se, region)
-    s_split = _split_noise(mean, ref["even"], ref["odd"], region)
-    s_ref = max(s_chunks, s_split)
+    s_split = _split_noise(mean, ref["even"], ref["odd"], region) if "even" in ref else float("nan")
+    s_ref = s_chunks if math.isnan(s_split) else max(s_chunks, s_split)
 
     def err(img):
         return float(np.sqrt(np.mean((np.asarray(img, np.float64)[region] - mean[region]) ** 2)) / m)
@@ -415,7 +418,8 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
           f"spp/pass")
     print(f"reference {ref_path}: {meta['spp']} spp ({meta['chunks']} chunks) on {meta['device']}, commit "
           f"{meta['commit']}; caustic region {int(region.sum())} px, mean {m:.4g}; its relative RMS error "
-          f"s = {s_ref:.4f} (the larger of {s_chunks:.4f} from its chunks' spread, {s_split:.4f} from its halves)")
+          f"s = {s_ref:.4f} (the larger of {s_chunks:.4f} from its chunks' spread and "
+          f"{'(not in this file)' if math.isnan(s_split) else f'{s_split:.4f}'} from its halves)")
     print("| T s | SPPM passes (s) | SPPM rel. RMS error (noise of ref. removed) | path spp (s) | "
           "path rel. RMS error (removed) | path / SPPM | judged (s < errors / 3) |")
     print("|---|---|---|---|---|---|---|")
@@ -453,7 +457,7 @@ def main() -> None:
     ap.add_argument("--make-reference", type=int, default=0, metavar="SPP",
                     help="render the path-traced reference with SPP samples per pixel into --out")
     ap.add_argument("--out", default="caustic_ref.npz")
-    ap.add_argument("--chunk-spp", type=int, default=None, help="reference samples per chunk (GPU 256, CPU 16)")
+    ap.add_argument("--chunk-spp", type=int, default=None, help="reference samples per chunk (GPU 1024, CPU 16)")
     ap.add_argument("--max-seconds", type=float, default=None, help="stop the reference after this much rendering")
     ap.add_argument("--equal-time", default="", metavar="T1,T2,...", help="wall budgets in seconds")
     ap.add_argument("--reference", metavar="FILE", help="the --make-reference file for --equal-time")

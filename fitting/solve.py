@@ -139,6 +139,7 @@ class Solution:
     correlated: list[tuple[str, str, float]]
     converged: bool
     at_bound: dict[str, str]
+    meaningless: list[str] = dataclasses.field(default_factory=list)  # as `FitResult.meaningless`
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -281,7 +282,8 @@ def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver:
 @dataclasses.dataclass(frozen=True)
 class _Problem:
     """What every fit of one model with one fix/init/rgb choice shares: the free parameters, the fixed
-    values and the start points (init/defaults first, then Halton points over each typical range on the natural scale)."""
+    values and the start points (init, else each `Param.fit_start`, first, then Halton points over each
+    typical range on the natural scale)."""
 
     free: tuple[FreeParam, ...]
     fixed: Params
@@ -302,7 +304,8 @@ def _problem(shade: Callable, model: Model, fix, init, rgb: bool, solver: str, s
         if name in fix:
             raise ValueError(f"{model.name}.{name}: given both --fix and --init")
     fixed = {k: v for k, v in model.params(**{**fix, **init}).items() if k in fix}
-    start_vals = model.params(**{k: v for k, v in init.items()})
+    # the first start: init, else each parameter's `Param.fit_start` (its default unless that is on a bound)
+    start_vals = model.params(**{**{p.name: p.fit_start for p in model.spec if p.start is not None}, **init})
     z_of, z_of_unit, _, _ = _compiled_helpers(shade, free)
     z_starts = [z_of({fp.param.name: start_vals[fp.param.name] for fp in free})]
     if starts > 1:
@@ -353,8 +356,9 @@ def fit_images(
         rgb: fit RGB parameters per channel (True) or as one grey value (False).
         solver: one of SOLVERS ("lm" Levenberg–Marquardt, "lm_normal" the same on the normal
             equations, "gauss_newton", "dogleg", "bfgs").
-        starts: number of starts: the first from `init`/defaults, the rest Halton points spread
-            over each free parameter's typical range (`Param.typical_range`) on its natural scale.
+        starts: number of starts: the first from `init`, else each `Param.fit_start` (the default
+            unless that is on a bound), the rest Halton points spread over each free parameter's
+            typical range (`Param.typical_range`) on its natural scale.
         progress: show a progress bar over starts.
         devices: None (default) or 1: the starts run one after another on the default device; an int
             N, "all" or a list of `jax.devices()` (`jaxrt._devices.select`): the starts are split
@@ -408,17 +412,7 @@ def fit_images(
     rmse = metrics.rmse(fitted, tgt, m)
     rms = float(np.sqrt(np.mean(np.asarray(tgt, np.float64)[m] ** 2))) if np.any(m) else 0.0
     relative = rmse / rms if rms > 0 else (0.0 if rmse == 0 else float("inf"))
-    warnings = []
-    if not ok:
-        why = f"it used all {max_steps} steps" if steps >= max_steps else "the solver stopped early"
-        warnings.append(f"not converged: the best of {len(prob.z_starts)} starts did not meet the tolerances ({why}); "
-                        "raise max_steps (--max-steps) or starts (--starts)")
-    if meaningless:
-        warnings.append(f"the standard error of {', '.join(meaningless)} is meaningless: these views do not "
-                        "determine it (add views or lights that change with it, or fix it)")
-    if relative > RELATIVE_RMSE_WARN:
-        warnings.append(f"the model cannot reproduce the target: the fit misses it by {relative:.0%} of its RMS "
-                        "(check the scene, lighting, exposure and object)")
+    warnings = fit_warnings(ok, steps, max_steps, len(prob.z_starts), meaningless, relative)
     return FitResult(
         model=model.name,
         params={k: _tolist(v) for k, v in params.items()},
@@ -442,6 +436,24 @@ def fit_images(
         warnings=warnings,
         at_bound=params_at_bound(free, params),
     )
+
+
+def fit_warnings(converged: bool, steps: int, max_steps: int, starts: int, meaningless: list[str],
+                 relative: float) -> list[str]:
+    """The sentences (for people) an image-space fit reports: not converged, standard errors that say
+    nothing (`_stderr_from`), a target the model cannot reproduce (relative RMSE above RELATIVE_RMSE_WARN)."""
+    warnings = []
+    if not converged:
+        why = f"it used all {max_steps} steps" if steps >= max_steps else "the solver stopped early"
+        warnings.append(f"not converged: the best of {starts} starts did not meet the tolerances ({why}); "
+                        "raise max_steps (--max-steps) or starts (--starts)")
+    if meaningless:
+        warnings.append(f"the standard error of {', '.join(meaningless)} is meaningless: these views do not "
+                        "determine it (add views or lights that change with it, or fix it)")
+    if relative > RELATIVE_RMSE_WARN:
+        warnings.append(f"the model cannot reproduce the target: the fit misses it by {relative:.0%} of its RMS "
+                        "(check the scene, lighting, exposure and object)")
+    return warnings
 
 
 def solve_batch(
@@ -543,7 +555,7 @@ def solve_batch(
         r, J = np.asarray(r), np.asarray(J)
         names = [fp.param.name for fp in free]
         for i, ((loss, _, it, ok), at_best, total) in enumerate(bests):
-            se, cond, corr, _ = _stderr_from(r[i], J[i], free)
+            se, cond, corr, meaningless = _stderr_from(r[i], J[i], free)
             out.append(Solution(
                 model=model.name,
                 params={k: _tolist(v) for k, v in params[i].items()},
@@ -560,6 +572,7 @@ def solve_batch(
                 correlated=corr,
                 converged=ok,
                 at_bound=params_at_bound(free, params[i]),
+                meaningless=meaningless,
             ))
         bar.update(m)
     bar.close()

@@ -20,7 +20,7 @@ PARAMS = {
     "blinn_phong": ("rho_d", "rho_s", "s"),
     "cook_torrance": ("rho_d", "rho_s", "m", "eta"),
     "ward": ("rho_d", "rho_s", "alpha_x", "alpha_y"),
-    "ashikhmin_shirley": ("rho_d", "rho_s", "n_u", "n_v"),
+    "ashikhmin_shirley": ("rho_d", "rho_s", "k_s", "n_u", "n_v"),
     "glass": ("n_t",),
     "disney": DISNEY,
     "ward_1992": ("rho_d", "rho_s", "alpha_x", "alpha_y"),
@@ -29,6 +29,7 @@ PARAMS = {
 # The ranges the 2015 system's sliders swept (Größler & Zettwitz 2015): each model's bounds must contain them.
 SEED_RANGES = {"rho_d": (0, 1), "rho_s": (0, 1), "s": (1, 1000), "m": (0.01, 1), "eta": (1, 10),
                "alpha_x": (0.01, 1), "alpha_y": (0.01, 1), "n_u": (1, 10000), "n_v": (1, 10000), "n_t": (1, 2),
+               "k_s": (0, 1),  # Ashikhmin-Shirley's specular scale (not in the 2015 system; 1 is its model)
                **{k: (0, 1) for k in DISNEY}}  # Burley 2012: every Disney parameter spans [0, 1]
 LOG = {"s", "m", "eta", "alpha_x", "alpha_y", "n_u", "n_v"}
 # Ranges real materials need (published fits of the MERL materials; see the model docstrings):
@@ -58,7 +59,7 @@ def test_param_declarations_cover_seed_ranges(name):
         lo, hi = SEED_RANGES[spec.name]
         assert spec.lo <= lo and spec.hi >= hi, spec
         assert spec.lo <= spec.default <= spec.hi
-        assert spec.rgb == (spec.name.startswith("rho") or spec.name == "base_color")
+        assert spec.rgb == (spec.name.startswith("rho") or spec.name in ("base_color", "k_s"))
         assert (spec.scale == "log") == (spec.name in LOG)
         lo, hi = MATERIAL_RANGES.get(spec.name, (spec.lo, spec.hi))
         assert spec.lo <= lo and spec.hi >= hi, spec

@@ -509,7 +509,9 @@ def solve_batch(
     flat = targets.reshape(n, -1, 3)[:, sel]  # (B, P, 3): the compared entries only
     b = n if batch is None else max(1, min(int(batch), n))
     s = len(prob.z_starts)
-    z_starts = jax.tree.map(lambda *zs: jnp.stack(zs), *prob.z_starts)  # leaves (S, ...)
+    # the batch's arrays are stacked on the host (numpy): eager jnp.stack / broadcast_to would each compile
+    # a small program per shape, several per model
+    z_starts = jax.tree.map(lambda *zs: np.stack([np.asarray(z) for z in zs]), *prob.z_starts)  # leaves (S, ...)
 
     devs = fit_devices(devices)
     if devs:
@@ -539,7 +541,7 @@ def solve_batch(
         m = chunk.shape[0]
         if m < b:  # pad to the compiled shape
             chunk = np.concatenate([chunk, np.repeat(chunk[-1:], b - m, axis=0)])
-        z0 = jax.tree.map(lambda v: jnp.broadcast_to(v, (b,) + v.shape), z_starts)
+        z0 = jax.tree.map(lambda v: np.broadcast_to(v, (b,) + v.shape), z_starts)
         zs, losses, steps, oks = solve(z0, gbuffer, idx, jax.device_put(chunk), sqrt_w, fixed)
         losses, steps, oks = np.asarray(losses), np.asarray(steps), np.asarray(oks)
         zs = jax.tree.map(np.asarray, zs)  # one transfer; slicing B × S device arrays would dispatch each
@@ -549,8 +551,8 @@ def solve_batch(
                        bool(oks[i, k])) for k in range(s)]
             bests.append(_choose(shade, free, finals) + (int(steps[i].sum()),))
         params = [finish(best[1], fixed, gbuffer)[0] for (best, _, _) in bests]
-        params_b = jax.tree.map(lambda *v: jnp.stack(v), *(params + [params[-1]] * (b - m)))
-        theta = jnp.stack([_theta(p, free) for p in params] + [_theta(params[-1], free)] * (b - m))
+        params_b = jax.tree.map(lambda *v: np.stack([np.asarray(x) for x in v]), *(params + [params[-1]] * (b - m)))
+        theta = np.stack([np.asarray(_theta(p, free)) for p in params] + [np.asarray(_theta(params[-1], free))] * (b - m))
         r, J = jac(theta, params_b, gbuffer, idx, jax.device_put(chunk), sqrt_w)
         r, J = np.asarray(r), np.asarray(J)
         names = [fp.param.name for fp in free]

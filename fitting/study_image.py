@@ -28,7 +28,11 @@ every model and material: a trace holds hits and visibility, nothing a BRDF chan
 fit buffer (`fitting.compact`) is built once from those traces; each material's targets are the
 renderer's `jaxrt.integrators.shade` of the traces with that material's data in the measured
 material's row (one compiled program for every material of a kind, the data being traced values);
-each model's solver is compiled once and reused for every material.
+each model's solver is compiled once and fits every material: all materials of a kind go through one
+solve vmapped over materials and starts (`fitting.solve.solve_batch`, as the BRDF-space study does),
+in calls of `batch` materials (one on a CPU, where the lanes of a vmapped solve run one after
+another anyway, all on a GPU) split over `devices`. The fitted renders give what `jaxrt fit` reports
+(RMSE, its ratio to the targets' RMS, mean ΔE2000, the warnings).
 
 Isotropy. As in the BRDF-space study, the anisotropic models fit one roughness (α_y = α_x,
 n_v = n_u: `fitting.brdf_space.ISOTROPIC_TIES`), reported equal to its source with its standard error.

@@ -552,7 +552,8 @@ def solve_batch(
             bests.append(_choose(shade, free, finals) + (int(steps[i].sum()),))
         params = [finish(best[1], fixed, gbuffer)[0] for (best, _, _) in bests]
         params_b = jax.tree.map(lambda *v: np.stack([np.asarray(x) for x in v]), *(params + [params[-1]] * (b - m)))
-        theta = np.stack([np.asarray(_theta(p, free)) for p in params] + [np.asarray(_theta(params[-1], free))] * (b - m))
+        thetas = [np.asarray(_theta(p, free)) for p in params]
+        theta = np.stack(thetas + thetas[-1:] * (b - m))
         r, J = jac(theta, params_b, gbuffer, idx, jax.device_put(chunk), sqrt_w)
         r, J = np.asarray(r), np.asarray(J)
         names = [fp.param.name for fp in free]

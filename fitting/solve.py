@@ -139,6 +139,7 @@ class Solution:
     correlated: list[tuple[str, str, float]]
     converged: bool
     at_bound: dict[str, str]
+    meaningless: list[str] = dataclasses.field(default_factory=list)  # as `FitResult.meaningless`
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -354,7 +355,8 @@ def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver:
 @dataclasses.dataclass(frozen=True)
 class _Problem:
     """What every fit of one model with one fix/init/rgb choice shares: the free parameters, the fixed
-    values and the start points (init/defaults first, then Halton points over each typical range on the natural scale)."""
+    values and the start points (init, else each `Param.fit_start`, first, then Halton points over each
+    typical range on the natural scale)."""
 
     free: tuple[FreeParam, ...]
     fixed: Params
@@ -375,7 +377,8 @@ def _problem(shade: Callable, model: Model, fix, init, rgb: bool, solver: str, s
         if name in fix:
             raise ValueError(f"{model.name}.{name}: given both --fix and --init")
     fixed = {k: v for k, v in model.params(**{**fix, **init}).items() if k in fix}
-    start_vals = model.params(**{k: v for k, v in init.items()})
+    # the first start: init, else each parameter's `Param.fit_start` (its default unless that is on a bound)
+    start_vals = model.params(**{**{p.name: p.fit_start for p in model.spec if p.start is not None}, **init})
     z_of, z_of_unit, _, _ = _compiled_helpers(shade, free)
     z_starts = [z_of({fp.param.name: start_vals[fp.param.name] for fp in free})]
     if starts > 1:
@@ -426,8 +429,9 @@ def fit_images(
         rgb: fit RGB parameters per channel (True) or as one grey value (False).
         solver: one of SOLVERS ("lm" Levenberg–Marquardt, "lm_normal" the same on the normal
             equations, "gauss_newton", "dogleg", "bfgs").
-        starts: number of starts: the first from `init`/defaults, the rest Halton points spread
-            over each free parameter's typical range (`Param.typical_range`) on its natural scale.
+        starts: number of starts: the first from `init`, else each `Param.fit_start` (the default
+            unless that is on a bound), the rest Halton points spread over each free parameter's
+            typical range (`Param.typical_range`) on its natural scale.
         progress: show a progress bar over starts.
         devices: None (default) or 1: the starts run one after another on the default device; an int
             N, "all" or a list of `jax.devices()` (`jaxrt._devices.select`): the starts are split
@@ -481,17 +485,7 @@ def fit_images(
     rmse = metrics.rmse(fitted, tgt, m)
     rms = float(np.sqrt(np.mean(np.asarray(tgt, np.float64)[m] ** 2))) if np.any(m) else 0.0
     relative = rmse / rms if rms > 0 else (0.0 if rmse == 0 else float("inf"))
-    warnings = []
-    if not ok:
-        why = f"it used all {max_steps} steps" if steps >= max_steps else "the solver stopped early"
-        warnings.append(f"not converged: the best of {len(prob.z_starts)} starts did not meet the tolerances ({why}); "
-                        "raise max_steps (--max-steps) or starts (--starts)")
-    if meaningless:
-        warnings.append(f"the standard error of {', '.join(meaningless)} is meaningless: these views do not "
-                        "determine it (add views or lights that change with it, or fix it)")
-    if relative > RELATIVE_RMSE_WARN:
-        warnings.append(f"the model cannot reproduce the target: the fit misses it by {relative:.0%} of its RMS "
-                        "(check the scene, lighting, exposure and object)")
+    warnings = fit_warnings(ok, steps, max_steps, len(prob.z_starts), meaningless, relative)
     return FitResult(
         model=model.name,
         params={k: _tolist(v) for k, v in params.items()},
@@ -515,6 +509,24 @@ def fit_images(
         warnings=warnings,
         at_bound=params_at_bound(free, params),
     )
+
+
+def fit_warnings(converged: bool, steps: int, max_steps: int, starts: int, meaningless: list[str],
+                 relative: float) -> list[str]:
+    """The sentences (for people) an image-space fit reports: not converged, standard errors that say
+    nothing (`_stderr_from`), a target the model cannot reproduce (relative RMSE above RELATIVE_RMSE_WARN)."""
+    warnings = []
+    if not converged:
+        why = f"it used all {max_steps} steps" if steps >= max_steps else "the solver stopped early"
+        warnings.append(f"not converged: the best of {starts} starts did not meet the tolerances ({why}); "
+                        "raise max_steps (--max-steps) or starts (--starts)")
+    if meaningless:
+        warnings.append(f"the standard error of {', '.join(meaningless)} is meaningless: these views do not "
+                        "determine it (add views or lights that change with it, or fix it)")
+    if relative > RELATIVE_RMSE_WARN:
+        warnings.append(f"the model cannot reproduce the target: the fit misses it by {relative:.0%} of its RMS "
+                        "(check the scene, lighting, exposure and object)")
+    return warnings
 
 
 def solve_batch(
@@ -570,7 +582,9 @@ def solve_batch(
     flat = targets.reshape(n, -1, 3)[:, sel]  # (B, P, 3): the compared entries only
     b = n if batch is None else max(1, min(int(batch), n))
     s = len(prob.z_starts)
-    z_starts = jax.tree.map(lambda *zs: jnp.stack(zs), *prob.z_starts)  # leaves (S, ...)
+    # the batch's arrays are stacked on the host (numpy): eager jnp.stack / broadcast_to would each compile
+    # a small program per shape, several per model
+    z_starts = jax.tree.map(lambda *zs: np.stack([np.asarray(z) for z in zs]), *prob.z_starts)  # leaves (S, ...)
     controls = _controls(rtol, atol, max_steps)
 
     devs = fit_devices(devices)
@@ -600,7 +614,7 @@ def solve_batch(
         m = chunk.shape[0]
         if m < b:  # pad to the compiled shape
             chunk = np.concatenate([chunk, np.repeat(chunk[-1:], b - m, axis=0)])
-        z0 = jax.tree.map(lambda v: jnp.broadcast_to(v, (b,) + v.shape), z_starts)
+        z0 = jax.tree.map(lambda v: np.broadcast_to(v, (b,) + v.shape), z_starts)
         zs, losses, steps, oks = solve(z0, gbuffer, idx, jax.device_put(chunk), sqrt_w, fixed, controls)
         losses, steps, oks = np.asarray(losses), np.asarray(steps), np.asarray(oks)
         zs = jax.tree.map(np.asarray, zs)  # one transfer; slicing B × S device arrays would dispatch each
@@ -610,13 +624,14 @@ def solve_batch(
                        bool(oks[i, k])) for k in range(s)]
             bests.append(_choose(shade, free, finals) + (int(steps[i].sum()),))
         params = [finish(best[1], fixed, gbuffer)[0] for (best, _, _) in bests]
-        params_b = jax.tree.map(lambda *v: jnp.stack(v), *(params + [params[-1]] * (b - m)))
-        theta = jnp.stack([_theta(p, free) for p in params] + [_theta(params[-1], free)] * (b - m))
+        params_b = jax.tree.map(lambda *v: np.stack([np.asarray(x) for x in v]), *(params + [params[-1]] * (b - m)))
+        thetas = [np.asarray(_theta(p, free)) for p in params]
+        theta = np.stack(thetas + thetas[-1:] * (b - m))
         r, J = jac(theta, params_b, gbuffer, idx, jax.device_put(chunk), sqrt_w)
         r, J = np.asarray(r), np.asarray(J)
         names = [fp.param.name for fp in free]
         for i, ((loss, _, it, ok), at_best, total) in enumerate(bests):
-            se, cond, corr, _ = _stderr_from(r[i], J[i], free)
+            se, cond, corr, meaningless = _stderr_from(r[i], J[i], free)
             out.append(Solution(
                 model=model.name,
                 params={k: _tolist(v) for k, v in params[i].items()},
@@ -633,6 +648,7 @@ def solve_batch(
                 correlated=corr,
                 converged=ok,
                 at_bound=params_at_bound(free, params[i]),
+                meaningless=meaningless,
             ))
         bar.update(m)
     bar.close()

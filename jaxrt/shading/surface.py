@@ -40,6 +40,8 @@ def dot(a, b):
     # fusions, which over a minor axis of 3 are far slower than the elementwise loop this fuses into
     # (the Whitted frame on the CPU: BENCHMARKS.md, "jaxrt beside Mitsuba 3"). Results may differ from
     # the reduction's in the last bits (its summation order is the library's).
+    if jnp.shape(a)[-1] != 3 or jnp.shape(b)[-1] != 3:
+        return jnp.sum(a * b, axis=-1)
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 

@@ -198,21 +198,96 @@ def _params_from_z(free: tuple[FreeParam, ...], z: dict, fixed: Params) -> Param
     return out
 
 
-def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
-    """The single-start solve both entry points run: (z0, gbuffer, pixels, fixed) -> (z, loss, steps, ok)."""
+def step_cap(max_steps: int) -> int:
+    """The static loop bound a solve with `max_steps` is compiled for: the next power of two, at
+    least 64. The user's `max_steps` and tolerances are traced values (`_capped`), so fits that differ
+    only in them share one compiled solver; only a `max_steps` beyond the bound compiles a larger one."""
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    return max(64, 1 << (int(max_steps) - 1).bit_length())
+
+
+def _controls(rtol: float, atol: float, max_steps: int) -> tuple:
+    """The traced solver controls passed beside the data: (rtol, atol, max_steps) as device scalars."""
+    return (np.float32(rtol), np.float32(atol), np.int32(max_steps))
+
+
+@functools.cache
+def _capped_classes():
+    """Solver wrappers that stop after a traced number of steps (built on first use, since they
+    subclass optimistix's interfaces): optimistix takes `max_steps` as a static loop bound, so
+    passing the user's value there would compile a solver per value. The wrapper counts steps in its
+    state and ends the solve with optimistix's own `nonlinear_max_steps_reached` result when the
+    count reaches the traced limit, which is what the static bound would have done: same iterates,
+    same step count, same result."""
+    optx = _optx()
+    import equinox as eqx
+
+    class _Capped(eqx.Module):
+        inner: object
+        limit: object  # int32 scalar, traced
+
+        @property
+        def rtol(self):
+            return self.inner.rtol
+
+        @property
+        def atol(self):
+            return self.inner.atol
+
+        @property
+        def norm(self):
+            return self.inner.norm
+
+        def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+            return self.inner.init(fn, y, args, options, f_struct, aux_struct, tags), jnp.array(0, jnp.int32)
+
+        def step(self, fn, y, args, options, state, tags):
+            inner, count = state
+            y, inner, aux = self.inner.step(fn, y, args, options, inner, tags)
+            return y, (inner, count + 1), aux
+
+        def terminate(self, fn, y, args, options, state, tags):
+            inner, count = state
+            done, result = self.inner.terminate(fn, y, args, options, inner, tags)
+            out_of_steps = jnp.logical_and(jnp.invert(done), count >= self.limit)
+            result = optx.RESULTS.where(out_of_steps, optx.RESULTS.nonlinear_max_steps_reached, result)
+            return jnp.logical_or(done, out_of_steps), result
+
+        def postprocess(self, fn, y, aux, args, options, state, tags, result):
+            return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
+
+    class CappedLeastSquares(_Capped, optx.AbstractLeastSquaresSolver):
+        pass
+
+    class CappedMinimiser(_Capped, optx.AbstractMinimiser):
+        pass
+
+    return CappedLeastSquares, CappedMinimiser
+
+
+def _capped(inner, limit):
+    least_squares, minimiser = _capped_classes()
+    return (minimiser if isinstance(inner, _optx().AbstractMinimiser) else least_squares)(inner, limit)
+
+
+def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
+    """The single-start solve both entry points run: (z0, gbuffer, pixels, fixed, controls) -> (z, loss,
+    steps, ok); `controls` = `_controls(rtol, atol, max_steps)`, traced, max_steps ≤ `cap`."""
 
     def residuals(z, args):
         gbuffer, pixels, fixed = args
         return _residuals(shade(_params_from_z(free, z, fixed), gbuffer), pixels)
 
-    def solve(z0, gbuffer, pixels, fixed):
+    def solve(z0, gbuffer, pixels, fixed, controls):
         optx = _optx()
+        rtol, atol, max_steps = controls
         sol = optx.least_squares(
             residuals,
-            SOLVERS[solver](rtol, atol),
+            _capped(SOLVERS[solver](rtol, atol), max_steps),
             z0,
             args=(gbuffer, pixels, fixed),
-            max_steps=max_steps,
+            max_steps=cap,
             throw=False,
         )
         r = residuals(sol.value, (gbuffer, pixels, fixed))
@@ -234,36 +309,36 @@ def _jit(fn: Callable, what: str, shade: Callable, *parts) -> Callable:
 
 
 @functools.lru_cache(maxsize=32)
-def _compiled_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
-    """A jitted single-start solve; cached so repeated fits with new targets/starts never recompile."""
-    return _jit(_solve_one(shade, free, solver, rtol, atol, max_steps), "solve", shade, free, solver, rtol, atol,
-                max_steps)
+def _compiled_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
+    """A jitted single-start solve; cached so repeated fits with new targets, starts, tolerances or
+    step limits (up to `cap`) never recompile."""
+    return _jit(_solve_one(shade, free, solver, cap), "solve", shade, free, solver, cap)
 
 
 @functools.lru_cache(maxsize=32)
-def _starts_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
-    """The single-start solve vmapped over starts: (z0 leaves (S, ...), gbuffer, pixels, fixed) ->
+def _starts_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
+    """The single-start solve vmapped over starts: (z0 leaves (S, ...), gbuffer, pixels, fixed, controls) ->
     (z, loss, steps, ok), each (S, ...); the unjitted function that several devices split
     (`fit_images(devices=...)`), one object per solver configuration."""
-    one = _solve_one(shade, free, solver, rtol, atol, max_steps)
+    one = _solve_one(shade, free, solver, cap)
 
-    def solve(z0, gbuffer, pixels, fixed):
-        return jax.vmap(lambda z: one(z, gbuffer, pixels, fixed))(z0)
+    def solve(z0, gbuffer, pixels, fixed, controls):
+        return jax.vmap(lambda z: one(z, gbuffer, pixels, fixed, controls))(z0)
 
     return solve
 
 
 @functools.lru_cache(maxsize=32)
-def _batch_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
+def _batch_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
     """The single-start solve vmapped over starts (inner axis) and target sets (outer axis), unjitted:
-    z0 leaves are (B, S, ...), targets (B, P, 3); the gbuffer, compared-entry indices, weights and
-    fixed values are shared. A vmapped while loop runs until its slowest lane stops; finished lanes keep
-    their values, so each lane's result is the one the single-start solve gives."""
-    one = _solve_one(shade, free, solver, rtol, atol, max_steps)
+    z0 leaves are (B, S, ...), targets (B, P, 3); the gbuffer, compared-entry indices, weights, fixed
+    values and solver controls are shared. A vmapped while loop runs until its slowest lane stops;
+    finished lanes keep their values, so each lane's result is the one the single-start solve gives."""
+    one = _solve_one(shade, free, solver, cap)
 
-    def solve(z0, gbuffer, idx, targets, sqrt_w, fixed):
+    def solve(z0, gbuffer, idx, targets, sqrt_w, fixed, controls):
         def per_target(z_s, target):
-            return jax.vmap(lambda z: one(z, gbuffer, (idx, target, sqrt_w), fixed))(z_s)
+            return jax.vmap(lambda z: one(z, gbuffer, (idx, target, sqrt_w), fixed, controls))(z_s)
 
         return jax.vmap(per_target)(z0, targets)
 
@@ -271,11 +346,9 @@ def _batch_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol
 
 
 @functools.lru_cache(maxsize=32)
-def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float,
-                           max_steps: int):
+def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
     """`_batch_solve` jitted once (its traced program kept across processes where `shade` names itself)."""
-    return _jit(_batch_solve(shade, free, solver, rtol, atol, max_steps), "batch_solve", shade, free, solver, rtol,
-                atol, max_steps)
+    return _jit(_batch_solve(shade, free, solver, cap), "batch_solve", shade, free, solver, cap)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -375,20 +448,20 @@ def fit_images(
         mask = np.ones(targets.shape[:-1], np.float32)
     pixels = _pixels(targets, mask)
 
+    controls = _controls(rtol, atol, max_steps)
     devs = fit_devices(devices)
     total_steps = 0
     finals = []
     t0 = time.perf_counter()
     bar = _progress(len(prob.z_starts), f"fit {model.name}", progress)
     if devs:  # every start at once, split over the devices
-        finals = _starts_on_devices(shade, free, solver, rtol, atol, max_steps, prob.z_starts, gbuffer, pixels, fixed,
-                                    devs)
+        finals = _starts_on_devices(shade, free, solver, controls, prob.z_starts, gbuffer, pixels, fixed, devs)
         total_steps = sum(f[2] for f in finals)
         bar.update(len(finals))
     else:
-        solve = _compiled_solver(shade, free, solver, float(rtol), float(atol), int(max_steps))
+        solve = _compiled_solver(shade, free, solver, step_cap(max_steps))
         for z0 in prob.z_starts:
-            z, loss, steps, ok = solve(z0, gbuffer, pixels, fixed)
+            z, loss, steps, ok = solve(z0, gbuffer, pixels, fixed, controls)
             total_steps += int(steps)
             finals.append((float(loss), z, int(steps), bool(ok)))
             bar.update(1)
@@ -498,6 +571,7 @@ def solve_batch(
     b = n if batch is None else max(1, min(int(batch), n))
     s = len(prob.z_starts)
     z_starts = jax.tree.map(lambda *zs: jnp.stack(zs), *prob.z_starts)  # leaves (S, ...)
+    controls = _controls(rtol, atol, max_steps)
 
     devs = fit_devices(devices)
     if devs:
@@ -505,19 +579,18 @@ def solve_batch(
 
         b = _devices.padded(b, devs)
         # the shared arrays go to every device once, not with every call
-        on_each = _devices.put_each((gbuffer, idx, sqrt_w, fixed), devs)
-        batch_solve, batch_jac = _batch_solve(shade, free, solver, float(rtol), float(atol), int(max_steps)), \
-            _batch_jacobian(shade, free)
+        on_each = _devices.put_each((gbuffer, idx, sqrt_w, fixed, controls), devs)
+        batch_solve, batch_jac = _batch_solve(shade, free, solver, step_cap(max_steps)), _batch_jacobian(shade, free)
 
-        def solve(z0, gbuffer_, idx_, targets_, sqrt_w_, fixed_):
-            return _devices.batched(batch_solve, devs, (True, False, False, True, False, False), z0, gbuffer_, idx_,
-                                    targets_, sqrt_w_, fixed_, replicated=on_each)
+        def solve(z0, gbuffer_, idx_, targets_, sqrt_w_, fixed_, controls_):
+            return _devices.batched(batch_solve, devs, (True, False, False, True, False, False, False), z0, gbuffer_,
+                                    idx_, targets_, sqrt_w_, fixed_, controls_, replicated=on_each)
 
         def jac(theta, params_, gbuffer_, idx_, targets_, sqrt_w_):
             return _devices.batched(batch_jac, devs, (True, True, False, False, True, False), theta, params_,
                                     gbuffer_, idx_, targets_, sqrt_w_, replicated=[c[:3] for c in on_each])
     else:
-        solve = _compiled_batch_solver(shade, free, solver, float(rtol), float(atol), int(max_steps))
+        solve = _compiled_batch_solver(shade, free, solver, step_cap(max_steps))
         jac = _compiled_batch_jacobian(shade, free)
     finish = _compiled_helpers(shade, free)[2]
     out = []
@@ -528,7 +601,7 @@ def solve_batch(
         if m < b:  # pad to the compiled shape
             chunk = np.concatenate([chunk, np.repeat(chunk[-1:], b - m, axis=0)])
         z0 = jax.tree.map(lambda v: jnp.broadcast_to(v, (b,) + v.shape), z_starts)
-        zs, losses, steps, oks = solve(z0, gbuffer, idx, jax.device_put(chunk), sqrt_w, fixed)
+        zs, losses, steps, oks = solve(z0, gbuffer, idx, jax.device_put(chunk), sqrt_w, fixed, controls)
         losses, steps, oks = np.asarray(losses), np.asarray(steps), np.asarray(oks)
         zs = jax.tree.map(np.asarray, zs)  # one transfer; slicing B × S device arrays would dispatch each
         bests = []
@@ -577,7 +650,7 @@ def fit_devices(devices) -> tuple:
     return devs if _devices.sharded(devs) else ()
 
 
-def _starts_on_devices(shade, free, solver, rtol, atol, max_steps, z_starts, gbuffer, pixels, fixed, devs):
+def _starts_on_devices(shade, free, solver, controls, z_starts, gbuffer, pixels, fixed, devs):
     """(loss, z, steps, ok) of every start, the starts split over `devs` (`_devices.batched` of the
     vmapped single-start solve; padded to a multiple of the device count, the padding dropped)."""
     from jaxrt import _devices
@@ -585,9 +658,8 @@ def _starts_on_devices(shade, free, solver, rtol, atol, max_steps, z_starts, gbu
     s = len(z_starts)
     z0 = _devices.pad_rows(jax.tree.map(lambda *zs: np.stack([np.asarray(z) for z in zs]), *z_starts),
                            _devices.padded(s, devs))
-    zs, losses, steps, oks = _devices.batched(_starts_solve(shade, free, solver, float(rtol), float(atol),
-                                                            int(max_steps)), devs, (True, False, False, False),
-                                              z0, gbuffer, pixels, fixed)
+    zs, losses, steps, oks = _devices.batched(_starts_solve(shade, free, solver, step_cap(int(controls[2]))), devs,
+                                              (True, False, False, False, False), z0, gbuffer, pixels, fixed, controls)
     return [(float(losses[k]), jax.tree.map(lambda v, k=k: jnp.asarray(v[k]), zs), int(steps[k]), bool(oks[k]))
             for k in range(s)]
 

@@ -243,9 +243,10 @@ def main(argv=None) -> int:
     if "direct" in args.rows:
         for name in args.models:
             r = bench_direct(name, args.size, args.repeats, peer)
-            add(f"{where}, {name} {args.size}², direct light + shadow ray, diffuse, 1 spp", r["jaxrt"], r.get("mitsuba"))
-            print(f"#   image means: jaxrt {r['mean']:.5f}" + (f", Mitsuba {r['mitsuba_mean']:.5f}" if "mitsuba_mean" in r
-                                                             else ""))
+            add(f"{where}, {name} {args.size}², direct light + shadow ray, diffuse, 1 spp", r["jaxrt"],
+                r.get("mitsuba"))
+            peer_mean = f", Mitsuba {r['mitsuba_mean']:.5f}" if "mitsuba_mean" in r else ""
+            print(f"#   image means: jaxrt {r['mean']:.5f}{peer_mean}")
     if "rays" in args.rows:
         for name in args.ray_models or (["dragon"] if gpu else ["bunny"]):
             r = bench_rays(name, args.size, args.repeats, peer)

@@ -36,7 +36,10 @@ def safe_div(a: Float[Array, "..."], b: Float[Array, "..."], eps: float = 1e-30)
 
 
 def dot(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "..."]:
-    return jnp.sum(a * b, axis=-1)
+    # written out: XLA:CPU runs a reduction over an axis of 3 as a slow library (YNNPACK) fusion
+    if jnp.shape(a)[-1] != 3 or jnp.shape(b)[-1] != 3:
+        return jnp.sum(a * b, axis=-1)
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
 def norm2(v: Float[Array, "... 3"]) -> Float[Array, "..."]:

@@ -37,7 +37,8 @@ def incident(
         scale: (..., L, 3) I/d² [W/(m²·sr)·sr = W/m² per unit cosθ]; multiply by cosθ for E.
     """
     delta = lights.position - p[..., None, :]
-    d2 = jnp.sum(delta * delta, axis=-1)
+    # written out: XLA:CPU runs a reduction over an axis of 3 as a slow library (YNNPACK) fusion
+    d2 = delta[..., 0] * delta[..., 0] + delta[..., 1] * delta[..., 1] + delta[..., 2] * delta[..., 2]
     # a light exactly on the surface would give 0/0; such a point receives nothing
     safe = d2 > 1e-20
     d2s = jnp.where(safe, d2, 1.0)

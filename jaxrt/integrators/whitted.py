@@ -216,6 +216,10 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
         if aovs:
             new = dict(prim=prim[first], u=u[first], v=v[first], t=t[first], d=d[first])
             rec = jax.tree_util.tree_map(lambda a, b: jnp.where(k == 0, b, a), rec, new)
+        if D == 1:
+            # one level (direct lighting): no ray has children and the loop ends here, so the
+            # children's directions, ranking and compaction below would all be discarded
+            return k + 1, (o, d, jnp.zeros_like(act), pix, parent, branch, weight), buf, img, rec
         # children: (primary, secondary) per parent
         w_mirror = weight * delta
         r = jnp.zeros(B, wdtype)

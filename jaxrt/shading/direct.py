@@ -83,7 +83,13 @@ def direct_lighting(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Arr
         sel = mats.model_id[s.material] == k
         p = hit_params(mats, s.material, k, s.uv)
         f = at_hits(p, lambda q, model=model: model.eval(q, wi_l, wo_l), extra_dims=1)  # (B, L, 3)
-        out = jnp.where(sel[:, None], jnp.sum(f * weight, axis=1), out)
+        # the sum over the (few) lights written out: XLA:CPU runs a reduction over a short axis as a
+        # slow library (YNNPACK) fusion
+        fw = f * weight
+        total = fw[:, 0]
+        for l in range(1, fw.shape[1]):
+            total = total + fw[:, l]
+        out = jnp.where(sel[:, None], total, out)
     return out
 
 

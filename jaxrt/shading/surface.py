@@ -36,7 +36,13 @@ class Surface(eqx.Module):
 
 
 def dot(a, b):
-    return jnp.sum(a * b, axis=-1)
+    # Written out rather than jnp.sum(a * b, axis=-1): XLA:CPU hands reductions to library (YNNPACK)
+    # fusions, which over a minor axis of 3 are far slower than the elementwise loop this fuses into
+    # (the Whitted frame on the CPU: BENCHMARKS.md, "jaxrt beside Mitsuba 3"). Results may differ from
+    # the reduction's in the last bits (its summation order is the library's).
+    if jnp.shape(a)[-1] != 3 or jnp.shape(b)[-1] != 3:
+        return jnp.sum(a * b, axis=-1)
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
 
@@ -74,7 +80,9 @@ def from_local(w, frame):
 
 
 def offset_scale(p):
-    return OFFSET * (1.0 + jnp.max(jnp.abs(p), axis=-1, keepdims=True))
+    # written out: XLA:CPU runs a reduction over an axis of 3 as a slow library (YNNPACK) fusion
+    a = jnp.abs(p)
+    return OFFSET * (1.0 + jnp.maximum(jnp.maximum(a[..., 0], a[..., 1]), a[..., 2])[..., None])
 
 
 

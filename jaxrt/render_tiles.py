@@ -389,9 +389,14 @@ def compile_plan(scene, p: Plan, aovs: bool = False) -> Plan:
     nothing again, and a `frame` compiled before costs nothing here. For a plan on several devices
     `scene` should be already replicated over them (`_devices.replicate`), as `render` does.
 
+    A plan already measured (`tile_bytes` > 0, a plan this function returned) is returned as it is:
+    a scene of the same shapes compiles the same program (the viewer renders every frame so).
+
     Raises:
         InputError: not even a one-ray tile fits.
     """
+    if p.tile_bytes > 0:
+        return p
     room = p.tile_room
     h, w, spp = p.height, p.width, p.spp
     if p.shape is None:

@@ -606,7 +606,8 @@ def accumulate(scene, state: integrators.Accumulation | None = None, *, devices:
     and times each tile on its device (`jaxrt._devices.timed`); with ``return_plan=True``
     the plan comes back with those costs, and passes given that plan run each device's list of
     tiles (longest processing time first over the costs, `Plan.schedule`) in one call
-    (`jaxrt._devices.queue_program`, a second compiled program). Tiles are independent, so the
+    (`jaxrt._devices.queue_program`, a second compiled program; each device holds its list's tile
+    outputs, th·tw·12 bytes each, until the call ends). Tiles are independent, so the
     assignment does not change the pixels: passes under any two schedules are equal bit for bit,
     and equal the interleaved pass within the ulps of two compiled modules (tested).
 
@@ -667,12 +668,15 @@ def _render_timed(scene, p: Plan, pass_index: int, where):
     copies = _devices.views(scene, p.devices)
     lists = [list(range(d, p.tiles, n)) for d in range(n)]
     pi = np.int32(pass_index)
-    def args(d, i):
-        return copies[d], np.array(p.steps[i][1], np.int32), np.array(p.steps[i][2], np.int32), pi
+    def args(d, i, count=None):
+        (_, origin, (s0, c)) = p.steps[i]
+        return copies[d], np.array(origin, np.int32), np.array((s0, c if count is None else count), np.int32), pi
 
-    # compiled (once per device: a program is compiled for its device) before the clock starts
-    compiled = [run.lower(*args(d, x[0])).compile() if x else None for d, x in enumerate(lists)]
-    calls = [[functools.partial(compiled[d], *args(d, i)) for i in x] for d, x in enumerate(lists)]
+    # compile before the clock starts (once per device and process: a program is compiled for its
+    # device; the jit cache keeps it for later first passes): one tile of no samples on each device,
+    # whose rays start inactive, so it costs little once compiled
+    jax.block_until_ready([run(*args(d, x[0], 0)) for d, x in enumerate(lists) if x])
+    calls = [[functools.partial(run, *args(d, i)) for i in x] for d, x in enumerate(lists)]
     done = _devices.timed(calls)
     tiles, costs = [None] * p.tiles, [0.0] * p.tiles
     for x, res in zip(lists, done):

@@ -91,11 +91,11 @@ def test_queue_arrays_pad_each_devices_list():
 # ---- progressive passes on 4 virtual devices (slow: the pass programs compile per device) ----------------------
 
 _PASSES = r"""
-import dataclasses, json, sys
+import json, sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
 import test_tiles as T
-from jaxrt import integrators, render_tiles, scene as S
+from jaxrt import _devices, integrators, render_tiles, scene as S
 
 ps = S.load(T.path_doc(w=24, h=18, spp=3))
 one = None
@@ -105,14 +105,27 @@ p4 = render_tiles.plan(ps, memory="8G", devices=4)
 acc, p = render_tiles.accumulate(ps, None, use_plan=p4, return_plan=True)   # pass 0: interleaved, timed
 lpt = render_tiles.accumulate(ps, acc, use_plan=p)                           # pass 1: LPT over pass 0's costs
 lpt = render_tiles.accumulate(ps, lpt, use_plan=p)                           # pass 2: the same program
-other = dataclasses.replace(p, costs=tuple(float(i) for i in range(p.tiles)))  # another assignment
-alt = render_tiles.accumulate(ps, render_tiles.accumulate(ps, acc, use_plan=other), use_plan=other)
-A, B, C = (np.asarray(s.image, np.float64) for s in (one, lpt, alt))
+A, B = (np.asarray(s.image, np.float64) for s in (one, lpt))
 d = np.abs(A - B)
 rel = d / np.maximum(np.abs(A), 1e-2)
+
+# another assignment of the same tiles: the lists handed to the devices in reverse order, each list
+# reversed (the same longest list, so the same compiled program): every tile the same floats
+sc = _devices.replicate(ps, p.devices)
+def tiles(lists):
+    o, s, c, k = _devices.queue_arrays(p.steps, lists)
+    run = _devices.queue_program(p.devices, p.shape, k)
+    put = lambda a: _devices.put_rows(a, p.devices)
+    out = _devices.gather(run(sc, put(o), put(s), put(c), np.int32(1)))
+    return {i: out[d, j] for d, x in enumerate(lists) for j, i in enumerate(x)}
+other = tuple(tuple(reversed(x)) for x in reversed(p.schedule))
+t1, t2 = tiles(p.schedule), tiles(other)
 print(json.dumps(dict(tiles=p.tiles, costs=list(p.costs), schedule=[list(x) for x in p.schedule],
-                      other=[list(x) for x in other.schedule], count=[int(lpt.count), int(lpt.passes)],
-                      same=bool(np.array_equal(B, C)), beyond=float(np.mean(rel.max(-1) > 1e-4)),
+                      other=[list(x) for x in other], count=[int(lpt.count), int(lpt.passes)],
+                      same=bool(sorted(t1) == sorted(t2) == list(range(p.tiles))
+                                and all(np.array_equal(t1[i], t2[i]) for i in t1)),
+                      nonzero=bool(sum(np.abs(t1[i]).max() > 0 for i in t1) > len(t1) // 2),
+                      beyond=float(np.mean(rel.max(-1) > 1e-4)),
                       mean=float(d.mean() / A.mean()), max=float(A.max()), returned=p4.costs is None)))
 """
 
@@ -132,6 +145,6 @@ def test_cost_scheduled_passes_on_4_devices_equal_the_one_device_passes():
         assert sorted(i for x in lists for i in x) == list(range(t))
     assert out["schedule"] != out["other"]
     assert out["count"] == [9, 3]
-    assert out["same"]  # tiles are independent: another assignment, the same pixels bit for bit
+    assert out["same"] and out["nonzero"]  # tiles are independent: another assignment, the same floats
     # against one device: the rounding of other XLA modules (`tests/test_tiles.py`'s bound)
     assert out["beyond"] <= 0.01 and out["mean"] <= 1e-5 and out["max"] > 0.1, out

@@ -25,8 +25,10 @@ does not depend on D, so renders on any D ≥ 2 devices are equal to each other 
 wherever the tile shape is the same, which it is up to MIN_TILES / TILES_PER_DEVICE = 8 devices
 unless the memory budget shrinks the tiles (on a CPU the budget is split between the devices).
 A mesh of one device compiles the one-device module and equals `integrators.tile` bit for bit.
-Progressive path-tracing passes (`pass_program`, `jaxrt.render_tiles.accumulate`) are the same tiles
-with the pass index a traced, replicated scalar.
+Progressive path-tracing passes (`jaxrt.render_tiles.accumulate`) are the same tiles with the pass
+index a traced, replicated scalar: on one host a first pass runs them as one-device programs, one
+dispatched to each device, and later passes through `queue_program` (below); across hosts through
+`pass_program`.
 
 Cost-based schedule of progressive passes
 -----------------------------------------

@@ -627,6 +627,8 @@ def accumulate(scene, state: integrators.Accumulation | None = None, *, devices:
         raise InputError(f"{scene.source}: progressive passes need integrator = \"path\", not "
                          f"{scene.settings.integrator!r}")
     p = use_plan or plan(scene, memory=memory, devices=devices)
+    if p.costs is not None and len(p.costs) != p.tiles:
+        raise ValueError(f"use_plan: {len(p.costs)} tile costs for a plan of {p.tiles} tiles")
     if not p.devices:
         out = integrators.accumulate(scene, state)
         return (out, p) if return_plan else out

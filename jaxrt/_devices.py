@@ -34,11 +34,12 @@ Cost-based schedule of progressive passes
 -----------------------------------------
 A call of `program` or `pass_program` lasts as long as its slowest tile, so tiles of unequal cost
 (glass, sky) leave devices idle however they are interleaved. The passes of a progressive render
-trace the same tiles again and again, so the first pass measures each tile's device time: it runs
+trace the same tiles again and again, so the first passes measure each tile's device time: they run
 each device's interleaved tiles as a one-device program dispatched to that device
 (`tile_pass_program`, `views` of the replicated scene, `timed`: each device keeps its next tile
 queued and the host notes when each output becomes ready; a `shard_map` call's outputs become ready
-together on XLA:CPU, so they cannot time one device). The later passes give each device a list of
+together on XLA:CPU, so they cannot time one device; `jaxrt.render_tiles.TIMED_PASSES` passes, each
+tile's least time kept). The later passes give each device a list of
 tiles chosen by longest processing time first (`lpt`; Graham 1969: the largest device load is at
 most 4/3 − 1/(3D) of the optimum) and run each device's whole list in one call (`queue_program`: a
 while loop over the device's own tiles, so a device that finishes early waits only at the end of

@@ -89,8 +89,11 @@ from jaxrt import _config, _devices, glare, integrators
 from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
-__all__ = ["Plan", "accumulate", "compile_plan", "default_budget", "format_bytes", "plan", "render", "tile_cost"]
+__all__ = ["TIMED_PASSES", "Plan", "accumulate", "compile_plan", "default_budget", "format_bytes", "plan", "render", "tile_cost"]
 
+# progressive passes on several devices timed before the tiles are assigned by cost: the least of two
+# timings of a tile discards most of the time that other work on a shared host adds to one of them
+TIMED_PASSES = 2
 BLOCK_PIXELS = 32  # one 8x4 block of `integrators.sample_order`: the smallest tile that keeps all spp
 # bytes per pixel of the host buffers: RGB float32; AOVs depth (f32), normal and albedo (3 f32), object_id (i32)
 RGB_BYTES = 12
@@ -183,9 +186,9 @@ class Plan:
     program's measured temporaries, outputs and code, per device (0 until `compile_plan`). devices:
     the devices that share the steps (each call renders one step on each of them, in order:
     `jaxrt._devices`), or () for the default device alone (the one-device renderer). costs: the
-    device seconds of each step measured in a first progressive pass (`accumulate` with
-    ``return_plan=True``), or None; with costs, later passes assign the steps to devices by longest
-    processing time first (`jaxrt._devices.lpt`).
+    device seconds of each step, the least over the first `timed` progressive passes (`accumulate`
+    with ``return_plan=True``), or None; once `timed` reaches TIMED_PASSES, later passes assign the
+    steps to devices by longest processing time first (`jaxrt._devices.lpt`).
     """
 
     height: int
@@ -200,6 +203,7 @@ class Plan:
     tile_bytes: int = 0
     devices: tuple = ()
     costs: tuple | None = None
+    timed: int = 0
 
     @property
     def tiles(self) -> int:
@@ -602,9 +606,11 @@ def accumulate(scene, state: integrators.Accumulation | None = None, *, devices:
     The tiles are sized by `tile_cost`'s bound; unlike `render`, the compiled pass program is not
     measured against the budget (`compile_plan` would compile the one-pass tile program as well).
 
-    Load balance: a plan without `costs` runs the pass interleaved (one tile per device per call)
-    and times each tile on its device (`jaxrt._devices.timed`); with ``return_plan=True``
-    the plan comes back with those costs, and passes given that plan run each device's list of
+    Load balance: the first TIMED_PASSES passes of a plan (`Plan.timed`) run the tiles interleaved
+    (tile k·D + d, rotated by one device each timed pass), each a one-device program dispatched to
+    its device with the next one queued, and time each tile (`jaxrt._devices.timed`); with
+    ``return_plan=True`` the plan comes back with the least time of each tile so far, and passes given
+    a plan timed TIMED_PASSES times run each device's list of
     tiles (longest processing time first over the costs, `Plan.schedule`) in one call
     (`jaxrt._devices.queue_program`, a second compiled program; each device holds its list's tile
     outputs, th·tw·12 bytes each, until the call ends). Tiles are independent, so the
@@ -615,7 +621,7 @@ def accumulate(scene, state: integrators.Accumulation | None = None, *, devices:
         scene: a path-traced `jaxrt.scene.Scene` (`settings.integrator == "path"`).
         state: the accumulation so far, or None to start.
         devices, memory: as for `plan`; use_plan: a `plan` of this scene to reuse across passes.
-        return_plan: also return the plan, with the tile costs measured by this pass when it had none.
+        return_plan: also return the plan, with the tile costs this pass measured (a timed pass).
 
     Returns:
         The accumulation with this pass added; with `return_plan`, (accumulation, plan).
@@ -636,11 +642,13 @@ def accumulate(scene, state: integrators.Accumulation | None = None, *, devices:
     if state is None:
         state = integrators.Accumulation(jnp.zeros((cam.height, cam.width, 3)), jnp.asarray(0), jnp.asarray(0))
     scene = _devices.replicate(scene, p.devices)
-    if p.costs is None and jax.process_count() > 1:  # a device's time is seen by its own process only
+    if p.timed < TIMED_PASSES and jax.process_count() > 1:  # a device's time is seen by its own process only
         img = _render_tiles(scene, p, False, None, None, f"{scene.source}", pass_index=int(state.passes))
-    elif p.costs is None:
-        img, costs = _render_timed(scene, p, int(state.passes), f"{scene.source}")
-        p = dataclasses.replace(p, costs=costs)
+    elif p.timed < TIMED_PASSES:
+        img, costs = _render_timed(scene, p, int(state.passes), f"{scene.source}", rotate=p.timed)
+        if p.costs is not None:
+            costs = tuple(min(a, b) for a, b in zip(p.costs, costs))
+        p = dataclasses.replace(p, costs=costs, timed=p.timed + 1)
     else:
         img = _render_queue(scene, p, int(state.passes), f"{scene.source}")
     out = integrators.Accumulation(state.total + jnp.asarray(img) * spp, state.count + spp, state.passes + 1)
@@ -662,13 +670,14 @@ def _place(img, steps, th, tw, parts, where):
             img[rows, cols] += part
 
 
-def _render_timed(scene, p: Plan, pass_index: int, where):
-    """One progressive pass with tile k·D + d on device d (the interleaved assignment), each tile a
-    one-device program call on its device, timed (`_devices.timed`): (image, seconds per step)."""
+def _render_timed(scene, p: Plan, pass_index: int, where, rotate: int = 0):
+    """One progressive pass with tile k·D + d on device (d + rotate) mod D (the interleaved assignment),
+    each tile a one-device program call on its device, timed (`_devices.timed`): (image, seconds per
+    step)."""
     n = len(p.devices)
     run = _devices.tile_pass_program(p.shape)
     copies = _devices.views(scene, p.devices)
-    lists = [list(range(d, p.tiles, n)) for d in range(n)]
+    lists = [list(range((d - rotate) % n, p.tiles, n)) for d in range(n)]
     pi = np.int32(pass_index)
     def args(d, i, count=None):
         (_, origin, (s0, c)) = p.steps[i]

@@ -26,8 +26,8 @@ per `refine()`.
 On several devices (`devices=`, `jaxrt view --devices N`, as `jaxrt render`) a frame is split into the
 tiles `jaxrt render` would use (`jaxrt.render_tiles.plan`, planned once: the scene's shapes never
 change), a Whitted frame through `jaxrt.render_tiles.render` and each progressive path pass through
-`jaxrt.render_tiles.accumulate` (the first pass after a change times the tiles, the later ones assign
-them by cost), so a frame equals `jaxrt.render(..., devices=N)`'s. SPPM passes stay on the default
+`jaxrt.render_tiles.accumulate` (the first two passes after a change time the tiles, the later ones
+assign them by cost), so a frame equals `jaxrt.render(..., devices=N)`'s. SPPM passes stay on the default
 device (a photon pass is one whole-frame program).
 """
 
@@ -198,7 +198,7 @@ class Viewer:
         if self.progressive:
             self.accumulation = None
             if self._plan is not None:  # time the tiles again: the change may move their costs
-                self._plan = dataclasses.replace(self._plan, costs=None)
+                self._plan = dataclasses.replace(self._plan, costs=None, timed=0)
             return self.refine()
         t0 = time.perf_counter()
         if self._plan is not None:

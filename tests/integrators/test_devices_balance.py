@@ -102,9 +102,9 @@ one = None
 for _ in range(3):
     one = integrators.accumulate(ps, one)
 p4 = render_tiles.plan(ps, memory="8G", devices=4)
-acc, p = render_tiles.accumulate(ps, None, use_plan=p4, return_plan=True)   # pass 0: interleaved, timed
-lpt = render_tiles.accumulate(ps, acc, use_plan=p)                           # pass 1: LPT over pass 0's costs
-lpt = render_tiles.accumulate(ps, lpt, use_plan=p)                           # pass 2: the same program
+acc, p1 = render_tiles.accumulate(ps, None, use_plan=p4, return_plan=True)  # pass 0: interleaved, timed
+acc, p = render_tiles.accumulate(ps, acc, use_plan=p1, return_plan=True)    # pass 1: rotated, timed
+lpt = render_tiles.accumulate(ps, acc, use_plan=p)                           # pass 2: LPT over the least times
 A, B = (np.asarray(s.image, np.float64) for s in (one, lpt))
 d = np.abs(A - B)
 rel = d / np.maximum(np.abs(A), 1e-2)
@@ -126,7 +126,8 @@ print(json.dumps(dict(tiles=p.tiles, costs=list(p.costs), schedule=[list(x) for 
                                 and all(np.array_equal(t1[i], t2[i]) for i in t1)),
                       nonzero=bool(sum(np.abs(t1[i]).max() > 0 for i in t1) > len(t1) // 2),
                       beyond=float(np.mean(rel.max(-1) > 1e-4)),
-                      mean=float(d.mean() / A.mean()), max=float(A.max()), returned=p4.costs is None)))
+                      mean=float(d.mean() / A.mean()), max=float(A.max()), returned=p4.costs is None,
+                      timed=[p1.timed, p.timed], least=bool(all(b <= a for a, b in zip(p1.costs, p.costs))))))
 """
 
 
@@ -141,6 +142,7 @@ def test_cost_scheduled_passes_on_4_devices_equal_the_one_device_passes():
     t = out["tiles"]
     assert t % 4 and out["returned"]  # 4 devices do not divide the tiles; the plan given stays unmeasured
     assert len(out["costs"]) == t and min(out["costs"]) > 0
+    assert out["timed"] == [1, 2] and out["least"]  # two timed passes, the least time of each tile
     for lists in (out["schedule"], out["other"]):
         assert sorted(i for x in lists for i in x) == list(range(t))
     assert out["schedule"] != out["other"]

@@ -78,9 +78,10 @@ from collections.abc import Sequence
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from jaxtyping import Float, Int
+from jaxtyping import Int
 
 from jaxrt import _config, integrators
 from jaxrt.camera import Window
@@ -304,8 +305,8 @@ def _device_queue(scene, origins, samples, counts, pass_index, *, shape, k):
         tile = integrators.path.render(scene, pass_index, jitter=True, window=window)
         return i + 1, jax.lax.dynamic_update_index_in_dim(out, tile.astype(out.dtype), i, 0)
 
-    out = jax.numpy.zeros((k, th, tw, 3), jax.numpy.float32)
-    _, out = jax.lax.while_loop(lambda c: c[0] < n, body, (jax.numpy.int32(0), out))
+    out = jnp.zeros((k, th, tw, 3), jnp.float32)
+    _, out = jax.lax.while_loop(lambda c: c[0] < n, body, (jnp.int32(0), out))
     return jax.lax.expand_dims(out, [0])
 
 

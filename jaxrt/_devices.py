@@ -36,8 +36,8 @@ A call of `program` or `pass_program` lasts as long as its slowest tile, so tile
 (glass, sky) leave devices idle however they are interleaved. The passes of a progressive render
 trace the same tiles again and again, so the first passes measure each tile's device time: they run
 each device's interleaved tiles as a one-device program dispatched to that device
-(`tile_pass_program`, `views` of the replicated scene, `timed`: each device keeps its next tile
-queued and the host notes when each output becomes ready; a `shard_map` call's outputs become ready
+(`tile_pass_program`, `views` of the replicated scene, `timed`: a device gets its next tile when
+its previous output is ready, which the host notes; a `shard_map` call's outputs become ready
 together on XLA:CPU, so they cannot time one device; `jaxrt.render_tiles.TIMED_PASSES` passes, each
 tile's least time kept). The later passes give each device a list of
 tiles chosen by longest processing time first (`lpt`; Graham 1969: the largest device load is at
@@ -379,9 +379,9 @@ def timed(calls: Sequence[Sequence], depth: int = 2, poll: float = 2e-4) -> list
     """Run every device's list of calls (``calls[d][j]()`` dispatches one computation on device d and
     returns its array), each device at most `depth` calls ahead, and time them: returns, per device,
     (output as numpy, seconds) for each call, the seconds from the end of the device's previous call
-    (or the first dispatch) to this one's output being ready (`jax.Array.is_ready`, polled), i.e. the
-    call's device time while the device has a next call queued. On one host; a device's calls run
-    one after another, the devices at once."""
+    (or the first dispatch) to this one's output being ready (`jax.Array.is_ready`, polled): the
+    call's device time, plus with ``depth=1`` the host's dispatch and polling delay (about a tenth
+    of a millisecond). On one host; a device's calls run one after another, the devices at once."""
     n = len(calls)
     out: list[list[tuple[np.ndarray, float]]] = [[] for _ in range(n)]
     nxt = [0] * n

@@ -608,7 +608,8 @@ def accumulate(scene, state: integrators.Accumulation | None = None, *, devices:
 
     Load balance: the first TIMED_PASSES passes of a plan (`Plan.timed`) run the tiles interleaved
     (tile k·D + d, rotated by one device each timed pass), each a one-device program dispatched to
-    its device with the next one queued, and time each tile (`jaxrt._devices.timed`); with
+    its device as soon as the device's previous tile is ready, and time each tile
+    (`jaxrt._devices.timed`); with
     ``return_plan=True`` the plan comes back with the least time of each tile so far, and passes given
     a plan timed TIMED_PASSES times run each device's list of
     tiles (longest processing time first over the costs, `Plan.schedule`) in one call
@@ -688,7 +689,8 @@ def _render_timed(scene, p: Plan, pass_index: int, where, rotate: int = 0):
     # whose rays start inactive, so it costs little once compiled
     jax.block_until_ready([run(*args(d, x[0], 0)) for d, x in enumerate(lists) if x])
     calls = [[functools.partial(run, *args(d, i)) for i in x] for d, x in enumerate(lists)]
-    done = _devices.timed(calls)
+    # one tile in flight per device: the memory budget holds one tile's working set per device
+    done = _devices.timed(calls, depth=1)
     tiles, costs = [None] * p.tiles, [0.0] * p.tiles
     for x, res in zip(lists, done):
         for i, (tile, sec) in zip(x, res):

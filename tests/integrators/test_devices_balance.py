@@ -150,3 +150,20 @@ def test_cost_scheduled_passes_on_4_devices_equal_the_one_device_passes():
     assert out["same"] and out["nonzero"]  # tiles are independent: another assignment, the same floats
     # against one device: the rounding of other XLA modules (`tests/test_tiles.py`'s bound)
     assert out["beyond"] <= 0.01 and out["mean"] <= 1e-5 and out["max"] > 0.1, out
+
+
+def test_timed_returns_each_devices_outputs_in_order_with_their_times():
+    """`_devices.timed` on this process's device (the default suite has one): every call's output,
+    in each list's order, and a positive time per call, at depth 1 and 2."""
+    import jax
+    import jax.numpy as jnp
+
+    f = jax.jit(lambda x: jnp.cumsum(x) * 2.0)
+    dev = jax.devices()[0]
+    xs = [jax.device_put(np.arange(4.0) + k, dev) for k in range(5)]
+    for depth in (1, 2):
+        out = _devices.timed([[(lambda x=x: f(x)) for x in xs], []], depth=depth)
+        assert len(out) == 2 and out[1] == []
+        assert [np.asarray(o).tolist() for o, _ in out[0]] == [(np.cumsum(np.arange(4.0) + k) * 2).tolist()
+                                                               for k in range(5)]
+        assert all(t > 0 for _, t in out[0])

@@ -2,6 +2,7 @@
 
     python benchmarks/devices_balance.py                              # showcase (glass) 128x96, 2/4/8 devices
     python benchmarks/devices_balance.py --scene cornell_area --integrator path --spp 4 --size 96 72
+    python benchmarks/devices_balance.py --passes --integrator path --spp 2 --size 64 48 --devices 4
 
 A render on N devices runs its tiles N at a time (`jaxrt._devices.program`: one tile per device per
 call, and a call lasts as long as its slowest tile). This script plans the render on N virtual CPU
@@ -20,6 +21,22 @@ costs computes the wall time of the calls under two assignments:
 It prints, per N, the ideal Σ cost / N, each assignment's Σ over calls of the slowest tile, and the
 efficiency ideal / actual. Tile costs come from one device, so the figures describe the assignment,
 not the interconnect; on a shared CPU the tile timings carry its noise.
+
+With `--passes` (a path-traced scene) it also compares the loads of progressive passes, max/mean
+device load (1 is a perfect split), the loads evaluated with the tile costs measured alone:
+
+- interleaved calls: what a pass without costs runs (one tile per device per call, a call as
+  long as its slowest tile), Σ over calls of the slowest tile / (Σ cost / N);
+- interleaved lists: each device's interleaved tiles run back to back (no wait after each call);
+- cost-based, timed passes on N virtual devices: `render_tiles.accumulate`'s schedule for later
+  passes, longest processing time first (`_devices.lpt`) over the costs its first pass measured on
+  the N virtual devices (one tile program per device, `_devices.timed`), and over the least of the
+  first TIMED_PASSES passes' times (what runs). Virtual CPU devices share
+  the host's cores, so there a tile's wall time on its device also measures what the other devices
+  ran beside it: an estimate degraded by contention that separate devices (GPUs) do not have;
+- cost-based, separate timing: LPT over a second, independent run of the alone timings (what a
+  first pass gives where each device's time is its own);
+- LPT on the evaluated timings themselves: the bound of a perfect estimate.
 """
 
 from __future__ import annotations
@@ -37,7 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxrt import integrators, render_tiles  # noqa: E402
+from jaxrt import _devices, integrators, render_tiles  # noqa: E402
 from jaxrt import scene as S  # noqa: E402
 from jaxrt.camera import Window  # noqa: E402
 
@@ -76,6 +93,57 @@ def makespan(cost: np.ndarray, n: int, order: str) -> float:
     return float(per_call.max(axis=1).sum())
 
 
+def pass_costs(scene, p, repeats: int) -> np.ndarray:
+    """Each step's least time of `repeats` alone on the first device as a tile of a progressive pass
+    (the least: on a shared CPU other work only ever adds time)."""
+    th, tw, sb = p.shape
+    dev0 = jax.devices()[0]
+    run = _devices.tile_pass_program(p.shape)
+    sc = jax.device_put(scene, dev0)
+    i32 = np.int32
+    def call(step):
+        return run(sc, np.array(step[1], i32), np.array(step[2], i32), i32(1))
+    call(p.steps[0]).block_until_ready()  # compile
+    out = []
+    for step in p.steps:
+        ts = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            call(step).block_until_ready()
+            ts.append(time.perf_counter() - t)
+        out.append(min(ts))
+    return np.array(out)
+
+
+def loads(cost: np.ndarray, lists) -> float:
+    per = [cost[list(x)].sum() for x in lists]
+    return float(max(per) / (cost.sum() / len(lists)))
+
+
+def passes(sc, ns, repeats: int) -> None:
+    for n in ns:
+        p = render_tiles.plan(sc, memory="8G", devices=n)
+        sep = pass_costs(sc, p, repeats)  # the estimate of a device that runs alone
+        c = pass_costs(sc, p, repeats)  # the evaluation
+        acc, m1 = render_tiles.accumulate(sc, None, use_plan=p, return_plan=True)
+        _, m2 = render_tiles.accumulate(sc, acc, use_plan=m1, return_plan=True)
+        est1, est = np.array(m1.costs), np.array(m2.costs)
+        inter = [list(range(d, p.tiles, n)) for d in range(n)]
+        lockstep = makespan(c, n, "interleaved") / (c.sum() / n)
+
+        def rank(a):
+            return np.corrcoef(np.argsort(np.argsort(a)), np.argsort(np.argsort(c)))[0, 1]
+
+        print(f"passes N={n}: {p.tiles} tiles {p.shape}, tile cost ms min/median/max {1e3 * c.min():.1f}/"
+              f"{1e3 * np.median(c):.1f}/{1e3 * c.max():.1f}; max/mean device load: interleaved calls "
+              f"{lockstep:.2f}, interleaved lists {loads(c, inter):.2f}, cost-based (first pass on {n} virtual "
+              f"devices) {loads(c, _devices.lpt(est1, n)):.2f}, (least of the {render_tiles.TIMED_PASSES} timed "
+              f"passes: what runs) {loads(c, _devices.lpt(est, n)):.2f}, cost-based (separate timing) "
+              f"{loads(c, _devices.lpt(sep, n)):.2f}, LPT on the evaluated timings {loads(c, _devices.lpt(c, n)):.2f}; "
+              f"rank correlation with the evaluated timings: first pass {rank(est1):.2f}, least of the timed passes "
+              f"{rank(est):.2f}, separate {rank(sep):.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="showcase")
@@ -84,6 +152,8 @@ def main() -> None:
     ap.add_argument("--spp", type=int)
     ap.add_argument("--devices", type=int, nargs="+", default=(2, 4, 8))
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--passes", action="store_true",
+                    help="progressive path passes: interleaved against cost-based (path-traced scenes)")
     a = ap.parse_args()
     ov = {"camera.width": a.size[0], "camera.height": a.size[1]}
     if a.integrator:
@@ -91,6 +161,11 @@ def main() -> None:
     if a.spp:
         ov["render.spp"] = a.spp
     sc = S.load(a.scene, overrides=ov)
+    if a.passes:
+        print(f"{a.scene} {a.size[0]}x{a.size[1]} {sc.settings.integrator} spp {sc.settings.spp}: "
+              f"{jax.devices()[0].device_kind}")
+        passes(sc, a.devices, a.repeats)
+        return
     plans = {n: render_tiles.plan(sc, memory="8G", devices=n) for n in a.devices}
     shapes = {p.shape for p in plans.values()}
     print(f"{a.scene} {a.size[0]}x{a.size[1]} {sc.settings.integrator} spp {sc.settings.spp}: "

@@ -25,8 +25,29 @@ does not depend on D, so renders on any D ≥ 2 devices are equal to each other 
 wherever the tile shape is the same, which it is up to MIN_TILES / TILES_PER_DEVICE = 8 devices
 unless the memory budget shrinks the tiles (on a CPU the budget is split between the devices).
 A mesh of one device compiles the one-device module and equals `integrators.tile` bit for bit.
-Progressive path-tracing passes (`pass_program`, `jaxrt.render_tiles.accumulate`) are the same tiles
-with the pass index a traced, replicated scalar.
+Progressive path-tracing passes (`jaxrt.render_tiles.accumulate`) are the same tiles with the pass
+index a traced, replicated scalar: on one host a first pass runs them as one-device programs, one
+dispatched to each device, and later passes through `queue_program` (below); across hosts through
+`pass_program`.
+
+Cost-based schedule of progressive passes
+-----------------------------------------
+A call of `program` or `pass_program` lasts as long as its slowest tile, so tiles of unequal cost
+(glass, sky) leave devices idle however they are interleaved. The passes of a progressive render
+trace the same tiles again and again, so the first passes measure each tile's device time: they run
+each device's interleaved tiles as a one-device program dispatched to that device
+(`tile_pass_program`, `views` of the replicated scene, `timed`: a device gets its next tile when
+its previous output is ready, which the host notes; a `shard_map` call's outputs become ready
+together on XLA:CPU, so they cannot time one device; `jaxrt.render_tiles.TIMED_PASSES` passes, each
+tile's least time kept). The later passes give each device a list of
+tiles chosen by longest processing time first (`lpt`; Graham 1969: the largest device load is at
+most 4/3 − 1/(3D) of the optimum) and run each device's whole list in one call (`queue_program`: a
+while loop over the device's own tiles, so a device that finishes early waits only at the end of
+the pass, not after every tile). Which device renders a tile does not change its arithmetic: the
+loop's body is the same program on every device and for every assignment, so any two schedules give
+the same pixels bit for bit; against one device, and against `pass_program`, these are other
+compiled modules, within the few ulps per ray described above. Several hosts keep the interleaved
+tiles (a device's time is only seen by its own process).
 
 Fits
 ----
@@ -52,10 +73,12 @@ results are gathered to every process (`gather`, and `batched` gathers its rows 
 from __future__ import annotations
 
 import functools
+import time
 from collections.abc import Sequence
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Int
@@ -64,9 +87,10 @@ from jaxrt import _config, integrators
 from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
-__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "gather", "initialize", "local", "mesh", "pad_rows",
-           "padded", "parse", "pass_program", "program", "put_each", "put_rows", "replicate",
-           "round_arrays", "select", "shard_map", "sharded"]
+__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "gather", "initialize", "local",
+           "lpt", "makespan", "mesh", "pad_rows", "padded", "parse", "pass_program", "program", "put_each", "put_rows",
+           "queue_arrays", "queue_program", "replicate", "round_arrays", "select", "shard_map", "sharded",
+           "tile_pass_program", "timed", "views"]
 
 AXIS = "devices"
 # A render on several devices is split into at least max(MIN_TILES, TILES_PER_DEVICE·D) tiles, so
@@ -252,6 +276,139 @@ def program(devices: tuple[jax.Device, ...], shape: tuple[int, int, int], aovs: 
     smap = _shard_map(body, mesh=m, in_specs=(PartitionSpec(), rows, rows), out_specs=rows, **_UNCHECKED)
     rep, split = NamedSharding(m, PartitionSpec()), NamedSharding(m, rows)
     return jax.jit(smap, in_shardings=(rep, split, split), out_shardings=split)
+
+
+@functools.lru_cache(maxsize=32)
+def queue_program(devices: tuple[jax.Device, ...], shape: tuple[int, int, int], k: int):
+    """One progressive path-tracing pass over a list of up to `k` tiles per device, in one call:
+    ``f(scene, origins, samples, counts, pass_index)`` with origins and samples (D, k, 2) int32 (each
+    device's tiles, `queue_arrays`), counts (D,) int32 (how many of its k rows a device renders) and
+    the pass index a replicated scalar; returns (D, k, th, tw, 3), row j of device d its j-th tile
+    (rows past its count are zeros). Each device loops over its own tiles (`lax.while_loop`, its own
+    trip count), with no collective, so devices with shorter lists are not held back."""
+    m = mesh(devices)
+    rows, rep = PartitionSpec(AXIS), PartitionSpec()
+    body = functools.partial(_device_queue, shape=shape, k=k)
+    smap = _shard_map(body, mesh=m, in_specs=(rep, rows, rows, rows, rep), out_specs=rows, **_UNCHECKED)
+    r, split = NamedSharding(m, rep), NamedSharding(m, rows)
+    return jax.jit(smap, in_shardings=(r, split, split, split, r), out_shardings=split)
+
+
+def _device_queue(scene, origins, samples, counts, pass_index, *, shape, k):
+    # one device's list of tiles of one pass, rendered one after another into its rows of the output
+    th, tw, sb = shape
+    o, s, n = origins[0], samples[0], counts[0]
+
+    def body(carry):
+        i, out = carry
+        window = Window(o[i, 0], o[i, 1], s[i, 0], s[i, 1], th, tw, sb)
+        tile = integrators.path.render(scene, pass_index, jitter=True, window=window)
+        return i + 1, jax.lax.dynamic_update_index_in_dim(out, tile.astype(out.dtype), i, 0)
+
+    out = jnp.zeros((k, th, tw, 3), jnp.float32)
+    _, out = jax.lax.while_loop(lambda c: c[0] < n, body, (jnp.int32(0), out))
+    return jax.lax.expand_dims(out, [0])
+
+
+def lpt(costs: Sequence[float], n: int) -> tuple[tuple[int, ...], ...]:
+    """Longest processing time first (Graham 1969): the indices of `costs` split into `n` lists, each
+    cost in decreasing order (ties: the lower index first) going to the list with the least total so
+    far (ties: the lower list). The largest total is at most (4/3 − 1/(3n)) times the least possible.
+    Each list is returned in increasing index order."""
+    if n < 1:
+        raise ValueError(f"lpt: {n} lists; give 1 or more")
+    c = np.asarray(costs, np.float64)
+    if c.ndim != 1 or not np.isfinite(c).all() or (c < 0).any():
+        raise ValueError("lpt: costs must be a list of finite numbers >= 0")
+    load = np.zeros(n)
+    out: list[list[int]] = [[] for _ in range(n)]
+    for i in sorted(range(len(c)), key=lambda i: (-c[i], i)):
+        d = int(np.argmin(load))  # the first of the least loaded
+        out[d].append(i)
+        load[d] += c[i]
+    return tuple(tuple(sorted(x)) for x in out)
+
+
+def makespan(costs: Sequence[float], lists: Sequence[Sequence[int]]) -> float:
+    """The largest total cost of `lists` (index lists into `costs`, one per device)."""
+    c = np.asarray(costs, np.float64)
+    return max((float(c[list(x)].sum()) for x in lists), default=0.0)
+
+
+def queue_arrays(steps: Sequence, lists: Sequence[Sequence[int]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """(origins (D, k, 2), samples (D, k, 2), counts (D,), k) of `queue_program` for the device lists
+    `lists` of indices into `steps` (`Plan.steps`); k is the longest list, shorter ones padded with
+    zero-sample copies of a tile that are never rendered (the device's loop stops at its count)."""
+    k = max(1, max(len(x) for x in lists))
+    origins = np.zeros((len(lists), k, 2), np.int32)
+    samples = np.zeros((len(lists), k, 2), np.int32)
+    for d, x in enumerate(lists):
+        for j, i in enumerate(x):
+            origins[d, j], samples[d, j] = steps[i][1], steps[i][2]
+    counts = np.array([len(x) for x in lists], np.int32)
+    return origins, samples, counts, k
+
+
+@functools.lru_cache(maxsize=32)
+def tile_pass_program(shape: tuple[int, int, int]):
+    """One device's tile of a progressive path-tracing pass as a one-device program,
+    ``f(scene, origin, samples, pass_index)`` (origin and samples (2,) int32), dispatched to each
+    device by its arguments (`views`) for `timed`; returns (th, tw, 3)."""
+    def one(scene, origin, samples, pass_index):
+        th, tw, sb = shape
+        window = Window(origin[0], origin[1], samples[0], samples[1], th, tw, sb)
+        return integrators.path.render(scene, pass_index, jitter=True, window=window)
+
+    return jax.jit(one)
+
+
+def views(tree, devices: Sequence[jax.Device]) -> list:
+    """For each of `devices` (all driven by this process), `tree` (replicated over them, `replicate`)
+    as that device's own copy: every array leaf's shard on the device, nothing copied."""
+    def on(d):
+        def leaf(x):
+            if isinstance(x, jax.Array) and len(x.sharding.device_set) > 1:
+                return next(sh.data for sh in x.addressable_shards if sh.device == d)
+            return x
+        return jax.tree.map(leaf, tree)
+
+    return [on(d) for d in devices]
+
+
+def timed(calls: Sequence[Sequence], depth: int = 2, poll: float = 2e-4) -> list[list[tuple[np.ndarray, float]]]:
+    """Run every device's list of calls (``calls[d][j]()`` dispatches one computation on device d and
+    returns its array), each device at most `depth` calls ahead, and time them: returns, per device,
+    (output as numpy, seconds) for each call, the seconds from the end of the device's previous call
+    (or the first dispatch) to this one's output being ready (`jax.Array.is_ready`, polled): the
+    call's device time, plus with ``depth=1`` the host's dispatch and polling delay (about a tenth
+    of a millisecond). On one host; a device's calls run one after another, the devices at once."""
+    n = len(calls)
+    out: list[list[tuple[np.ndarray, float]]] = [[] for _ in range(n)]
+    nxt = [0] * n
+    flight: list[list] = [[] for _ in range(n)]
+
+    def dispatch(d):
+        while nxt[d] < len(calls[d]) and len(flight[d]) < depth:
+            flight[d].append(calls[d][nxt[d]]())
+            nxt[d] += 1
+
+    start = time.perf_counter()
+    last = [start] * n
+    for d in range(n):
+        dispatch(d)
+    while any(flight):
+        moved = False
+        for d in range(n):
+            if flight[d] and flight[d][0].is_ready():
+                now = time.perf_counter()
+                x = flight[d].pop(0)
+                out[d].append((np.asarray(x), now - last[d]))
+                last[d] = now
+                dispatch(d)
+                moved = True
+        if not moved:
+            time.sleep(poll)
+    return out
 
 
 def round_arrays(steps: Sequence, n: int) -> tuple[Int[np.ndarray, "D 2"], Int[np.ndarray, "D 2"]]:

@@ -75,6 +75,7 @@ branches per tile rather than per image. Tiles are not differentiable; different
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 from collections.abc import Callable
@@ -88,8 +89,11 @@ from jaxrt import _config, _devices, glare, integrators
 from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
-__all__ = ["Plan", "accumulate", "compile_plan", "default_budget", "format_bytes", "plan", "render", "tile_cost"]
+__all__ = ["TIMED_PASSES", "Plan", "accumulate", "compile_plan", "default_budget", "format_bytes", "plan", "render", "tile_cost"]
 
+# progressive passes on several devices timed before the tiles are assigned by cost: the least of two
+# timings of a tile discards most of the time that other work on a shared host adds to one of them
+TIMED_PASSES = 2
 BLOCK_PIXELS = 32  # one 8x4 block of `integrators.sample_order`: the smallest tile that keeps all spp
 # bytes per pixel of the host buffers: RGB float32; AOVs depth (f32), normal and albedo (3 f32), object_id (i32)
 RGB_BYTES = 12
@@ -181,7 +185,10 @@ class Plan:
     per device); cost: `tile_cost`'s (per sample, per pixel) bound; tile_bytes: the compiled
     program's measured temporaries, outputs and code, per device (0 until `compile_plan`). devices:
     the devices that share the steps (each call renders one step on each of them, in order:
-    `jaxrt._devices`), or () for the default device alone (the one-device renderer).
+    `jaxrt._devices`), or () for the default device alone (the one-device renderer). costs: the
+    device seconds of each step, the least over the first `timed` progressive passes (`accumulate`
+    with ``return_plan=True``), or None; once `timed` reaches TIMED_PASSES, later passes assign the
+    steps to devices by longest processing time first (`jaxrt._devices.lpt`).
     """
 
     height: int
@@ -195,10 +202,20 @@ class Plan:
     cost: tuple[int, int]
     tile_bytes: int = 0
     devices: tuple = ()
+    costs: tuple | None = None
+    timed: int = 0
 
     @property
     def tiles(self) -> int:
         return len(self.steps)
+
+    @property
+    def schedule(self) -> tuple[tuple[int, ...], ...] | None:
+        """The steps of each device for passes after the first (`jaxrt._devices.lpt` of `costs`),
+        or None without costs or devices."""
+        if self.costs is None or not self.devices:
+            return None
+        return _devices.lpt(self.costs, len(self.devices))
 
     @property
     def device_count(self) -> int:
@@ -376,9 +393,14 @@ def compile_plan(scene, p: Plan, aovs: bool = False) -> Plan:
     nothing again, and a `frame` compiled before costs nothing here. For a plan on several devices
     `scene` should be already replicated over them (`_devices.replicate`), as `render` does.
 
+    A plan already measured (`tile_bytes` > 0, a plan this function returned) is returned as it is:
+    a scene of the same shapes compiles the same program (the viewer renders every frame so).
+
     Raises:
         InputError: not even a one-ray tile fits.
     """
+    if p.tile_bytes > 0:
+        return p
     room = p.tile_room
     h, w, spp = p.height, p.width, p.spp
     if p.shape is None:
@@ -568,7 +590,7 @@ def _render_passes(scene, step, aovs, progress, should_stop):
 
 
 def accumulate(scene, state: integrators.Accumulation | None = None, *, devices: Any = None,
-               memory: int | str | None = None, use_plan: Plan | None = None) -> integrators.Accumulation:
+               memory: int | str | None = None, use_plan: Plan | None = None, return_plan: bool = False):
     """`jaxrt.integrators.accumulate` (one more progressive pass of `settings.spp` jittered path-traced
     samples per pixel, pass P with random stream P) with the pass split into tiles over `devices`.
 
@@ -584,10 +606,26 @@ def accumulate(scene, state: integrators.Accumulation | None = None, *, devices:
     The tiles are sized by `tile_cost`'s bound; unlike `render`, the compiled pass program is not
     measured against the budget (`compile_plan` would compile the one-pass tile program as well).
 
+    Load balance: the first TIMED_PASSES passes of a plan (`Plan.timed`) run the tiles interleaved
+    (tile k·D + d, rotated by one device each timed pass), each a one-device program dispatched to
+    its device as soon as the device's previous tile is ready, and time each tile
+    (`jaxrt._devices.timed`); with
+    ``return_plan=True`` the plan comes back with the least time of each tile so far, and passes given
+    a plan timed TIMED_PASSES times run each device's list of
+    tiles (longest processing time first over the costs, `Plan.schedule`) in one call
+    (`jaxrt._devices.queue_program`, a second compiled program; each device holds its list's tile
+    outputs, th·tw·12 bytes each, until the call ends). Tiles are independent, so the
+    assignment does not change the pixels: passes under any two schedules are equal bit for bit,
+    and equal the interleaved pass within the ulps of two compiled modules (tested).
+
     Args:
         scene: a path-traced `jaxrt.scene.Scene` (`settings.integrator == "path"`).
         state: the accumulation so far, or None to start.
         devices, memory: as for `plan`; use_plan: a `plan` of this scene to reuse across passes.
+        return_plan: also return the plan, with the tile costs this pass measured (a timed pass).
+
+    Returns:
+        The accumulation with this pass added; with `return_plan`, (accumulation, plan).
 
     Raises:
         InputError: a scene that is not path-traced; bad `devices` or `memory`.
@@ -596,14 +634,90 @@ def accumulate(scene, state: integrators.Accumulation | None = None, *, devices:
         raise InputError(f"{scene.source}: progressive passes need integrator = \"path\", not "
                          f"{scene.settings.integrator!r}")
     p = use_plan or plan(scene, memory=memory, devices=devices)
+    if p.costs is not None and len(p.costs) != p.tiles:
+        raise ValueError(f"use_plan: {len(p.costs)} tile costs for a plan of {p.tiles} tiles")
     if not p.devices:
-        return integrators.accumulate(scene, state)
+        out = integrators.accumulate(scene, state)
+        return (out, p) if return_plan else out
     cam, spp = scene.camera, scene.settings.spp
     if state is None:
         state = integrators.Accumulation(jnp.zeros((cam.height, cam.width, 3)), jnp.asarray(0), jnp.asarray(0))
     scene = _devices.replicate(scene, p.devices)
-    img = _render_tiles(scene, p, False, None, None, f"{scene.source}", pass_index=int(state.passes))
-    return integrators.Accumulation(state.total + jnp.asarray(img) * spp, state.count + spp, state.passes + 1)
+    if p.timed < TIMED_PASSES and jax.process_count() > 1:  # a device's time is seen by its own process only
+        img = _render_tiles(scene, p, False, None, None, f"{scene.source}", pass_index=int(state.passes))
+    elif p.timed < TIMED_PASSES:
+        img, costs = _render_timed(scene, p, int(state.passes), f"{scene.source}", rotate=p.timed)
+        if p.costs is not None:
+            costs = tuple(min(a, b) for a, b in zip(p.costs, costs))
+        p = dataclasses.replace(p, costs=costs, timed=p.timed + 1)
+    else:
+        img = _render_queue(scene, p, int(state.passes), f"{scene.source}")
+    out = integrators.Accumulation(state.total + jnp.asarray(img) * spp, state.count + spp, state.passes + 1)
+    return (out, p) if return_plan else out
+
+
+def _place(img, steps, th, tw, parts, where):
+    """Write tiles (`parts`, one per step of `steps`) into `img`: each tile's own pixels, from its
+    nominal origin to the next tile's or the image's edge, a later sample batch added to the earlier."""
+    h, w = img.shape[:2]
+    for ((r, c), (r0, c0), (s0, _)), part in zip(steps, parts):
+        rows, cols = slice(r, min(r + th, h)), slice(c, min(c + tw, w))
+        local = (slice(r - r0, r - r0 + rows.stop - r), slice(c - c0, c - c0 + cols.stop - c))
+        part = np.asarray(part)[local]
+        _check_finite(part, where)
+        if s0 == 0:
+            img[rows, cols] = part
+        else:
+            img[rows, cols] += part
+
+
+def _render_timed(scene, p: Plan, pass_index: int, where, rotate: int = 0):
+    """One progressive pass with tile k·D + d on device (d + rotate) mod D (the interleaved assignment),
+    each tile a one-device program call on its device, timed (`_devices.timed`): (image, seconds per
+    step)."""
+    n = len(p.devices)
+    run = _devices.tile_pass_program(p.shape)
+    copies = _devices.views(scene, p.devices)
+    lists = [list(range((d - rotate) % n, p.tiles, n)) for d in range(n)]
+    pi = np.int32(pass_index)
+    def args(d, i, count=None):
+        (_, origin, (s0, c)) = p.steps[i]
+        return copies[d], np.array(origin, np.int32), np.array((s0, c if count is None else count), np.int32), pi
+
+    # compile before the clock starts (once per device and process: a program is compiled for its
+    # device; the jit cache keeps it for later first passes): one tile of no samples on each device,
+    # whose rays start inactive, so it costs little once compiled
+    jax.block_until_ready([run(*args(d, x[0], 0)) for d, x in enumerate(lists) if x])
+    calls = [[functools.partial(run, *args(d, i)) for i in x] for d, x in enumerate(lists)]
+    # one tile in flight per device: the memory budget holds one tile's working set per device
+    done = _devices.timed(calls, depth=1)
+    tiles, costs = [None] * p.tiles, [0.0] * p.tiles
+    for x, res in zip(lists, done):
+        for i, (tile, sec) in zip(x, res):
+            tiles[i], costs[i] = tile, sec
+    th, tw, _ = p.shape
+    img = np.empty((p.height, p.width, 3), np.float32)
+    _place(img, p.steps, th, tw, tiles, where)
+    return img, tuple(costs)
+
+
+def _render_queue(scene, p: Plan, pass_index: int, where):
+    """One progressive pass with each device rendering its `Plan.schedule` list in one call
+    (`_devices.queue_program`); the tiles are written into the image in step order, as one device
+    would (sample batches are added in the same order)."""
+    lists = p.schedule
+    origins, samples, counts, k = _devices.queue_arrays(p.steps, lists)
+    run = _devices.queue_program(p.devices, p.shape, k)
+    put = functools.partial(_devices.put_rows, devices=p.devices)
+    out = _devices.gather(run(scene, put(origins), put(samples), put(counts), np.int32(pass_index)))
+    tiles = [None] * p.tiles
+    for d, x in enumerate(lists):
+        for j, i in enumerate(x):
+            tiles[i] = out[d, j]
+    th, tw, _ = p.shape
+    img = np.empty((p.height, p.width, 3), np.float32)
+    _place(img, p.steps, th, tw, tiles, where)
+    return img
 
 
 def _render_tiles(scene, p: Plan, aovs, bar, should_stop, where, pass_index: int | None = None):

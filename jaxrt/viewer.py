@@ -22,10 +22,18 @@ path`) render progressively: every change starts a new `jaxrt.integrators.path.A
 `jaxrt.integrators.path.samples_jit`, and `image` is the running mean, sum/count. The title shows the count.
 Photon-mapped scenes (`integrator = "sppm"`) refine the same way, one SPPM pass (`jaxrt.integrators.sppm.step`)
 per `refine()`.
+
+On several devices (`devices=`, `jaxrt view --devices N`, as `jaxrt render`) a frame is split into the
+tiles `jaxrt render` would use (`jaxrt.render_tiles.plan`, planned once: the scene's shapes never
+change), a Whitted frame through `jaxrt.render_tiles.render` and each progressive path pass through
+`jaxrt.render_tiles.accumulate` (the first two passes after a change time the tiles, the later ones
+assign them by cost), so a frame equals `jaxrt.render(..., devices=N)`'s. SPPM passes stay on the default
+device (a photon pass is one whole-frame program).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -81,6 +89,8 @@ class Viewer:
             orbit then turns about the object's centre.
         integrator: "whitted" or "path" (default: the scene file's); spp: samples per pixel of one
             pass (default: the scene file's).
+        devices: None (default): the default device alone; else the devices to split each frame over,
+            as `jaxrt.render`'s `devices` ("all", a number N: the first N, or a list of devices).
     Attributes:
         image: (H, W, 3) float32 linear RGB of the current state; frame_time: seconds of the last
             render (of the last pass when progressive).
@@ -93,11 +103,18 @@ class Viewer:
 
     def __init__(self, scene: str | os.PathLike, object: str | None = None, width: int | None = None,
                  height: int | None = None, exposure: float = 0.0, frame: bool = False,
-                 integrator: str | None = None, spp: int | None = None, confine: bool | None = None):
+                 integrator: str | None = None, spp: int | None = None, confine: bool | None = None,
+                 devices: Any = None, devices_source: str = "devices="):
         from jaxrt import scene as _scene
         from jaxrt.image import check_exposure
 
         check_exposure(exposure)
+        self._devices = None
+        if devices is not None:
+            from jaxrt import _devices
+
+            chosen = _devices.select(devices, devices_source)
+            self._devices = chosen if _devices.sharded(chosen) else None
         spec = _scene.parse(_scene.find_scene(scene), overrides={
             "camera.width": width, "camera.height": height, "render.integrator": integrator, "render.spp": spp},
             confine=confine)
@@ -116,6 +133,15 @@ class Viewer:
         self._timer = None
         self.progressive = self.scene.settings.integrator in ("path", "sppm")
         self.accumulation = None
+        self._plan = None
+        if self._devices is not None and self.scene.settings.integrator == "sppm":
+            self._devices = None  # a photon pass runs on the default device (`jaxrt.render_tiles.render`)
+        if self._devices is not None:
+            from jaxrt import _devices, render_tiles
+
+            self._plan = render_tiles.plan(self.scene, devices=self._devices, devices_source=devices_source)
+            if not self.progressive:  # compiled and measured once, as `render_tiles.render` would every frame
+                self._plan = render_tiles.compile_plan(_devices.replicate(self.scene, self._devices), self._plan)
         self.render()
 
     # ---- state -------------------------------------------------------------------------------
@@ -171,10 +197,17 @@ class Viewer:
 
         if self.progressive:
             self.accumulation = None
+            if self._plan is not None:  # time the tiles again: the change may move their costs
+                self._plan = dataclasses.replace(self._plan, costs=None, timed=0)
             return self.refine()
         t0 = time.perf_counter()
-        img = _render.frame(self.scene)
-        img.block_until_ready()
+        if self._plan is not None:
+            from jaxrt import render_tiles
+
+            img = render_tiles.render(self.scene, use_plan=self._plan)
+        else:
+            img = _render.frame(self.scene)
+            img.block_until_ready()
         self.frame_time = time.perf_counter() - t0
         self._show(img)
         return self.image
@@ -189,8 +222,14 @@ class Viewer:
         if not self.progressive:
             return self.image
         t0 = time.perf_counter()
-        accumulate = _sppm.accumulate if self.scene.settings.integrator == "sppm" else _path.accumulate
-        acc = accumulate(self.scene, self.accumulation)
+        if self._plan is not None:
+            from jaxrt import render_tiles
+
+            acc, self._plan = render_tiles.accumulate(self.scene, self.accumulation, use_plan=self._plan,
+                                                      return_plan=True)
+        else:
+            accumulate = _sppm.accumulate if self.scene.settings.integrator == "sppm" else _path.accumulate
+            acc = accumulate(self.scene, self.accumulation)
         img = acc.image
         img.block_until_ready()
         self.frame_time = time.perf_counter() - t0

@@ -236,3 +236,91 @@ def test_whitted_viewer_does_not_refine(viewer):
 def test_cli_view_integrator_option(capsys):
     assert main(["view", "furnace", "--integrator", "bidir"]) == 2
     assert "integrator: 'bidir' is not allowed; allowed: whitted, path" in capsys.readouterr().err
+
+
+# ---- several devices ----------------------------------------------------------------------------
+
+
+def test_cli_view_bad_devices_is_a_one_line_error(capsys):
+    assert main(["view", "spheres", "--devices", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--devices 0" in err and "'all' or a number" in err and len(err.strip().splitlines()) == 1
+    assert main(["view", "spheres", "--devices", "99"]) == 2  # more than this host has: checked before rendering
+    assert "--devices 99" in capsys.readouterr().err
+
+
+_DEVICES = r"""
+import json, sys
+import matplotlib
+matplotlib.use("Agg")
+import numpy as np
+import jax
+import jaxrt
+from jaxrt import integrators
+from jaxrt.integrators import path
+from jaxrt.viewer import Viewer
+
+out = {"devices": len(jax.devices())}
+if sys.argv[1] == "whitted":
+    # the viewer's frame on 4 devices, after a slider change, against jaxrt.render on 4 devices and
+    # against one device's frame
+    v = Viewer("spheres", object="phong", width=24, height=18, devices=4)
+    v.set_param("s", 150.0)
+    split = np.asarray(jaxrt.render(v.scene, devices=4))
+    one = np.asarray(integrators.frame(v.scene))
+    d = np.abs(v.image - one)
+    out.update(tiles=v._plan.tiles, same_as_render=bool(np.array_equal(v.image, split)), max=float(d.max()),
+               beyond=float(np.mean(d.max(-1) / np.maximum(one.max(-1), 1e-2) > 1e-4)), peak=float(one.max()))
+else:
+    # progressive path tracing: three idle passes against three one-device passes
+    f = Viewer("furnace", width=16, height=16, spp=2, devices=4)
+    f.refine(); f.refine()
+    acc = None
+    for _ in range(3):
+        acc = path.accumulate(f.scene, acc)
+    ref = np.asarray(acc.image, np.float64)
+    d = np.abs(np.asarray(f.image, np.float64) - ref)
+    out.update(tiles=f._plan.tiles, measured=f._plan.costs is not None, count=int(f.accumulation.count),
+               max=float(d.max()), mean_ref=float(ref.mean()))
+    f.orbit(20.0, 10.0)  # a change starts again from pass 0, timing the tiles again
+    out["reset"] = int(f.accumulation.count)
+print(json.dumps(out))
+"""
+
+
+def _on_4_devices(part: str) -> dict:
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    e = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
+             PYTHONPATH=os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")])))
+    r = subprocess.run([sys.executable, "-c", _DEVICES, part], cwd=root, env=e, capture_output=True, text=True,
+                       timeout=900, check=False)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["devices"] == 4
+    return out
+
+
+@pytest.mark.slow  # the sharded Whitted program on 4 virtual devices and the one-device frame
+def test_viewer_whitted_frame_on_4_devices_is_jaxrt_renders():
+    """`Viewer(devices=4)` on four virtual CPU devices (a subprocess): the frame after a slider change
+    is `jaxrt.render(devices=4)`'s bit for bit and one device's within the rounding of another XLA
+    module (`tests/test_tiles.py`'s bound)."""
+    w = _on_4_devices("whitted")
+    assert w["tiles"] >= 8 and w["same_as_render"], w
+    assert w["beyond"] <= 0.01 and w["max"] <= 1e-3 * w["peak"] and w["peak"] > 0.1, w
+
+
+@pytest.mark.slow  # the timed tile program compiles once per virtual device, then the cost-scheduled pass
+def test_viewer_progressive_passes_on_4_devices_equal_one_devices():
+    """Idle passes of `Viewer(devices=4)`: the first timed, the later ones scheduled by cost; three
+    equal three `path.accumulate` passes within float32 rounding, and a change starts again."""
+    p = _on_4_devices("path")
+    assert p["tiles"] >= 4 and p["measured"] and p["count"] == 6
+    assert p["max"] <= 1e-5 * max(p["mean_ref"], 1.0) and p["mean_ref"] > 0.1, p
+    assert p["reset"] == 2

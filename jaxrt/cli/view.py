@@ -32,6 +32,9 @@ Examples:
     parser.add_argument("--integrator", help=f"{' or '.join(integrators.names())} (default: the scene's; path "
                                                  "refines progressively)")
     parser.add_argument("--spp", type=int, help="samples per pixel of one (progressive) pass (default: the scene's)")
+    parser.add_argument("--devices", metavar="N", default="all",
+                        help="split each frame's tiles over the first N devices of jax.devices(), as jaxrt render "
+                             "(default: all; 1: the default device alone)")
     parser.add_argument("--confine", action="store_true",
                         help="refuse scene paths (meshes, textures, environment maps) outside the scene's "
                              "folder and the data folder (also JAXRT_CONFINE=1)")
@@ -44,9 +47,13 @@ def run(args: argparse.Namespace) -> int:
     from jaxrt.image import check_exposure
     from jaxrt.viewer import Viewer
 
+    from jaxrt import _devices
+
     check_exposure(args.exposure, "--exposure")
+    n = _devices.parse(args.devices, "--devices")  # the range is checked against the host's devices by Viewer
     v = Viewer(args.scene, object=args.object, width=args.width, height=args.height, exposure=args.exposure,
-               frame=args.frame, integrator=args.integrator, spp=args.spp, confine=args.confine or None)
+               frame=args.frame, integrator=args.integrator, spp=args.spp, confine=args.confine or None,
+               devices="all" if n is None else n, devices_source="--devices")
     v.figure()
     if matplotlib.get_backend().lower() == "agg":
         print("jaxrt view: no interactive matplotlib backend (is a display available?); "

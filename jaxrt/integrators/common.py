@@ -13,7 +13,7 @@ from jaxtyping import Array, Bool, Float
 
 from jaxrt import envmap
 from jaxrt.accel import Hit
-from jaxrt.shading.surface import normalize
+from jaxrt.shading.surface import dot, normalize
 
 
 def intersect_active(geometry, origins: Float[Array, "B 3"], directions: Float[Array, "B 3"],
@@ -58,12 +58,14 @@ class EmitterTable(eqx.Module):
     """Sampling table of the emissive triangles (derived from current values, never stored).
 
     cdf: (E + 1,) over emitters by area·luminance(emission); face_pdf: (F,) probability density per
-    unit area of choosing a point on each face (0 for non-emitters); total: () Σ area·luminance.
+    unit area of choosing a point on each face (0 for non-emitters); total: () Σ area·luminance;
+    area: (E,) each emitter's area (in the order of `AreaLights.prims`).
     """
 
     cdf: Float[Array, " E1"]
     face_pdf: Float[Array, " F"]
     total: Float[Array, ""]
+    area: Float[Array, " E"]
 
 
 def emitter_table(scene) -> EmitterTable:
@@ -78,7 +80,7 @@ def emitter_table(scene) -> EmitterTable:
     cdf = jnp.concatenate([jnp.zeros(1), jnp.cumsum(power) / norm])
     pdf_area = jnp.where(area > 0, power / norm / jnp.where(area > 0, area, 1.0), 0.0)
     face_pdf = jnp.zeros(geo.face_count).at[al.prims].set(pdf_area)
-    return EmitterTable(cdf, face_pdf, total)
+    return EmitterTable(cdf, face_pdf, total, area)
 
 
 def sample_emitter_point(geo, al, table: EmitterTable, u: Float[Array, "B 3"]):
@@ -94,4 +96,27 @@ def sample_emitter_point(geo, al, table: EmitterTable, u: Float[Array, "B 3"]):
     y = (1.0 - b1 - b2)[:, None] * v0 + b1[:, None] * v1 + b2[:, None] * v2
     n_l = normalize(jnp.cross(v1 - v0, v2 - v0))
     return face, (v0, v1, v2), y, n_l
+
+
+def sample_area_light(geo, al, table: EmitterTable, origin: Float[Array, "B 3"], u: Float[Array, "B 3"],
+                      p_select: float):
+    """One next-event-estimation sample of the emissive triangles seen from `origin` (a point
+    already offset off its surface): a point y of `sample_emitter_point` (u), the direction wi
+    towards it, the emitted radiance L_e of its face, the solid-angle pdf p_select·p_A·d²/cos θ_l
+    (p_A the table's area density, θ_l the angle at y between -wi and the face's winding normal; pbrt's
+    area-light `SampleLi`) and the distance to y. A point seen from behind the face, one at the
+    origin, or an empty table (no emitted power) gives pdf 0 and L_e 0. Returns (wi, L_e, pdf, dist).
+
+    wi aims from the offset origin: a ray parallel to y − p from the unoffset point would meet the
+    light's plane eps/cos θ early, short of a shadow ray's end, and count as occluded."""
+    face, _, y, n_l = sample_emitter_point(geo, al, table, u)
+    to = y - origin
+    d2 = dot(to, to)
+    dist = jnp.sqrt(jnp.maximum(d2, 1e-30))
+    wi = to / dist[:, None]
+    cos_l = -dot(wi, n_l)
+    ok = (cos_l > 0) & (d2 > 1e-20) & (table.total > 0)
+    pdf = jnp.where(ok, p_select * table.face_pdf[face] * d2 / jnp.where(ok, cos_l, 1.0), 0.0)
+    le = jnp.where(ok[:, None], al.emission[geo.face_material(face)], 0.0)
+    return wi, le, pdf, dist
 

@@ -62,7 +62,7 @@ from jaxtyping import Array, Float, Int
 import brdfs
 from jaxrt import camera, envmap
 from jaxrt import lights as _lights
-from jaxrt.integrators.common import emitter_table, intersect_active, power_heuristic, sample_emitter_point
+from jaxrt.integrators.common import emitter_table, intersect_active, power_heuristic, sample_area_light
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, hit_params, glass_split, is_glass
 from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented, to_local
@@ -223,17 +223,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             dist_c = jnp.full(B, jnp.inf)
             pick_tri = u[:, 0] < p_tri
             if table is not None:
-                face, _, y, n_l = sample_emitter_point(geo, al, table, u[:, 1:4])
-                # aim from the offset origin: a ray parallel to y - p would meet the light's plane
-                # eps/cosθ early, short of the shadow ray's end, and count as occluded
-                to = y - origin
-                d2 = dot(to, to)
-                dist = jnp.sqrt(jnp.maximum(d2, 1e-30))
-                wi_t = to / dist[:, None]
-                cos_l = -dot(wi_t, n_l)
-                ok_t = (cos_l > 0) & (d2 > 1e-20) & (table.total > 0)
-                p_t = jnp.where(ok_t, p_tri * table.face_pdf[face] * d2 / jnp.where(ok_t, cos_l, 1.0), 0.0)
-                le_t = jnp.where(ok_t[:, None], al.emission[geo.face_material(face)], 0.0)
+                wi_t, le_t, p_t, dist = sample_area_light(geo, al, table, origin, u[:, 1:4], p_tri)
                 wi_c = jnp.where(pick_tri[:, None], wi_t, wi_c)
                 le_c = jnp.where(pick_tri[:, None], le_t, le_c)
                 p_c = jnp.where(pick_tri, p_t, p_c)

@@ -62,7 +62,7 @@ import brdfs
 from jaxrt import camera, envmap
 from jaxrt import lights as _lights
 from jaxrt.errors import InputError
-from jaxrt.integrators.common import emitter_table, intersect_active, sample_emitter_point
+from jaxrt.integrators.common import emitter_table, intersect_active, sample_area_light, sample_emitter_point
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, glass_split, hit_params, is_glass
 from jaxrt.shading.surface import (dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented,
@@ -248,8 +248,7 @@ def light_power(scene) -> Float[Array, "3"]:
     total = 4.0 * math.pi * jnp.sum(scene.lights.intensity, axis=0)
     if scene.area_lights is not None and scene.area_lights.count > 0:
         geo, al = scene.geometry, scene.area_lights
-        v0, v1, v2 = geo.triangles(al.prims)
-        area = 0.5 * jnp.linalg.norm(jnp.cross(v1 - v0, v2 - v0), axis=-1)
+        area = emitter_table(scene).area  # the areas the photon emission samples by
         total = total + math.pi * jnp.sum(area[:, None] * al.emission[geo.face_material(al.prims)], axis=0)
     return total
 
@@ -577,16 +576,9 @@ def _nee(scene, vp, models, key):
         pick_tri = u[:, 0] < p_tri
         if has_tri:
             table = emitter_table(scene)
-            face, _, y, n_l = sample_emitter_point(geo, al, table, u[:, 1:4])
-            to = y - origin
-            d2 = dot(to, to)
-            dist = jnp.sqrt(jnp.maximum(d2, 1e-30))
-            wi_t = to / dist[:, None]
-            cos_l = -dot(wi_t, n_l)
-            ok_t = (cos_l > 0) & (d2 > 1e-20) & (table.total > 0)
-            p_t = jnp.where(ok_t, p_tri * table.face_pdf[face] * d2 / jnp.where(ok_t, cos_l, 1.0), 0.0)
+            wi_t, le_t, p_t, dist = sample_area_light(geo, al, table, origin, u[:, 1:4], p_tri)
             wi_c = jnp.where(pick_tri[:, None], wi_t, wi_c)
-            le_c = jnp.where((pick_tri & ok_t)[:, None], al.emission[geo.face_material(face)], le_c)
+            le_c = jnp.where(pick_tri[:, None], le_t, le_c)
             p_c = jnp.where(pick_tri, p_t, p_c)
             dist_c = jnp.where(pick_tri, dist, dist_c)
         if env is not None:

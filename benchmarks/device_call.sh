@@ -38,7 +38,9 @@ for s in "$@"; do
                   stage glass-transmit 70 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip rays check --scenes showcase dragon
                   stage glass-opaque 70 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip rays check --scenes showcase dragon \
                       --override render.glass_shadows=opaque ;;
-        study)    stage study 240 python3 benchmarks/brdf_study.py --materials 100 --json "$OUT/study.json" ;;
+        study)    stage study 240 python3 benchmarks/brdf_study.py --materials 100 --runs 2 --json "$OUT/study.json" ;;
+        image)    stage image-study 200 python3 benchmarks/image_study.py --models cook_torrance,ward,ashikhmin_shirley \
+                      --runs 1 --json "$OUT/image.json" ;;
         path)     stage path 80 python3 benchmarks/path.py --size 512 --spp 4 --passes 5 --no-mitsuba ;;
         sppm)     stage sppm 90 python3 benchmarks/sppm.py --size 128 --passes 8 ;;
         latency)  stage latency 300 python3 benchmarks/latency.py --no-mitsuba --json "$OUT/latency.json" \

@@ -62,6 +62,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from jaxrt import _config
@@ -357,8 +358,8 @@ class _Stream(io.TextIOBase):
 
 
 class _Worker:
-    def __init__(self, path: Path, idle_timeout: float, max_rss: int | None):
-        self.path, self.idle_timeout, self.max_rss = path, idle_timeout, max_rss
+    def __init__(self, path: Path, idle_timeout: float, max_rss: int | None, execute: Callable[[list[str]], int]):
+        self.path, self.idle_timeout, self.max_rss, self.execute = path, idle_timeout, max_rss, execute
         self.jobs: list = []
         self.cv = threading.Condition()
         self.busy = False
@@ -453,8 +454,6 @@ class _Worker:
                 return  # retire: the next `jaxrt serve` starts a fresh worker
 
     def run_job(self, conn: socket.socket, job: dict) -> None:
-        from jaxrt import cli
-
         lock, gone = threading.Lock(), threading.Event()
         tty = job.get("isatty", {})
         out = _Stream(conn, b"O", lock, bool(tty.get("stdout")), gone)
@@ -496,7 +495,7 @@ class _Worker:
                 self.job_running = True
             threading.Thread(target=listen, daemon=True).start()
             try:
-                code = cli.execute(list(job["argv"]))
+                code = self.execute(list(job["argv"]))
             except SystemExit as e:  # argparse: --help, a bad option
                 code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
                 if not isinstance(e.code, (int, type(None))):
@@ -546,29 +545,20 @@ def _default_max_rss() -> int | None:
         return None
 
 
-def _warm_up() -> None:
-    """What every job needs first: JAX with the compilation cache on, the devices, the commands."""
-    import importlib
-
-    from jaxrt import cli
-
-    for name in ("render", "fit", "sweep"):
-        importlib.import_module(cli.COMMANDS[name][0])
-    import jax
-
-    jax.devices()
-
-
-def serve(idle_timeout: float = DEFAULT_IDLE_TIMEOUT, *, ready=None, max_rss: int | None = None) -> int:
-    """Run a worker in this process until it is idle for `idle_timeout` seconds, asked to stop, or
-    retires; 0, or 1 where another worker already listens for this environment. `ready(path)` is
-    called once it accepts jobs."""
+def serve(execute: Callable[[list[str]], int], idle_timeout: float = DEFAULT_IDLE_TIMEOUT, *,
+          warm_up: Callable[[], None] | None = None, ready: Callable[[Path], None] | None = None,
+          max_rss: int | None = None) -> int:
+    """Run a worker in this process: each job is `execute(argv) -> exit code` (`jaxrt.cli.execute`),
+    run in the main thread. Returns when it has been idle for `idle_timeout` seconds, is asked to
+    stop, or retires: 0; or 1 at once where another worker already listens for this environment.
+    `warm_up()` runs before it listens (imports, device start); `ready(path)` once it accepts jobs."""
     import fcntl
 
     path = socket_path()
     _private_folder(path.parent)
-    _warm_up()
-    worker = _Worker(path, idle_timeout, _default_max_rss() if max_rss is None else max_rss)
+    if warm_up is not None:
+        warm_up()
+    worker = _Worker(path, idle_timeout, _default_max_rss() if max_rss is None else max_rss, execute)
     import jax.monitoring
 
     jax.monitoring.register_event_listener(worker.on_event)

@@ -44,6 +44,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help=f"exit after this long without a job (default {serve.DEFAULT_IDLE_TIMEOUT:g})")
 
 
+def _warm_up() -> None:
+    """What most jobs need first: JAX with the compilation cache on, the devices, the busiest commands."""
+    import importlib
+
+    from jaxrt import cli
+
+    for name in ("render", "fit", "sweep"):
+        importlib.import_module(cli.COMMANDS[name][0])
+    import jax
+
+    jax.devices()
+
+
 def run(args: argparse.Namespace) -> int:
     from jaxrt import serve
     from jaxrt.errors import InputError
@@ -58,7 +71,10 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(state, indent=1) if args.status else f"jaxrt serve: stopping the worker (pid {state['pid']})")
         return 0
     if args.foreground:
-        return serve.serve(args.idle_timeout, ready=lambda p: print(f"jaxrt serve: ready on {p}", flush=True))
+        from jaxrt import cli
+
+        return serve.serve(cli.execute, args.idle_timeout, warm_up=_warm_up,
+                           ready=lambda p: print(f"jaxrt serve: ready on {p}", flush=True))
     path = serve.socket_path()
     if serve.request(b"S", path) is not None:
         print(f"jaxrt serve: a worker already runs on {path}")

@@ -223,6 +223,9 @@ def cases(args) -> dict[str, Case]:
                              ("-c", DRAGON_FRAME.format(size=frame)), needs_data=True, peer="mitsuba-frame"),
         "imports": Case("Python imports before any work (jax, jaxrt.scene/render, fitting.setup)",
                         ("-c", "import jax, jaxrt.scene, jaxrt.api, brdfs, fitting.setup")),
+        "sweep-frame": Case("a notebook's first sweep frame (`jaxrt.sweep.sweep`, phong rho_d, one 128² frame of "
+                            "spheres, as the parameter_sweeps notebook)",
+                            ("-c", "from jaxrt import sweep; sweep.sweep('phong', 'rho_d', [0.5], width=128, height=128)")),
         "import-jaxrt": Case("`import jaxrt`", ("-c", "import jaxrt")),
         "import-brdfs": Case("`import brdfs`", ("-c", "import brdfs")),
         "import-fitting": Case("`import fitting`", ("-c", "import fitting")),

@@ -15,7 +15,10 @@ Packages (docs/ARCHITECTURE.md has the layout and data flow):
   cli          the `jaxrt` command, one module per subcommand
 Modules: camera, lights, envmap, image (EXR/PNG), render_tiles (rendering within a memory budget),
 glare (the aperture's diffraction glare, a post-process of the image),
-sweep (parameter sweeps), viewer, fsutil, errors.
+sweep (parameter sweeps), viewer, fsutil, errors, serve (the resident worker behind `jaxrt serve`).
+
+Names are imported on first use: `import jaxrt` loads no JAX; the first JAX-using module turns
+JAX's persistent compilation cache on (`jaxrt.cache`) before it loads.
 """
 
 from __future__ import annotations

@@ -7,6 +7,11 @@ as one line with exit code 2; set JAXRT_DEBUG=1 for the full traceback. argparse
 unknown option, a value that is not a number) are one line with exit code 2 as well. With
 JAXRT_COORDINATOR (several hosts) the command first joins the other processes; processes other than
 0 run the same command but print nothing on stdout and write no files.
+
+`main` first offers the command to a resident worker (`jaxrt serve`, `jaxrt.serve.forward`): where
+one runs for this environment and JAXRT_WORKER allows, the command runs there and this process
+imports no JAX; otherwise `execute` runs it here. Parsing the arguments imports only the selected
+command's module.
 """
 
 from __future__ import annotations

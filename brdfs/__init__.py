@@ -64,7 +64,7 @@ def __getattr__(name: str):
         value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value
         return value
-    if not name.startswith("__"):
+    if not name.startswith("_") and _is_submodule(name):
         # the model modules, `measured`, `analysis`, ...
         try:
             return importlib.import_module(f"{__name__}.{name}")
@@ -72,6 +72,15 @@ def __getattr__(name: str):
             if e.name != f"{__name__}.{name}":
                 raise
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _is_submodule(name: str) -> bool:
+    """Whether `name` is a module or package of this package (looked up on disk, not imported: a
+    probe such as IPython's `_repr_html_` or a misspelt name must not import anything)."""
+    from pathlib import Path
+
+    here = Path(__file__).parent
+    return name.isidentifier() and ((here / f"{name}.py").is_file() or (here / name / "__init__.py").is_file())
 
 
 def __dir__() -> list[str]:

@@ -238,3 +238,23 @@ def test_the_socket_name_follows_what_a_warm_process_cannot_change(tmp_path):
     assert serve.socket_path(environ=base).parent == tmp_path
     long = {**base, "JAXRT_CACHE_DIR": str(tmp_path / ("d" * 120))}  # too long for a socket's address
     assert len(str(serve.socket_path(environ=long))) <= 100
+
+
+@pytest.mark.slow  # a fit compiles its trace and solver: about a minute on 2 cores
+def test_a_fit_through_the_worker_equals_the_fit_in_its_own_process(worker, tmp_path):
+    env = worker["env"]
+    scene = tmp_path / "scene.toml"
+    scene.write_text(SCENE_TOML.replace("width = 256", "width = 16").replace("height = 256", "height = 12"))
+    target = tmp_path / "target.exr"
+    r = _cli({**env, "JAXRT_WORKER": "off"}, "render", str(scene), "-o", str(target))
+    assert r.returncode == 0, r.stderr[-2000:]
+    argv = ("fit", str(target), "--scene", str(scene), "--model", "phong", "--starts", "2", "--max-steps", "30", "-q")
+    outs = []
+    for where in ("worker", "off", "worker"):
+        out = tmp_path / f"fit-{where}-{len(outs)}.json"
+        r = _cli({**env, "JAXRT_WORKER": "use" if where == "worker" else "off"}, *argv, "--out", str(out))
+        assert r.returncode == 0, r.stderr[-2000:]
+        outs.append(json.loads(out.read_text()))
+    drop = ("seconds", "time", "elapsed", "us_per")  # timings
+    clean = [{k: v for k, v in o.items() if not any(d in k for d in drop)} for o in outs]
+    assert clean[0] == clean[1] == clean[2]

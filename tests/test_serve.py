@@ -258,3 +258,21 @@ def test_a_fit_through_the_worker_equals_the_fit_in_its_own_process(worker, tmp_
     drop = ("seconds", "time", "elapsed", "us_per")  # timings
     clean = [{k: v for k, v in o.items() if not any(d in k for d in drop)} for o in outs]
     assert clean[0] == clean[1] == clean[2]
+
+
+def test_jaxrt_worker_start_starts_a_detached_worker_that_runs_the_job(tmp_path):
+    env = _env(tmp_path / "c", JAXRT_WORKER="start")
+    path = _socket_path(env)
+    try:
+        r = _cli(env, "render", str(tmp_path / "missing.toml"))
+        assert r.returncode == 2 and "missing.toml" in r.stderr
+        state = _status(env)
+        assert state is not None and state["jobs"] == 1  # the job ran in the worker it started
+        assert _cli(env, "serve", "--stop", timeout=60).returncode == 0
+        t0 = time.monotonic()
+        while path.exists() and time.monotonic() - t0 < 30:
+            time.sleep(0.05)
+        assert not path.exists()
+    finally:
+        if path.exists():
+            _cli(env, "serve", "--stop", timeout=60)

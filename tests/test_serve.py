@@ -276,3 +276,38 @@ def test_jaxrt_worker_start_starts_a_detached_worker_that_runs_the_job(tmp_path)
     finally:
         if path.exists():
             _cli(env, "serve", "--stop", timeout=60)
+
+
+def test_a_worker_that_dies_during_the_job_gives_one_line_and_exit_1(tmp_path):
+    """A stand-in worker on the socket takes the job, writes a line of output and dies (closes the
+    connection without an exit code): the client says so in one line and exits 1, without running
+    the job again."""
+    import struct
+
+    env = _env(tmp_path / "c")
+    path = _socket_path(env)
+    path.parent.mkdir(parents=True)
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    server.bind(str(path))
+    server.listen(1)
+    seen = {}
+
+    def fake():
+        conn, _ = server.accept()
+        kind, n = struct.unpack(">cI", conn.recv(5, socket.MSG_WAITALL))
+        seen["kind"], seen["job"] = kind, json.loads(conn.recv(n, socket.MSG_WAITALL))
+        line = b"partial output\n"
+        conn.sendall(struct.pack(">cI", b"O", len(line)) + line)
+        conn.close()
+
+    t = threading.Thread(target=fake, daemon=True)
+    t.start()
+    try:
+        r = _cli(env, "render", str(tmp_path / "scene.toml"), "--width", "8", timeout=120)
+    finally:
+        t.join(10)
+        server.close()
+    assert seen["kind"] == b"J" and seen["job"]["argv"] == ["render", str(tmp_path / "scene.toml"), "--width", "8"]
+    assert seen["job"]["cwd"] == str(REPO) and seen["job"]["env"]["JAXRT_CACHE_DIR"] == str(tmp_path / "c")
+    assert r.returncode == 1 and r.stdout == "partial output\n"
+    assert len(r.stderr.strip().splitlines()) == 1 and "stopped during the job" in r.stderr

@@ -8,8 +8,8 @@ import sys
 
 EPILOG = """\
 A `jaxrt` command pays a fixed start-up cost before any work: importing JAX, starting the device
-runtime, loading stored programs and cached scenes (seconds; see README "Caches and start-up
-time"). `jaxrt serve` starts a worker process that pays it once: while it runs, `jaxrt render`,
+runtime, loading stored programs and cached scenes (seconds; README "Start-up time").
+`jaxrt serve` starts a worker process that pays it once: while it runs, `jaxrt render`,
 `fit`, `sweep`, ... started from any shell with the same Python, jaxrt checkout and JAX-related
 environment variables are run inside it, with their output streamed back, the exit code returned
 and Ctrl-C forwarded. Images and fits are bit-identical to a run without the worker.

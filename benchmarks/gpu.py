@@ -144,10 +144,10 @@ def bench_rays(name, res, impls, repeats, embree, builder=None, shadow_res=None)
     return rows
 
 
-def bench_frame(name, res, impl, repeats, dev):
+def bench_frame(name, res, impl, repeats, dev, overrides=None):
     os.environ["JAXRT_TRAVERSAL"] = impl  # read when the frame function is traced
     t = time.perf_counter()
-    scn = S.load(name, overrides={"camera.width": res, "camera.height": res})
+    scn = S.load(name, overrides={"camera.width": res, "camera.height": res, **(overrides or {})})
     jax.block_until_ready(scn)
     t_build = time.perf_counter() - t
     # A new function object per implementation: jax.jit(integrators.whitted) would share jax's trace
@@ -165,6 +165,8 @@ def bench_frame(name, res, impl, repeats, dev):
     n_before = frame._cache_size()
     jax.block_until_ready(frame(moved))
     recompiled = frame._cache_size() != n_before
+    if overrides:
+        name = name + "".join(f" {k}={v}" for k, v in overrides.items())
     row = dict(scene=name, res=res, impl=impl, build_s=t_build, compile_s=t_compile, frame_ms=t_frame * 1e3,
                fps=1 / t_frame, peak_gb=peak_gb(dev), finite=finite, recompiled=recompiled)
     print("  frame", {k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
@@ -207,8 +209,11 @@ def main(argv=None) -> int:
     ap.add_argument("--skip", nargs="*", default=[], choices=["rays", "frames", "check"])
     ap.add_argument("--builders", nargs="+", default=[None], help="bvh.build builders for the ray rows, "
                     "BUILDER or BUILDER/LAYOUT, e.g. lbvh sah/dfs (default: bvh.build's; frames always use it)")
+    ap.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
+                    help="scene override for the frame rows, e.g. render.glass_shadows=opaque (repeatable)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
+    overrides = dict(o.split("=", 1) for o in args.override)
     if args.cpu:  # before anything initialises a backend
         jax.config.update("jax_platforms", "cpu")
     gpu = jax.default_backend() == "gpu"
@@ -226,7 +231,7 @@ def main(argv=None) -> int:
     if "frames" not in args.skip:
         for name in args.scenes:
             for impl in args.frame_impls or ["auto"]:
-                out["frames"].append(bench_frame(name, res, impl, args.repeats, dev))
+                out["frames"].append(bench_frame(name, res, impl, args.repeats, dev, overrides))
     if "check" not in args.skip:
         out["check"] = check_images(args.scenes, args.check_size)
     if args.json:

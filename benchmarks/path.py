@@ -19,7 +19,9 @@ Torrance/Phong with these exact parameterisations, so it gets the nearest plugin
 Beckmann with alpha = m, roughplastic for the floor): the timing compares the same light transport
 workload, not identical images. Mitsuba's variant: llvm_ad_rgb (CPU, JIT-compiled, vectorised), or
 scalar_rgb when llvm fails (each Mitsuba run is a child process, so an LLVM abort only costs the
-fallback); the variant that ran is printed. Runs unchanged on a GPU (JAX
+fallback); the variant that ran is printed. Mitsuba's path integrator needs a libLLVM newer than
+Debian 12's default 15 (`apt-get install libllvm19`); `_mitsuba.use_libllvm` finds it, or set
+DRJIT_LIBLLVM_PATH. Runs unchanged on a GPU (JAX
 picks the backend; Mitsuba stays on the CPU).
 """
 
@@ -36,10 +38,12 @@ import jax
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from jaxrt import image  # noqa: E402
 from jaxrt.integrators import path as P# noqa: E402
 from jaxrt import scene as S  # noqa: E402
+from _mitsuba import use_libllvm  # noqa: E402
 
 
 def sky_exr(path: Path, h: int = 64, w: int = 128) -> Path:
@@ -194,6 +198,7 @@ def main(argv=None) -> int:
     if args.mitsuba_child:
         import json
 
+        use_libllvm()
         import mitsuba as mi
 
         mi.set_variant(args.mitsuba_variant)

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -25,8 +24,10 @@ import jax
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import jaxrt as R  # noqa: E402
+from _mitsuba import direct_scene, use_libllvm  # noqa: E402
 from jaxrt import scene as S  # noqa: E402
 
 SCENES = ("spheres", "bunny", "dragon", "cornell", "showcase")
@@ -54,39 +55,20 @@ def bench_scene(name: str, size: int, repeats: int) -> dict:
 
 
 def mitsuba_dragon(size: int, repeats: int) -> dict:
+    use_libllvm()
     import mitsuba as mi
-    import trimesh
 
     mi.set_variant("llvm_ad_rgb")
     scn = S.load("dragon", overrides={"camera.width": size, "camera.height": size})
-    v = np.asarray(scn.geometry.vertices)
-    f = np.asarray(scn.geometry.faces)
-    cam, light = scn.camera, scn.lights
-    with tempfile.TemporaryDirectory() as d:
-        ply = Path(d) / "dragon_scene.ply"
-        trimesh.Trimesh(v, f, process=False).export(ply)
-        T = mi.ScalarTransform4f
-        scene = mi.load_dict({
-            "type": "scene",
-            "integrator": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0},
-            "sensor": {
-                "type": "perspective", "fov": float(cam.vfov), "fov_axis": "y",
-                "to_world": T().look_at(origin=np.asarray(cam.position).tolist(),
-                                        target=np.asarray(cam.look_at).tolist(), up=np.asarray(cam.up).tolist()),
-                "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
-                "sampler": {"type": "independent", "sample_count": 1},
-            },
-            "light": {"type": "point", "position": np.asarray(light.position[0]).tolist(),
-                      "intensity": {"type": "rgb", "value": np.asarray(light.intensity[0]).tolist()}},
-            "mesh": {"type": "ply", "filename": str(ply), "face_normals": True,
-                     "bsdf": {"type": "diffuse"}},
-        })
-        np.asarray(mi.render(scene, spp=1))  # warm-up: LLVM kernel compilation
-        times = []
-        for i in range(repeats):
-            s = time.perf_counter()
-            np.asarray(mi.render(scene, spp=1, seed=i + 1))
-            times.append(time.perf_counter() - s)
+    light = scn.lights
+    scene = direct_scene(mi, scn.geometry.vertices, scn.geometry.faces, scn.camera, light.position[0],
+                         light.intensity[0], size)
+    np.asarray(mi.render(scene, spp=1))  # warm-up: LLVM kernel compilation
+    times = []
+    for i in range(repeats):
+        s = time.perf_counter()
+        np.asarray(mi.render(scene, spp=1, seed=i + 1))
+        times.append(time.perf_counter() - s)
     return dict(frame_s=statistics.median(times), frames=times)
 
 

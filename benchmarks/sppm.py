@@ -1,31 +1,74 @@
-"""Stochastic progressive photon mapping throughput on the shipped caustic scene, and (with
---equal-time) SPPM against the path tracer at equal wall time on the area light's caustic.
+"""Stochastic progressive photon mapping on caustics: throughput, a converged path-traced reference,
+and SPPM against the path tracer at equal wall time.
 
+Commands. On one NVIDIA H200 the two GPU lines take about 3.5 minutes together (start-up, BVH build
+and compilation included: the reference stops after 100 s of rendering, the table renders 4 s per
+integrator plus 3 x 4 s for the bias check); the CPU line (2 cores) about 3 minutes plus compilation,
+with the reference file made on the GPU:
+
+    # GPU: the reference, then the equal-time table and the bias check
+    python benchmarks/sppm.py --make-reference 4194304 --max-seconds 100 --out caustic_ref.npz
+    python benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 --reference caustic_ref.npz
+    # CPU, with the GPU's caustic_ref.npz (the scene and settings are checked on load)
+    python benchmarks/sppm.py --equal-time 5,10,20,40 --reference caustic_ref.npz --bias-seeds 0
+    # throughput on the shipped scene; the README's picture
     python benchmarks/sppm.py                                   # 128x96, 65536 photons, 8 passes
-    python benchmarks/sppm.py --size 256 --photons 262144 --passes 8
-    python benchmarks/sppm.py --equal-time 20                   # + error at 20 s each (area light only)
-    python benchmarks/sppm.py --picture docs/caustics.png --seconds 40   # the README's picture
+    python benchmarks/sppm.py --picture docs/caustics.png --seconds 40 --size 192
 
-Throughput: compile time of one pass (`jaxrt.integrators.sppm.step`), then the median wall time of
-`passes` passes (block_until_ready each); passes/s = 1 / median; photons/s = photons per pass /
-median (the whole pass: camera pass, photon pass, hash grid, gather); the photon pass alone
-(`sppm.trace_photons`, compiled separately) gives photons traced/s.
+Throughput (no other mode): compile time of one pass (`jaxrt.integrators.sppm.step`), then the
+median wall time of `passes` passes (block_until_ready each); passes/s = 1 / median; photons/s =
+photons per pass / median (the whole pass: camera pass, photon pass, hash grid, gather); the photon
+pass alone (`sppm.trace_photons`, compiled separately) gives photons traced/s.
 
-Equal time (--equal-time T): the caustic scene with its point light removed (the path tracer cannot
-render a point light's caustic at all), 64x48, max_depth 6. Reference: the path tracer with
-`--ref-spp` samples per pixel. Then SPPM and the path tracer each run passes until T seconds of
-rendering (compilation excluded); the error is the RMS difference to the reference over the caustic
-region (floor pixels under the sphere whose reference exceeds the floor's direct light by 20 %:
-light focused by the glass) relative to the reference's mean there. The reference's own noise is
-printed beside it.
+The equal-time scene (`caustic_doc`): scenes/caustics.toml without its point light (the path tracer
+cannot render a point light's caustic at all), its 0.3 m lamp moved behind the sphere (to where the
+point light is: the lamp's caustic then lands on the floor in front of the sphere, in view, instead
+of under it) and the camera closer, max_depth 6, --size x 3/4 pixels (default 96x72). The floor in
+the sphere's shadow gets its light only through the glass, which the path tracer reaches only by
+BSDF sampling (its shadow rays stop at glass): fireflies.
+
+--make-reference SPP --out FILE: the path tracer's image of that scene with SPP samples per pixel,
+in chunks of --chunk-spp (one pass each, pass indices from 2^20 on so they never coincide with the
+equal-time runs' 0, 1, ...), with a progress bar. Saved (numpy .npz): the per-pixel mean, the
+per-pixel standard error (the spread of the chunk means / sqrt(chunks)), the means of its even and
+odd chunks (a second estimate of its error, `_split_noise`), a direct-light-only image
+(max_depth 1, chunks of the same size, 1/16 as many, 2..64), the fraction of each pixel's first hits on the floor,
+and the settings (the scene as JSON, spp, chunks, device, time, versions). With --max-seconds it
+stops after that much rendering and saves the chunks done (the file records their number).
+
+The caustic region (`caustic_region`, computed from the reference when it is loaded): pixels whose
+first hit is always the floor and whose light after at least one scattering (the reference minus its
+direct-only image, luminance) exceeds REGION_FACTOR = 5 times the median floor pixel's: the core of
+the light focused onto the floor by the glass (up to ~150 times the median at 96x72). The directly lit
+floor, the dim interreflection in the shadow and the caustic's faint aberrated halo stay out of it.
+Pixels picked by the reference's own noise bias its region mean upwards: negligible once the
+reference has converged (its relative standard error there a few per cent), which the rows need anyway.
+
+--equal-time T1,T2,... --reference FILE: checks that FILE was made for this very scene (resolution,
+max_depth, every scene value; one line and exit status 2 otherwise), then runs SPPM (--photons per
+pass, initial radius --radius) and the path tracer (--path-spp samples per pass) each once for
+max(T) seconds of rendering after compilation (excluded), taking their images when the time passed
+reaches each T. For each T it prints the relative RMS error over the caustic region
+(sqrt(mean (image − reference)²) / mean reference, over the region's pixels and channels), the same
+with the reference's own noise removed (sqrt(e² − s²), s the reference's relative RMS error, which
+adds to e² on average: the larger of the chunks' standard error and the error estimated from the
+difference of its even and odd chunks), and the ratio path / SPPM. A row counts ("judged") only where s is
+below a third of both errors. Then the bias check: --bias-seeds independent SPPM runs of max(T)
+seconds; the mean of their region means against the reference's region mean, with the combined
+standard error (the runs' spread / sqrt(runs) and the reference's).
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
+import json
+import math
 import statistics
+import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import jax
@@ -36,6 +79,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from jaxrt import scene as S  # noqa: E402
 from jaxrt.integrators import path as P  # noqa: E402
 from jaxrt.integrators import sppm  # noqa: E402
+
+#: the equal-time scene's lamp position (behind the sphere) and camera (see the module docstring)
+LAMP = [0.0, 3.0, -3.0]
+CAMERA = {"position": [0.0, 3.0, 5.0], "look_at": [0.0, 0.4, 0.7], "vfov": 30.0}
+MAX_DEPTH = 6
+#: pass indices of the reference's chunks start here (the equal-time runs use 0, 1, ...)
+REF_PASS0 = 1 << 20
+#: the caustic region's threshold, in median floor radiances (see the module docstring)
+REGION_FACTOR = 5.0
+#: the reference file's format version (a file of another version is refused); format 1 files (without
+#: the even and odd chunks' means) are still read, their error estimated from the chunks' spread alone
+REF_FORMAT = 2
+_READS_FORMATS = (1, 2)
 
 
 def throughput(size: int, photons: int, passes: int) -> None:
@@ -81,47 +137,16 @@ def _run_for(seconds, step, state):
     return state, n, time.perf_counter() - t0
 
 
-def equal_time(seconds: float, ref_spp: int) -> None:
-    over = {"camera.width": 64, "camera.height": 48, "render.max_depth": 6}
-    doc = S.parse(S.find_scene("caustics"), overrides=over)
-    import dataclasses
-
-    doc = dataclasses.replace(doc, lights=())
-    base = S.build(doc)
-    path_scn = S.build(dataclasses.replace(doc, render=dataclasses.replace(doc.render, integrator="path", spp=16)))
-    passes = [np.asarray(P.render_jit(path_scn, 10_000 + i, jitter=True)) for i in range(ref_spp // 16)]
-    ref = np.mean(passes, 0)
-    ref_se = np.std(passes, 0, ddof=1) / np.sqrt(len(passes))
-    # the caustic: floor pixels (depth beyond the sphere's silhouette is not needed: the floor is
-    # the only diffuse surface there) brighter than 1.2x the floor's median, in the lower half
-    lum = ref.mean(-1)
-    h = lum.shape[0]
-    region = np.zeros_like(lum, bool)
-    region[h // 2:] = lum[h // 2:] > 1.2 * np.median(lum[h // 2:])
-    m = ref[region].mean()
-
-    def err(img):
-        return float(np.sqrt(np.mean((img[region] - ref[region]) ** 2)) / m)
-
-    st, n_s, t_s = _run_for(seconds, lambda s: sppm.accumulate(base, s), None)
-    acc, n_p, t_p = _run_for(seconds, lambda a: P.accumulate(path_scn, a), None)
-    e_s, e_p = err(np.asarray(st.image)), err(np.asarray(acc.image))
-    print(f"equal time {seconds:.0f} s, area light only, 64x48, caustic region {int(region.sum())} px; reference "
-          f"path tracer {ref_spp} spp (its relative standard error there {float(np.sqrt(np.mean(ref_se[region] ** 2)) / m):.3f})")
-    print(f"  SPPM {n_s} passes in {t_s:.1f} s: relative RMS error {e_s:.3f}")
-    print(f"  path {n_p} passes of 16 spp in {t_p:.1f} s: relative RMS error {e_p:.3f}  (ratio {e_p / e_s:.1f}x)")
-
-
-def picture(out: str, seconds: float, size: int) -> None:
-    """The caustics scene, path tracer (left) and SPPM (right), each for `seconds` of rendering
-    after compilation, side by side with labels, sRGB PNG."""
+def picture(out: str, seconds: float, size: int, name: str = "caustics") -> None:
+    """A shipped caustic scene (`name`), path tracer (left) and SPPM (right), each for `seconds` of
+    rendering after compilation, side by side with labels, sRGB PNG."""
     from PIL import Image, ImageDraw
 
     from jaxrt import image
 
     over = {"camera.width": size, "camera.height": size * 3 // 4}
-    sp = S.load("caustics", overrides={**over, "render.photons": 100_000})
-    pt = S.load("caustics", overrides={**over, "render.integrator": "path", "render.spp": 4})
+    sp = S.load(name, overrides={**over, "render.photons": 100_000})
+    pt = S.load(name, overrides={**over, "render.integrator": "path", "render.spp": 4})
     st, n_s, t_s = _run_for(seconds, lambda s: sppm.accumulate(sp, s), None)
     acc, n_p, t_p = _run_for(seconds, lambda a: P.accumulate(pt, a), None)
     left, right = image.to_srgb8(np.asarray(acc.image)), image.to_srgb8(np.asarray(st.image))
@@ -133,22 +158,334 @@ def picture(out: str, seconds: float, size: int) -> None:
     print(f"wrote {out}: path {n_p} passes x 4 spp in {t_p:.1f} s, SPPM {n_s} passes x 100k photons in {t_s:.1f} s")
 
 
+def caustic_doc(size: int, max_depth: int = MAX_DEPTH, lamp: float | None = None) -> dict:
+    """The equal-time scene as a scene dict: scenes/caustics.toml without its point light, the lamp
+    at LAMP, the camera at CAMERA, size x size*3/4 pixels. `lamp`: the lamp's side in metres (default
+    the shipped 0.3 m), its radiance scaled by the inverse area so that its power stays the same: a
+    smaller lamp only makes the path tracer's BSDF-sampled caustic paths hit it less often."""
+    with open(S.find_scene("caustics"), "rb") as f:
+        doc = tomllib.load(f)
+    doc.pop("lights", None)
+    doc.pop("description", None)
+    doc["camera"] = {**doc["camera"], **CAMERA, "width": size, "height": size * 3 // 4}
+    doc["render"] = {**doc["render"], "max_depth": max_depth}
+    for o in doc["objects"]:
+        if o["name"] == "lamp":
+            o["translate"] = list(LAMP)
+            if lamp is not None:
+                scale = (o["size"][0] * o["size"][1]) / (lamp * lamp)
+                o["size"] = [lamp, lamp]
+                mat = doc["materials"][o["material"]]
+                mat["emission"] = [e * scale for e in mat["emission"]]
+    return doc
+
+
+def _build(doc: dict, **render) -> "S.Scene":
+    return S.build(S.parse({**doc, "render": {**doc["render"], **render}}))
+
+
+def _canonical(doc: dict) -> str:
+    return json.dumps(doc, sort_keys=True, separators=(",", ":"))
+
+
+def _git_commit() -> str:
+    try:
+        r = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10,
+                           cwd=Path(__file__).resolve().parents[1])
+        return r.stdout.strip() or "unknown"
+    except OSError:
+        return "unknown"
+
+
+def _device() -> str:
+    d = jax.devices()[0]
+    return d.device_kind if d.device_kind.lower().startswith(d.platform) else f"{d.platform} {d.device_kind}"
+
+
+def _default(gpu_value, cpu_value):
+    return gpu_value if jax.devices()[0].platform == "gpu" else cpu_value
+
+
+def _lum(img):
+    return img @ np.array([0.2126, 0.7152, 0.0722])
+
+
+def _fail(msg: str) -> None:
+    print(f"error: {msg}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+class _Lines:
+    """A stand-in for tqdm's bar: prints a line at every tenth of the total."""
+
+    def __init__(self, total, desc="", **_):
+        self.total, self.desc, self.n, self.t0, self.next = total, desc, 0, time.perf_counter(), 0.1
+
+    def update(self, k):
+        self.n += k
+        if self.n >= self.next * self.total:
+            print(f"{self.desc}: {self.n}/{self.total} after {time.perf_counter() - self.t0:.0f} s", file=sys.stderr)
+            self.next += 0.1
+
+    def close(self):
+        pass
+
+
+class _Welford:
+    """Per-pixel running mean and sum of squared deviations of chunk images (float64)."""
+
+    def __init__(self):
+        self.n, self.mean, self.m2 = 0, None, None
+
+    def add(self, x):
+        x = np.asarray(x, np.float64)
+        if self.mean is None:
+            self.mean, self.m2 = np.zeros_like(x), np.zeros_like(x)
+        self.n += 1
+        d = x - self.mean
+        self.mean += d / self.n
+        self.m2 += d * (x - self.mean)
+
+    @property
+    def se(self):
+        return np.sqrt(self.m2 / max(self.n - 1, 1) / max(self.n, 1))
+
+
+def make_reference(spp: int, out: str, size: int, chunk_spp: int | None, max_seconds: float | None,
+                   lamp: float | None = None) -> None:
+    """The path-traced reference of the equal-time scene (see the module docstring), saved to `out`."""
+    try:
+        from tqdm import tqdm
+    except ImportError:  # a bare machine: a line every 10% instead of a bar
+        tqdm = _Lines
+    chunk_spp = chunk_spp or _default(1024, 16)
+    if spp < 2 * chunk_spp:
+        _fail(f"--make-reference {spp}: needs at least 2 chunks of --chunk-spp {chunk_spp} (a standard error)")
+    doc = caustic_doc(size, lamp=lamp)
+    scn = _build(doc, integrator="path", spp=chunk_spp)
+    direct_scn = _build(doc, integrator="path", spp=chunk_spp, max_depth=1)
+    floor = scn.geometry.object_names.index("floor")
+    chunks = spp // chunk_spp
+    n_direct = min(max(2, chunks // 16), 64)
+    t0 = time.perf_counter()
+    jax.block_until_ready(P.render_jit(scn, REF_PASS0, jitter=True))
+    jax.block_until_ready(P.render_jit(direct_scn, REF_PASS0, jitter=True, aovs=True))
+    compile_s = time.perf_counter() - t0
+    direct, on_floor = _Welford(), _Welford()
+    for i in range(n_direct):
+        img, aov = P.render_jit(direct_scn, REF_PASS0 + i, jitter=True, aovs=True)
+        direct.add(img)
+        on_floor.add(np.asarray(aov["object_id"]) == floor)
+    ref, halves = _Welford(), (_Welford(), _Welford())
+    bar = tqdm(total=chunks * chunk_spp, unit="spp", unit_scale=True, desc="reference", dynamic_ncols=True,
+               file=sys.stderr)
+    t0 = time.perf_counter()
+    try:
+        for i in range(chunks):
+            img = np.asarray(P.render_jit(scn, REF_PASS0 + i, jitter=True))
+            ref.add(img)
+            halves[i % 2].add(img)
+            bar.update(chunk_spp)
+            if max_seconds and time.perf_counter() - t0 > max_seconds and ref.n >= 2:
+                break
+    except KeyboardInterrupt:
+        print("\ninterrupted: saving the chunks done", file=sys.stderr)
+    bar.close()
+    seconds = time.perf_counter() - t0
+    if ref.n < 2:
+        _fail("fewer than 2 chunks rendered: no standard error; nothing saved")
+    meta = {"format": REF_FORMAT, "scene": _canonical(doc), "width": doc["camera"]["width"],
+            "height": doc["camera"]["height"], "max_depth": doc["render"]["max_depth"], "spp": ref.n * chunk_spp,
+            "chunk_spp": chunk_spp, "chunks": ref.n, "direct_chunks": direct.n, "seconds": seconds,
+            "compile_s": compile_s, "device": _device(), "jax": jax.__version__, "commit": _git_commit(),
+            "made": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    tmp = Path(out).with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, mean=ref.mean, se=ref.se, direct=direct.mean, floor=on_floor.mean,
+                        even=halves[0].mean, odd=halves[1].mean, meta=np.array(json.dumps(meta)))
+    tmp.replace(out)
+    region = caustic_region(ref.mean, direct.mean, on_floor.mean)
+    m = ref.mean[region].mean()
+    rate = ref.n * chunk_spp * ref.mean.shape[0] * ref.mean.shape[1] / seconds / 1e6
+    print(f"wrote {out}: {meta['width']}x{meta['height']}, {meta['spp']} spp in {ref.n} chunks of {chunk_spp}, "
+          f"{seconds:.1f} s ({rate:.2f} Msamples/s) after {compile_s:.1f} s compiling, on {meta['device']}")
+    print(f"  caustic region {int(region.sum())} px, mean radiance {m:.4g}; reference relative RMS standard error "
+          f"there {_ref_noise(ref.mean, ref.se, region):.4f} from the chunks' spread, "
+          f"{_split_noise(ref.mean, halves[0].mean, halves[1].mean, region):.4f} from its even and odd chunks' "
+          f"difference (its region mean's: {_region_mean_se(ref.se, region) / m:.2e})")
+
+
+def caustic_region(mean, direct, on_floor):
+    """Pixels whose first hit is always the floor and whose light after at least one scattering
+    (mean − direct, luminance) exceeds REGION_FACTOR times the median luminance of the floor's pixels."""
+    floor = on_floor >= 1.0
+    if not floor.any():
+        return floor
+    threshold = REGION_FACTOR * np.median(_lum(mean)[floor])
+    return floor & (_lum(mean - direct) > threshold)
+
+
+def _region_mean_se(se, region):
+    """Standard error of the region mean (over pixels and channels): pixels are independent (their
+    own paths), a pixel's three channels counted as fully correlated (the same paths)."""
+    return float(np.sqrt(np.sum(se[region].mean(-1) ** 2)) / region.sum())
+
+
+def _split_noise(mean, even, odd, region):
+    """The reference's relative RMS error over the region estimated from its two halves (even and odd
+    chunks): E(even − odd)² = 4 E(mean − truth)² for halves of equal size, an independent check of
+    the chunks' spread, which underestimates the error when rare, very bright samples dominate."""
+    return float(np.sqrt(np.mean((even[region] - odd[region]) ** 2)) / 2 / mean[region].mean())
+
+
+def _ref_noise(mean, se, region):
+    """The reference's relative RMS standard error over the region (normalised as the errors are)."""
+    return float(np.sqrt(np.mean(se[region] ** 2)) / mean[region].mean())
+
+
+def load_reference(path: str, size: int, lamp: float | None = None) -> dict:
+    """The reference file, checked against this run's scene; one line and exit 2 if it differs."""
+    try:
+        z = np.load(path)
+        meta = json.loads(str(z["meta"]))
+        ref = {k: z[k] for k in ("mean", "se", "direct", "floor")}
+        ref.update({k: z[k] for k in ("even", "odd") if k in z.files})
+    except (OSError, KeyError, ValueError) as e:
+        _fail(f"{path}: not a reference file of benchmarks/sppm.py --make-reference ({e})")
+    if meta.get("format") not in _READS_FORMATS:
+        _fail(f"{path}: reference format {meta.get('format')!r}, this script reads {_READS_FORMATS}; remake it")
+    doc = caustic_doc(size, lamp=lamp)
+    if meta["scene"] != _canonical(doc):
+        made = json.loads(meta["scene"])
+        diff = _diff(made, doc)
+        _fail(f"{path}: made for another scene or settings ({diff}); remake it with --make-reference, or "
+              f"pass --size {made['camera']['width']} if only the resolution differs")
+    return {**ref, "meta": meta, "doc": doc}
+
+
+def _diff(a, b, where="") -> str:
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            if a.get(k) != b.get(k):
+                return _diff(a.get(k), b.get(k), f"{where}.{k}" if where else k)
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        for i, (x, y) in enumerate(zip(a, b)):
+            if x != y:
+                return _diff(x, y, f"{where}[{i}]")
+    return f"{where}: file {a!r}, this run {b!r}"
+
+
+def _run_until(marks, step):
+    """Run `step` (state -> state; None starts) for max(marks) seconds after a first, compiling call
+    (excluded); returns [(state, passes, seconds)] taken when each mark's time has passed."""
+    jax.block_until_ready(step(None))
+    out, marks = [], sorted(marks)
+    t0, n, state = time.perf_counter(), 0, None
+    while marks:
+        state = step(state)
+        jax.block_until_ready(state)
+        n += 1
+        t = time.perf_counter() - t0
+        while marks and t >= marks[0]:
+            out.append((state, n, t))
+            marks.pop(0)
+    return out
+
+
+def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: float, path_spp: int | None,
+               bias_seeds: int, lamp: float | None = None) -> None:
+    ref = load_reference(ref_path, size, lamp)
+    meta, doc = ref["meta"], ref["doc"]
+    photons = photons or _default(1 << 18, 1 << 16)
+    path_spp = path_spp or _default(256, 16)
+    mean, se = ref["mean"], ref["se"]
+    region = caustic_region(mean, ref["direct"], ref["floor"])
+    if region.sum() == 0:
+        _fail(f"{ref_path}: empty caustic region")
+    m = mean[region].mean()
+    s_chunks = _ref_noise(mean, se, region)
+    s_split = _split_noise(mean, ref["even"], ref["odd"], region) if "even" in ref else float("nan")
+    s_ref = s_chunks if math.isnan(s_split) else max(s_chunks, s_split)
+
+    def err(img):
+        return float(np.sqrt(np.mean((np.asarray(img, np.float64)[region] - mean[region]) ** 2)) / m)
+
+    sp = _build(doc, photons=photons, radius=radius)
+    pt = _build(doc, integrator="path", spp=path_spp)
+    runs_s = _run_until(marks, lambda s: sppm.accumulate(sp, s))
+    runs_p = _run_until(marks, lambda a: P.accumulate(pt, a))
+    print(f"device {_device()}; equal time on the caustic scene (area light only) {meta['width']}x{meta['height']}, "
+          f"max_depth {meta['max_depth']}; SPPM {photons} photons/pass, initial radius {radius}; path {path_spp} "
+          f"spp/pass")
+    print(f"reference {ref_path}: {meta['spp']} spp ({meta['chunks']} chunks) on {meta['device']}, commit "
+          f"{meta['commit']}; caustic region {int(region.sum())} px, mean {m:.4g}; its relative RMS error "
+          f"s = {s_ref:.4f} (the larger of {s_chunks:.4f} from its chunks' spread and "
+          f"{'(not in this file)' if math.isnan(s_split) else f'{s_split:.4f}'} from its halves)")
+    print("| T s | SPPM passes (s) | SPPM rel. RMS error (noise of ref. removed) | path spp (s) | "
+          "path rel. RMS error (removed) | path / SPPM | judged (s < errors / 3) |")
+    print("|---|---|---|---|---|---|---|")
+    for T, (st, n_s, t_s), (acc, n_p, t_p) in zip(sorted(marks), runs_s, runs_p):
+        e_s, e_p = err(st.image), err(acc.image)
+        c_s, c_p = (math.sqrt(max(e * e - s_ref * s_ref, 0.0)) for e in (e_s, e_p))
+        ok = s_ref < min(e_s, e_p) / 3
+        print(f"| {T:g} | {n_s} ({t_s:.2f}) | {e_s:.4f} ({c_s:.4f}) | {n_p * path_spp} ({t_p:.2f}) | {e_p:.4f} "
+              f"({c_p:.4f}) | {e_p / e_s:.2f} ({c_p / c_s if c_s > 0 else float('inf'):.2f}) | "
+              f"{'yes' if ok else 'no'} |")
+    if bias_seeds < 2:
+        return
+    T = max(marks)
+    means = [float(np.asarray(runs_s[-1][0].image, np.float64)[region].mean())]
+    for seed in range(1, bias_seeds):
+        sp_k = _build(doc, photons=photons, radius=radius, seed=seed)
+        means.append(float(np.asarray(_run_until([T], lambda s: sppm.accumulate(sp_k, s))[0][0].image,
+                                      np.float64)[region].mean()))
+    mu = statistics.fmean(means)
+    se_s = statistics.stdev(means) / math.sqrt(len(means))
+    se_r = _region_mean_se(se, region)
+    comb = math.hypot(se_s, se_r)
+    print(f"bias: SPPM region mean after {T:g} s over {len(means)} seeds {mu:.4g} ± {se_s:.2g}, reference {m:.4g} ± "
+          f"{se_r:.2g}: difference {(mu - m) / m:+.2%} of the reference, {(mu - m) / comb:+.1f} combined standard "
+          f"errors ({'within' if abs(mu - m) <= 3 * comb else 'NOT within'} 3)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--size", type=int, default=128)
-    ap.add_argument("--photons", type=int, default=65536)
+    ap.add_argument("--size", type=int, default=None,
+                    help="image width (height = 3/4 of it); throughput and picture 128, reference and equal time 96")
+    ap.add_argument("--photons", type=int, default=None,
+                    help="photons per SPPM pass (throughput 65536; equal time: 2^18 on a GPU, 2^16 on a CPU)")
     ap.add_argument("--passes", type=int, default=8)
-    ap.add_argument("--equal-time", type=float, default=0.0, metavar="SECONDS")
-    ap.add_argument("--ref-spp", type=int, default=4096)
+    ap.add_argument("--make-reference", type=int, default=0, metavar="SPP",
+                    help="render the path-traced reference with SPP samples per pixel into --out")
+    ap.add_argument("--out", default="caustic_ref.npz")
+    ap.add_argument("--chunk-spp", type=int, default=None, help="reference samples per chunk (GPU 1024, CPU 16)")
+    ap.add_argument("--max-seconds", type=float, default=None, help="stop the reference after this much rendering")
+    ap.add_argument("--equal-time", default="", metavar="T1,T2,...", help="wall budgets in seconds")
+    ap.add_argument("--reference", metavar="FILE", help="the --make-reference file for --equal-time")
+    ap.add_argument("--radius", type=float, default=0.03, help="SPPM initial radius for --equal-time [m]")
+    ap.add_argument("--path-spp", type=int, default=None, help="path samples per pass (GPU 256, CPU 16)")
+    ap.add_argument("--lamp", type=float, default=None, metavar="METRES",
+                    help="side of the equal-time scene's square lamp (default 0.3 as shipped; same power)")
+    ap.add_argument("--bias-seeds", type=int, default=4, help="SPPM runs of the longest time for the bias check")
     ap.add_argument("--picture", metavar="OUT.png", help="only write the path-vs-SPPM picture at equal time")
     ap.add_argument("--seconds", type=float, default=40.0, help="rendering time of each half of --picture")
+    ap.add_argument("--scene", default="caustics", help="the shipped scene of --picture (caustics, caustics_dragon)")
     a = ap.parse_args()
     if a.picture:
-        picture(a.picture, a.seconds, a.size)
-        return
-    throughput(a.size, a.photons, a.passes)
-    if a.equal_time > 0:
-        equal_time(a.equal_time, a.ref_spp)
+        picture(a.picture, a.seconds, a.size or 128, a.scene)
+    elif a.make_reference:
+        make_reference(a.make_reference, a.out, a.size or 96, a.chunk_spp, a.max_seconds, a.lamp)
+    elif a.equal_time:
+        try:
+            marks = [float(t) for t in a.equal_time.split(",")]
+        except ValueError:
+            marks = []
+        if not marks or min(marks) <= 0:
+            _fail(f"--equal-time {a.equal_time!r}: expected positive seconds separated by commas")
+        if not a.reference:
+            _fail("--equal-time needs --reference FILE (made with --make-reference)")
+        equal_time(marks, a.reference, a.size or 96, a.photons, a.radius, a.path_spp, a.bias_seeds, a.lamp)
+    else:
+        throughput(a.size or 128, a.photons or 65536, a.passes)
 
 
 if __name__ == "__main__":

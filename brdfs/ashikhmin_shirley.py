@@ -1,7 +1,7 @@
 """Ashikhmin-Shirley anisotropic Phong BRDF with its coupled diffuse term.
 
     f = f_s + f_d
-    f_s(wi, wo) = sqrt((n_u + 1)(n_v + 1)) / (8 pi) (n·h)^e / ((h·wi) max(n·wi, n·wo)) F(h·wi)
+    f_s(wi, wo) = k_s sqrt((n_u + 1)(n_v + 1)) / (8 pi) (n·h)^e / ((h·wi) max(n·wi, n·wo)) F(h·wi)
         e = (n_u (h·x)^2 + n_v (h·y)^2) / (1 - (n·h)^2),   F(c) = rho_s + (1 - rho_s)(1 - c)^5
     f_d(wi, wo) = 28 rho_d / (23 pi) (1 - rho_s) (1 - (1 - n·wi/2)^5) (1 - (1 - n·wo/2)^5)
 
@@ -17,12 +17,28 @@ Differences from Größler & Zettwitz, "An interactive ray tracing system based 
 factors (instead of n·wi and n·wo, which breaks reciprocity) and the constant 28 rho_d/(23 rho_s)
 instead of 28 rho_d/(23 pi); this module implements the paper.
 
+The specular scale k_s (default 1: the paper's model, bit for bit) is not in the paper. There F0 =
+rho_s sets the lobe's strength at normal incidence, while F -> 1 at grazing h·wi ties its strength
+at grazing angles to the exponent alone: at the lobe's peak (θh = 0) f_s = (n + 1)/(8 pi)
+F(cos θd) / cos² θd, whose grazing part (1 - rho_s)(1 - cos θd)^5 (n + 1)/(8 pi cos² θd) does not
+depend on rho_s. For a measured material with a sharp but weak highlight (a plastic or a paint)
+every exponent that matches the highlight's width makes that part alone brighter than the
+measurement at large θd (in BRDF space, at n = 1e4, the best non-negative fit of rho_s and rho_d is
+worse than the Lambertian term alone), so least-squares fits to MERL materials end at rho_s = 0
+with a lobe far too wide (n ~ 50-1000), hardly better than the Lambertian term (0.190 against 0.193
+/sr for blue-acrylic on the fit grid of fitting.brdf_space). Every lobe in Ngan, Durand & Matusik's
+fits ("Experimental analysis of BRDF models", EGSR 2005) has a free specular coefficient, and
+their Cook-Torrance a Fresnel F0 beside it, as jaxrt's has (rho_s beside eta); k_s is that
+coefficient, per channel. With it the fits are in line with Cook-Torrance's (BENCHMARKS.md,
+"BRDF-space study").
+
 Properties (measured by tests/test_brdf_energy.py; see the constants there):
 - Reciprocal (both terms are symmetric in wi, wo; max(n·wi, n·wo) is symmetric).
 - The diffuse term's albedo is exactly (31/32) rho_d (1 - rho_s) at normal incidence (the 28/23
   normalisation), and the diffuse/specular coupling through (1 - rho_s) and F keeps the sum
   bounded *for every* rho_d, rho_s in [0, 1] (no rho_d + rho_s <= 1 condition, unlike the other
-  models). The specular normalisation sqrt((n_u+1)(n_v+1))/(8 pi) is approximate, but errs low:
+  models); k_s <= 1 only lowers the specular term, so the bound holds for every k_s in [0, 1].
+  The specular normalisation sqrt((n_u+1)(n_v+1))/(8 pi) is approximate, but errs low:
   the float64 albedo over rho_d in {0, 0.5, 1}, rho_s in {0, 0.3, 1}, n_u, n_v in
   {1, 10, ..., 1e6} and view angles up to 89.9 deg has its maximum 0.999996 at rho_d = 0,
   rho_s = 1, n_u = n_v = 1e6, normal incidence (there it is 1 - 4/n: 0.9960 at n = 1000), so
@@ -32,10 +48,10 @@ Sampling: mixture of cosine-weighted diffuse and the paper's half-vector samplin
 phi = atan(sqrt((n_u+1)/(n_v+1)) tan(pi u1 / 2)) (extended to all four quadrants),
 cos(theta_h) = (1 - u0)^(1 / (n_u cos^2 phi + n_v sin^2 phi + 1)), density
 sqrt((n_u+1)(n_v+1)) / (2 pi) (n·h)^e / (4 wo·h). The specular lobe is chosen with probability
-mean(rho_s) / (mean(rho_s) + mean(rho_d (1 - rho_s))), at least 0.1 because the specular
+mean(k_s rho_s) / (mean(k_s rho_s) + mean(rho_d (1 - rho_s))), at least 0.1 because the specular
 term's Fresnel factor is non-zero even for rho_s = 0.
 
-Parameters: rho_d, rho_s (RGB, 0-1), n_u, n_v (1-1e6, log) Phong-like exponents along the tangent
+Parameters: rho_d, rho_s, k_s (RGB, 0-1), n_u, n_v (1-1e6, log) Phong-like exponents along the tangent
 (+x) and bitangent (+y). (n·h)^n matches a Beckmann lobe of slope m at its peak for n ~ 2/m^2,
 so the m ~ 0.007 that published fits of the sharpest MERL metals need is n ~ 4e4; the bound 1e6
 (half-vector width sqrt(2/n) ~ 1.4e-3 rad) matches the other models' sharpest bounds. float32
@@ -56,6 +72,8 @@ from brdfs.base import Lobe, Model, Param, Params
 SPEC = (
     Param("rho_d", 0.5, 0.0, 1.0, rgb=True, doc="diffuse reflectance"),
     Param("rho_s", 0.05, 0.0, 1.0, rgb=True, doc="specular reflectance at normal incidence"),
+    # fits start at k_s = 0.5: the default 1 is on the bound, where the fit's transform is flat
+    Param("k_s", 1.0, 0.0, 1.0, rgb=True, doc="specular scale (1: the paper's model)", start=0.5),
     Param("n_u", 100.0, 1.0, 1e6, scale="log", doc="exponent along the tangent (+x)", typical=(1.0, 1e4)),
     Param("n_v", 10.0, 1.0, 1e6, scale="log", doc="exponent along the bitangent (+y)", typical=(1.0, 1e4)),
 )
@@ -88,6 +106,8 @@ def eval(p: Params, wi: Float[Array, "... 3"], wo: Float[Array, "... 3"]) -> Flo
     kh = jnp.where(ok, jnp.maximum(C.half_cos(wi, wo), C.COS_EPS), 1.0)
     rho_s = p["rho_s"]
     fres = rho_s + (1.0 - rho_s) * C.rgb((1.0 - kh) ** 5)
+    # k_s scales the Fresnel factor (not the product), so that k_s = 1 gives the paper's values bit for bit
+    fres = p["k_s"] * fres
     spec = C.rgb(_norm(p) / (8.0 * math.pi) * pow_nh(h, p["n_u"], p["n_v"]) / (kh * jnp.maximum(ci, co))) * fres
     # 1 - (1 - c/2)^5 without cancellation for grazing c
     diff = (
@@ -112,7 +132,7 @@ def _spec_pdf(p: Params, wo, wi):
 
 
 def _ps(p: Params):
-    return C.lobe_prob(C.lum(p["rho_s"]), C.lum(p["rho_d"] * (1.0 - p["rho_s"])), floor=0.1)
+    return C.lobe_prob(C.lum(p["k_s"] * p["rho_s"]), C.lum(p["rho_d"] * (1.0 - p["rho_s"])), floor=0.1)
 
 
 sample, pdf, _components = C.mixture(_ps, _spec_sample, _spec_pdf, eval)

@@ -45,6 +45,10 @@ class Param:
         typical: (lo, hi) the span of ordinary materials, inside [lo, hi], for synthetic targets and
             demos (hidden parameters of a fitting demo, say) where an extreme draw would be
             unresolvable; None means [lo, hi]. Validation always uses [lo, hi]; see `typical_range`.
+        start: where a fit's first start puts the parameter when no initial value is given, strictly
+            inside (lo, hi); None means `default`. Needed where the default sits on a bound: the
+            fit's bounded transform (`fitting.transforms`) is flat there, so a start on the bound
+            cannot move and the other parameters compensate for it in a local minimum.
     """
 
     name: str
@@ -56,11 +60,19 @@ class Param:
     unit: str = ""
     doc: str = ""
     typical: tuple[float, float] | None = None
+    start: float | None = None
 
     def __post_init__(self):
         t_lo, t_hi = self.typical_range
         if not (self.lo <= t_lo < t_hi <= self.hi and self.lo <= self.default <= self.hi):
             raise ValueError(f"Param {self.name!r}: need lo <= default <= hi and lo <= typical lo < typical hi <= hi")
+        if self.start is not None and not self.lo < self.start < self.hi:
+            raise ValueError(f"Param {self.name!r}: need lo < start < hi")
+
+    @property
+    def fit_start(self) -> float:
+        """`start` or, without one, `default`: the value of a fit's first start."""
+        return self.default if self.start is None else self.start
 
     @property
     def typical_range(self) -> tuple[float, float]:

@@ -139,6 +139,7 @@ class Solution:
     correlated: list[tuple[str, str, float]]
     converged: bool
     at_bound: dict[str, str]
+    meaningless: list[str] = dataclasses.field(default_factory=list)  # as `FitResult.meaningless`
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -198,21 +199,96 @@ def _params_from_z(free: tuple[FreeParam, ...], z: dict, fixed: Params) -> Param
     return out
 
 
-def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
-    """The single-start solve both entry points run: (z0, gbuffer, pixels, fixed) -> (z, loss, steps, ok)."""
+def step_cap(max_steps: int) -> int:
+    """The static loop bound a solve with `max_steps` is compiled for: the next power of two, at
+    least 64. The user's `max_steps` and tolerances are traced values (`_capped`), so fits that differ
+    only in them share one compiled solver; only a `max_steps` beyond the bound compiles a larger one."""
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    return max(64, 1 << (int(max_steps) - 1).bit_length())
+
+
+def _controls(rtol: float, atol: float, max_steps: int) -> tuple:
+    """The traced solver controls passed beside the data: (rtol, atol, max_steps) as device scalars."""
+    return (np.float32(rtol), np.float32(atol), np.int32(max_steps))
+
+
+@functools.cache
+def _capped_classes():
+    """Solver wrappers that stop after a traced number of steps (built on first use, since they
+    subclass optimistix's interfaces): optimistix takes `max_steps` as a static loop bound, so
+    passing the user's value there would compile a solver per value. The wrapper counts steps in its
+    state and ends the solve with optimistix's own `nonlinear_max_steps_reached` result when the
+    count reaches the traced limit, which is what the static bound would have done: same iterates,
+    same step count, same result."""
+    optx = _optx()
+    import equinox as eqx
+
+    class _Capped(eqx.Module):
+        inner: object
+        limit: object  # int32 scalar, traced
+
+        @property
+        def rtol(self):
+            return self.inner.rtol
+
+        @property
+        def atol(self):
+            return self.inner.atol
+
+        @property
+        def norm(self):
+            return self.inner.norm
+
+        def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+            return self.inner.init(fn, y, args, options, f_struct, aux_struct, tags), jnp.array(0, jnp.int32)
+
+        def step(self, fn, y, args, options, state, tags):
+            inner, count = state
+            y, inner, aux = self.inner.step(fn, y, args, options, inner, tags)
+            return y, (inner, count + 1), aux
+
+        def terminate(self, fn, y, args, options, state, tags):
+            inner, count = state
+            done, result = self.inner.terminate(fn, y, args, options, inner, tags)
+            out_of_steps = jnp.logical_and(jnp.invert(done), count >= self.limit)
+            result = optx.RESULTS.where(out_of_steps, optx.RESULTS.nonlinear_max_steps_reached, result)
+            return jnp.logical_or(done, out_of_steps), result
+
+        def postprocess(self, fn, y, aux, args, options, state, tags, result):
+            return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
+
+    class CappedLeastSquares(_Capped, optx.AbstractLeastSquaresSolver):
+        pass
+
+    class CappedMinimiser(_Capped, optx.AbstractMinimiser):
+        pass
+
+    return CappedLeastSquares, CappedMinimiser
+
+
+def _capped(inner, limit):
+    least_squares, minimiser = _capped_classes()
+    return (minimiser if isinstance(inner, _optx().AbstractMinimiser) else least_squares)(inner, limit)
+
+
+def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
+    """The single-start solve both entry points run: (z0, gbuffer, pixels, fixed, controls) -> (z, loss,
+    steps, ok); `controls` = `_controls(rtol, atol, max_steps)`, traced, max_steps ≤ `cap`."""
 
     def residuals(z, args):
         gbuffer, pixels, fixed = args
         return _residuals(shade(_params_from_z(free, z, fixed), gbuffer), pixels)
 
-    def solve(z0, gbuffer, pixels, fixed):
+    def solve(z0, gbuffer, pixels, fixed, controls):
         optx = _optx()
+        rtol, atol, max_steps = controls
         sol = optx.least_squares(
             residuals,
-            SOLVERS[solver](rtol, atol),
+            _capped(SOLVERS[solver](rtol, atol), max_steps),
             z0,
             args=(gbuffer, pixels, fixed),
-            max_steps=max_steps,
+            max_steps=cap,
             throw=False,
         )
         r = residuals(sol.value, (gbuffer, pixels, fixed))
@@ -234,36 +310,36 @@ def _jit(fn: Callable, what: str, shade: Callable, *parts) -> Callable:
 
 
 @functools.lru_cache(maxsize=32)
-def _compiled_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
-    """A jitted single-start solve; cached so repeated fits with new targets/starts never recompile."""
-    return _jit(_solve_one(shade, free, solver, rtol, atol, max_steps), "solve", shade, free, solver, rtol, atol,
-                max_steps)
+def _compiled_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
+    """A jitted single-start solve; cached so repeated fits with new targets, starts, tolerances or
+    step limits (up to `cap`) never recompile."""
+    return _jit(_solve_one(shade, free, solver, cap), "solve", shade, free, solver, cap)
 
 
 @functools.lru_cache(maxsize=32)
-def _starts_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
-    """The single-start solve vmapped over starts: (z0 leaves (S, ...), gbuffer, pixels, fixed) ->
+def _starts_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
+    """The single-start solve vmapped over starts: (z0 leaves (S, ...), gbuffer, pixels, fixed, controls) ->
     (z, loss, steps, ok), each (S, ...); the unjitted function that several devices split
     (`fit_images(devices=...)`), one object per solver configuration."""
-    one = _solve_one(shade, free, solver, rtol, atol, max_steps)
+    one = _solve_one(shade, free, solver, cap)
 
-    def solve(z0, gbuffer, pixels, fixed):
-        return jax.vmap(lambda z: one(z, gbuffer, pixels, fixed))(z0)
+    def solve(z0, gbuffer, pixels, fixed, controls):
+        return jax.vmap(lambda z: one(z, gbuffer, pixels, fixed, controls))(z0)
 
     return solve
 
 
 @functools.lru_cache(maxsize=32)
-def _batch_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float, max_steps: int):
+def _batch_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
     """The single-start solve vmapped over starts (inner axis) and target sets (outer axis), unjitted:
-    z0 leaves are (B, S, ...), targets (B, P, 3); the gbuffer, compared-entry indices, weights and
-    fixed values are shared. A vmapped while loop runs until its slowest lane stops; finished lanes keep
-    their values, so each lane's result is the one the single-start solve gives."""
-    one = _solve_one(shade, free, solver, rtol, atol, max_steps)
+    z0 leaves are (B, S, ...), targets (B, P, 3); the gbuffer, compared-entry indices, weights, fixed
+    values and solver controls are shared. A vmapped while loop runs until its slowest lane stops;
+    finished lanes keep their values, so each lane's result is the one the single-start solve gives."""
+    one = _solve_one(shade, free, solver, cap)
 
-    def solve(z0, gbuffer, idx, targets, sqrt_w, fixed):
+    def solve(z0, gbuffer, idx, targets, sqrt_w, fixed, controls):
         def per_target(z_s, target):
-            return jax.vmap(lambda z: one(z, gbuffer, (idx, target, sqrt_w), fixed))(z_s)
+            return jax.vmap(lambda z: one(z, gbuffer, (idx, target, sqrt_w), fixed, controls))(z_s)
 
         return jax.vmap(per_target)(z0, targets)
 
@@ -271,17 +347,16 @@ def _batch_solve(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol
 
 
 @functools.lru_cache(maxsize=32)
-def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, rtol: float, atol: float,
-                           max_steps: int):
+def _compiled_batch_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
     """`_batch_solve` jitted once (its traced program kept across processes where `shade` names itself)."""
-    return _jit(_batch_solve(shade, free, solver, rtol, atol, max_steps), "batch_solve", shade, free, solver, rtol,
-                atol, max_steps)
+    return _jit(_batch_solve(shade, free, solver, cap), "batch_solve", shade, free, solver, cap)
 
 
 @dataclasses.dataclass(frozen=True)
 class _Problem:
     """What every fit of one model with one fix/init/rgb choice shares: the free parameters, the fixed
-    values and the start points (init/defaults first, then Halton points over each typical range on the natural scale)."""
+    values and the start points (init, else each `Param.fit_start`, first, then Halton points over each
+    typical range on the natural scale)."""
 
     free: tuple[FreeParam, ...]
     fixed: Params
@@ -302,7 +377,8 @@ def _problem(shade: Callable, model: Model, fix, init, rgb: bool, solver: str, s
         if name in fix:
             raise ValueError(f"{model.name}.{name}: given both --fix and --init")
     fixed = {k: v for k, v in model.params(**{**fix, **init}).items() if k in fix}
-    start_vals = model.params(**{k: v for k, v in init.items()})
+    # the first start: init, else each parameter's `Param.fit_start` (its default unless that is on a bound)
+    start_vals = model.params(**{**{p.name: p.fit_start for p in model.spec if p.start is not None}, **init})
     z_of, z_of_unit, _, _ = _compiled_helpers(shade, free)
     z_starts = [z_of({fp.param.name: start_vals[fp.param.name] for fp in free})]
     if starts > 1:
@@ -353,8 +429,9 @@ def fit_images(
         rgb: fit RGB parameters per channel (True) or as one grey value (False).
         solver: one of SOLVERS ("lm" Levenberg–Marquardt, "lm_normal" the same on the normal
             equations, "gauss_newton", "dogleg", "bfgs").
-        starts: number of starts: the first from `init`/defaults, the rest Halton points spread
-            over each free parameter's typical range (`Param.typical_range`) on its natural scale.
+        starts: number of starts: the first from `init`, else each `Param.fit_start` (the default
+            unless that is on a bound), the rest Halton points spread over each free parameter's
+            typical range (`Param.typical_range`) on its natural scale.
         progress: show a progress bar over starts.
         devices: None (default) or 1: the starts run one after another on the default device; an int
             N, "all" or a list of `jax.devices()` (`jaxrt._devices.select`): the starts are split
@@ -375,20 +452,20 @@ def fit_images(
         mask = np.ones(targets.shape[:-1], np.float32)
     pixels = _pixels(targets, mask)
 
+    controls = _controls(rtol, atol, max_steps)
     devs = fit_devices(devices)
     total_steps = 0
     finals = []
     t0 = time.perf_counter()
     bar = _progress(len(prob.z_starts), f"fit {model.name}", progress)
     if devs:  # every start at once, split over the devices
-        finals = _starts_on_devices(shade, free, solver, rtol, atol, max_steps, prob.z_starts, gbuffer, pixels, fixed,
-                                    devs)
+        finals = _starts_on_devices(shade, free, solver, controls, prob.z_starts, gbuffer, pixels, fixed, devs)
         total_steps = sum(f[2] for f in finals)
         bar.update(len(finals))
     else:
-        solve = _compiled_solver(shade, free, solver, float(rtol), float(atol), int(max_steps))
+        solve = _compiled_solver(shade, free, solver, step_cap(max_steps))
         for z0 in prob.z_starts:
-            z, loss, steps, ok = solve(z0, gbuffer, pixels, fixed)
+            z, loss, steps, ok = solve(z0, gbuffer, pixels, fixed, controls)
             total_steps += int(steps)
             finals.append((float(loss), z, int(steps), bool(ok)))
             bar.update(1)
@@ -408,17 +485,7 @@ def fit_images(
     rmse = metrics.rmse(fitted, tgt, m)
     rms = float(np.sqrt(np.mean(np.asarray(tgt, np.float64)[m] ** 2))) if np.any(m) else 0.0
     relative = rmse / rms if rms > 0 else (0.0 if rmse == 0 else float("inf"))
-    warnings = []
-    if not ok:
-        why = f"it used all {max_steps} steps" if steps >= max_steps else "the solver stopped early"
-        warnings.append(f"not converged: the best of {len(prob.z_starts)} starts did not meet the tolerances ({why}); "
-                        "raise max_steps (--max-steps) or starts (--starts)")
-    if meaningless:
-        warnings.append(f"the standard error of {', '.join(meaningless)} is meaningless: these views do not "
-                        "determine it (add views or lights that change with it, or fix it)")
-    if relative > RELATIVE_RMSE_WARN:
-        warnings.append(f"the model cannot reproduce the target: the fit misses it by {relative:.0%} of its RMS "
-                        "(check the scene, lighting, exposure and object)")
+    warnings = fit_warnings(ok, steps, max_steps, len(prob.z_starts), meaningless, relative)
     return FitResult(
         model=model.name,
         params={k: _tolist(v) for k, v in params.items()},
@@ -442,6 +509,24 @@ def fit_images(
         warnings=warnings,
         at_bound=params_at_bound(free, params),
     )
+
+
+def fit_warnings(converged: bool, steps: int, max_steps: int, starts: int, meaningless: list[str],
+                 relative: float) -> list[str]:
+    """The sentences (for people) an image-space fit reports: not converged, standard errors that say
+    nothing (`_stderr_from`), a target the model cannot reproduce (relative RMSE above RELATIVE_RMSE_WARN)."""
+    warnings = []
+    if not converged:
+        why = f"it used all {max_steps} steps" if steps >= max_steps else "the solver stopped early"
+        warnings.append(f"not converged: the best of {starts} starts did not meet the tolerances ({why}); "
+                        "raise max_steps (--max-steps) or starts (--starts)")
+    if meaningless:
+        warnings.append(f"the standard error of {', '.join(meaningless)} is meaningless: these views do not "
+                        "determine it (add views or lights that change with it, or fix it)")
+    if relative > RELATIVE_RMSE_WARN:
+        warnings.append(f"the model cannot reproduce the target: the fit misses it by {relative:.0%} of its RMS "
+                        "(check the scene, lighting, exposure and object)")
+    return warnings
 
 
 def solve_batch(
@@ -497,7 +582,10 @@ def solve_batch(
     flat = targets.reshape(n, -1, 3)[:, sel]  # (B, P, 3): the compared entries only
     b = n if batch is None else max(1, min(int(batch), n))
     s = len(prob.z_starts)
-    z_starts = jax.tree.map(lambda *zs: jnp.stack(zs), *prob.z_starts)  # leaves (S, ...)
+    # the batch's arrays are stacked on the host (numpy): eager jnp.stack / broadcast_to would each compile
+    # a small program per shape, several per model
+    z_starts = jax.tree.map(lambda *zs: np.stack([np.asarray(z) for z in zs]), *prob.z_starts)  # leaves (S, ...)
+    controls = _controls(rtol, atol, max_steps)
 
     devs = fit_devices(devices)
     if devs:
@@ -505,19 +593,18 @@ def solve_batch(
 
         b = _devices.padded(b, devs)
         # the shared arrays go to every device once, not with every call
-        on_each = _devices.put_each((gbuffer, idx, sqrt_w, fixed), devs)
-        batch_solve, batch_jac = _batch_solve(shade, free, solver, float(rtol), float(atol), int(max_steps)), \
-            _batch_jacobian(shade, free)
+        on_each = _devices.put_each((gbuffer, idx, sqrt_w, fixed, controls), devs)
+        batch_solve, batch_jac = _batch_solve(shade, free, solver, step_cap(max_steps)), _batch_jacobian(shade, free)
 
-        def solve(z0, gbuffer_, idx_, targets_, sqrt_w_, fixed_):
-            return _devices.batched(batch_solve, devs, (True, False, False, True, False, False), z0, gbuffer_, idx_,
-                                    targets_, sqrt_w_, fixed_, replicated=on_each)
+        def solve(z0, gbuffer_, idx_, targets_, sqrt_w_, fixed_, controls_):
+            return _devices.batched(batch_solve, devs, (True, False, False, True, False, False, False), z0, gbuffer_,
+                                    idx_, targets_, sqrt_w_, fixed_, controls_, replicated=on_each)
 
         def jac(theta, params_, gbuffer_, idx_, targets_, sqrt_w_):
             return _devices.batched(batch_jac, devs, (True, True, False, False, True, False), theta, params_,
                                     gbuffer_, idx_, targets_, sqrt_w_, replicated=[c[:3] for c in on_each])
     else:
-        solve = _compiled_batch_solver(shade, free, solver, float(rtol), float(atol), int(max_steps))
+        solve = _compiled_batch_solver(shade, free, solver, step_cap(max_steps))
         jac = _compiled_batch_jacobian(shade, free)
     finish = _compiled_helpers(shade, free)[2]
     out = []
@@ -527,8 +614,8 @@ def solve_batch(
         m = chunk.shape[0]
         if m < b:  # pad to the compiled shape
             chunk = np.concatenate([chunk, np.repeat(chunk[-1:], b - m, axis=0)])
-        z0 = jax.tree.map(lambda v: jnp.broadcast_to(v, (b,) + v.shape), z_starts)
-        zs, losses, steps, oks = solve(z0, gbuffer, idx, jax.device_put(chunk), sqrt_w, fixed)
+        z0 = jax.tree.map(lambda v: np.broadcast_to(v, (b,) + v.shape), z_starts)
+        zs, losses, steps, oks = solve(z0, gbuffer, idx, jax.device_put(chunk), sqrt_w, fixed, controls)
         losses, steps, oks = np.asarray(losses), np.asarray(steps), np.asarray(oks)
         zs = jax.tree.map(np.asarray, zs)  # one transfer; slicing B × S device arrays would dispatch each
         bests = []
@@ -537,13 +624,14 @@ def solve_batch(
                        bool(oks[i, k])) for k in range(s)]
             bests.append(_choose(shade, free, finals) + (int(steps[i].sum()),))
         params = [finish(best[1], fixed, gbuffer)[0] for (best, _, _) in bests]
-        params_b = jax.tree.map(lambda *v: jnp.stack(v), *(params + [params[-1]] * (b - m)))
-        theta = jnp.stack([_theta(p, free) for p in params] + [_theta(params[-1], free)] * (b - m))
+        params_b = jax.tree.map(lambda *v: np.stack([np.asarray(x) for x in v]), *(params + [params[-1]] * (b - m)))
+        thetas = [np.asarray(_theta(p, free)) for p in params]
+        theta = np.stack(thetas + thetas[-1:] * (b - m))
         r, J = jac(theta, params_b, gbuffer, idx, jax.device_put(chunk), sqrt_w)
         r, J = np.asarray(r), np.asarray(J)
         names = [fp.param.name for fp in free]
         for i, ((loss, _, it, ok), at_best, total) in enumerate(bests):
-            se, cond, corr, _ = _stderr_from(r[i], J[i], free)
+            se, cond, corr, meaningless = _stderr_from(r[i], J[i], free)
             out.append(Solution(
                 model=model.name,
                 params={k: _tolist(v) for k, v in params[i].items()},
@@ -560,6 +648,7 @@ def solve_batch(
                 correlated=corr,
                 converged=ok,
                 at_bound=params_at_bound(free, params[i]),
+                meaningless=meaningless,
             ))
         bar.update(m)
     bar.close()
@@ -577,7 +666,7 @@ def fit_devices(devices) -> tuple:
     return devs if _devices.sharded(devs) else ()
 
 
-def _starts_on_devices(shade, free, solver, rtol, atol, max_steps, z_starts, gbuffer, pixels, fixed, devs):
+def _starts_on_devices(shade, free, solver, controls, z_starts, gbuffer, pixels, fixed, devs):
     """(loss, z, steps, ok) of every start, the starts split over `devs` (`_devices.batched` of the
     vmapped single-start solve; padded to a multiple of the device count, the padding dropped)."""
     from jaxrt import _devices
@@ -585,9 +674,8 @@ def _starts_on_devices(shade, free, solver, rtol, atol, max_steps, z_starts, gbu
     s = len(z_starts)
     z0 = _devices.pad_rows(jax.tree.map(lambda *zs: np.stack([np.asarray(z) for z in zs]), *z_starts),
                            _devices.padded(s, devs))
-    zs, losses, steps, oks = _devices.batched(_starts_solve(shade, free, solver, float(rtol), float(atol),
-                                                            int(max_steps)), devs, (True, False, False, False),
-                                              z0, gbuffer, pixels, fixed)
+    zs, losses, steps, oks = _devices.batched(_starts_solve(shade, free, solver, step_cap(int(controls[2]))), devs,
+                                              (True, False, False, False, False), z0, gbuffer, pixels, fixed, controls)
     return [(float(losses[k]), jax.tree.map(lambda v, k=k: jnp.asarray(v[k]), zs), int(steps[k]), bool(oks[k]))
             for k in range(s)]
 

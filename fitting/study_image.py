@@ -28,7 +28,11 @@ every model and material: a trace holds hits and visibility, nothing a BRDF chan
 fit buffer (`fitting.compact`) is built once from those traces; each material's targets are the
 renderer's `jaxrt.integrators.shade` of the traces with that material's data in the measured
 material's row (one compiled program for every material of a kind, the data being traced values);
-each model's solver is compiled once and reused for every material.
+each model's solver is compiled once and fits every material: all materials of a kind go through one
+solve vmapped over materials and starts (`fitting.solve.solve_batch`, as the BRDF-space study does),
+in calls of `batch` materials (one on a CPU, where the lanes of a vmapped solve run one after
+another anyway, all on a GPU) split over `devices`. The fitted renders give what `jaxrt fit` reports
+(RMSE, its ratio to the targets' RMS, mean ΔE2000, the warnings).
 
 Isotropy. As in the BRDF-space study, the anisotropic models fit one roughness (α_y = α_x,
 n_v = n_u: `fitting.brdf_space.ISOTROPIC_TIES`), reported equal to its source with its standard error.
@@ -173,12 +177,96 @@ def _ref(name: str) -> str:
     return str(Path(name).resolve()) if Path(name).suffix else name
 
 
+# the solver's tolerances (fitting.solve.fit_images's defaults), shared by the batched and unbatched fits
+RTOL, ATOL = 1e-7, 1e-9
+
+
+def _as_params(values: Mapping) -> dict:
+    return {k: jnp.asarray(v, jnp.float32) for k, v in values.items()}
+
+
+def _batching(n: int, batch: int | None, devices) -> tuple[int, int]:
+    """(devices used, materials per compiled call) for n materials: `batch` per device, default
+    `fitting.study.default_batch` of each device's share (as the BRDF-space study)."""
+    from fitting import study
+    from fitting.solve import fit_devices
+
+    n_dev = max(1, len(fit_devices(devices)))
+    if batch is None:
+        batch = study.default_batch(-(-n // n_dev))
+    if batch < 1:
+        raise InputError(f"--batch {batch}: must be at least 1")
+    return n_dev, max(1, min(batch * n_dev, n))
+
+
+@dataclasses.dataclass
+class _BatchedFit:
+    """What `run_image` reads from a fit, for fits made by `solve_batch` (`FitResult`'s fields)."""
+
+    params: dict
+    stderr: dict
+    fixed: list
+    rmse: float
+    relative_rmse: float
+    delta_e_mean: float
+    at_bound: dict
+    converged: bool
+    iterations: int
+    total_iterations: int
+    starts: int
+    starts_at_best: int
+    condition_number: float
+    ill_conditioned: bool
+    correlated: list
+    warnings: list
+    first_view: np.ndarray  # (H, W, 3) the fitted render of the first view
+
+
+def _fit_batched(shade, setup, targets: list, model, fix, starts: int, max_steps: int, batch: int,
+                 devices) -> list[_BatchedFit]:
+    """Each material's targets (K, H, W, 3) fitted by `solve_batch` (one compiled solve for them all,
+    `batch` materials a call), then rendered at the fit to report what `fit_images` reports (RMSE over
+    the compared pixels, its ratio to the targets' RMS, the mean CIEDE2000 ΔE, the warnings)."""
+    from fitting import metrics
+    from fitting.solve import fit_devices, fit_warnings, solve_batch
+
+    sols = solve_batch(shade, setup.fitbuffer, np.stack(targets), model, mask=setup.mask, fix=fix, rgb=True,
+                       solver="lm", starts=starts, max_steps=max_steps, rtol=RTOL, atol=ATOL, batch=batch,
+                       progress=False, devices=devices if fit_devices(devices) else None)
+    m = np.asarray(setup.mask) > 0
+    out = []
+    for sol, tgt in zip(sols, targets):
+        fitted = np.asarray(_render(shade)(_as_params(sol.params), setup.fitbuffer))
+        tgt = np.asarray(tgt)
+        rmse = metrics.rmse(fitted, tgt, m)
+        rms = float(np.sqrt(np.mean(np.asarray(tgt, np.float64)[m] ** 2))) if np.any(m) else 0.0
+        relative = rmse / rms if rms > 0 else (0.0 if rmse == 0 else float("inf"))
+        de = metrics.delta_e_2000(fitted, tgt, m)
+        out.append(_BatchedFit(
+            params=sol.params, stderr=sol.stderr, fixed=list(sol.fixed), rmse=rmse, relative_rmse=relative,
+            delta_e_mean=float(de.mean()) if de.size else 0.0, at_bound=sol.at_bound, converged=sol.converged,
+            iterations=sol.iterations, total_iterations=sol.total_iterations, starts=sol.starts,
+            starts_at_best=sol.starts_at_best, condition_number=sol.condition_number,
+            ill_conditioned=sol.ill_conditioned, correlated=sol.correlated,
+            warnings=fit_warnings(sol.converged, sol.iterations, max_steps, sol.starts, sol.meaningless, relative),
+            first_view=fitted[0]))
+    return out
+
+
 def run_image(materials: Sequence[str] = DEFAULT_MATERIALS, models: Sequence[str] | None = None, *,
               scene: str = "auto", size: tuple[int, int] = DEFAULT_SIZE, starts: int = 6, max_steps: int = 100,
-              progress: bool = True) -> Study:
+              progress: bool = True, batched: bool = True, batch: int | None = None, devices=None) -> Study:
     """Fit every model to the renders of every material (see the module docstring); a `Study` with
     `space == "image"` whose `images` hold the first view of each target and fit (for the picture).
-    A tqdm bar counts (material, model) fits."""
+    A tqdm bar counts (material, model) fits.
+
+    `batched` (default): each model's fits of all materials of a kind run through one compiled solve
+    vmapped over materials and starts (`fitting.solve.solve_batch`, as the BRDF-space study), `batch`
+    materials per call (default `fitting.study.default_batch`: one on a CPU, all on a GPU) and, with
+    `devices` (an int N, "all" or a list of `jax.devices()`), each call's materials split over those
+    devices. `batched=False`: one `fitting.solve.fit_images` per (material, model), its starts one after
+    another. Both run the same single-start solve from the same starts; the fits agree to the
+    rounding of differently compiled programs (tests/fitting/test_study_image.py states the tolerance)."""
     from tqdm.auto import tqdm
 
     from brdfs import measured
@@ -193,6 +281,8 @@ def run_image(materials: Sequence[str] = DEFAULT_MATERIALS, models: Sequence[str
     if not (8 <= w <= 1024 and 8 <= h <= 1024):
         raise InputError(f"--size {w},{h}: width and height must be between 8 and 1024")
     which = choose_scene(scene)
+    n_dev, used_batch = _batching(len(materials), batch, devices) if batched else (1, 1)
+    batch = used_batch
     t0 = time.perf_counter()
     bar = tqdm(total=len(materials) * len(models), desc="image study", unit="fit", disable=not progress)
     bar.set_postfix_str(f"tracing the {which}")
@@ -229,10 +319,17 @@ def run_image(materials: Sequence[str] = DEFAULT_MATERIALS, models: Sequence[str
             tie = bs.ties(model)
             fix = {t: model.param(t).default for t, _ in tie}  # not fitted: the shader sets it to its source
             shade = _shader(model.name, tie)
-            for a in names:
+            if batched:
+                bar.set_postfix_str(f"{name}: {len(names)} materials")
+                results = _fit_batched(shade, setup, [targets[a] for a in names], model, fix, starts, max_steps,
+                                       batch, devices)
+            for i, a in enumerate(names):
                 bar.set_postfix_str(f"{name}: {a}")
-                r = fit_images(shade, setup.fitbuffer, targets[a], model, mask=setup.mask, fix=fix, rgb=True,
-                               starts=starts, max_steps=max_steps, progress=False)
+                if batched:
+                    r = results[i]
+                else:
+                    r = fit_images(shade, setup.fitbuffer, targets[a], model, mask=setup.mask, fix=fix, rgb=True,
+                                   starts=starts, max_steps=max_steps, rtol=RTOL, atol=ATOL, progress=False)
                 for t, s in tie:
                     r.params[t] = r.params[s]
                     r.stderr[t] = r.stderr[s]
@@ -247,15 +344,16 @@ def run_image(materials: Sequence[str] = DEFAULT_MATERIALS, models: Sequence[str
                     total_iterations=r.total_iterations, starts=r.starts, starts_at_best=r.starts_at_best,
                     condition_number=r.condition_number, ill_conditioned=r.ill_conditioned,
                     correlated=r.correlated, pixels=pixels, warnings=r.warnings)
-                p = {k: jnp.asarray(v, jnp.float32) for k, v in r.params.items()}
-                images[(a, name)] = np.asarray(_render(shade)(p, setup.fitbuffer)[0])
+                images[(a, name)] = r.first_view if batched else np.asarray(
+                    _render(shade)(_as_params(r.params), setup.fitbuffer)[0])
                 bar.update(1)
             per_model[name] = per_model.get(name, 0.0) + time.perf_counter() - t_model
     bar.close()
     settings = {
         "space": "image", "metric": METRIC, "unit": UNIT, "metric_definition": METRIC_DOC, "scene": which,
         "scene_requested": scene, "size": [w, h], "lights": [dict(l) for l in LIGHTS], "pixels": pixels,
-        "starts": starts, "max_steps": max_steps, "solver": "Levenberg-Marquardt (optimistix), lm", "batch": 1,
+        "starts": starts, "max_steps": max_steps, "solver": "Levenberg-Marquardt (optimistix), lm",
+        "batched": batched, "batch": used_batch if batched else 1, "devices": n_dev if batched else 1,
         "backend": jax.default_backend(), "device": jax.devices()[0].device_kind, "wall_s_per_model": per_model,
         "models": {m: [dataclasses.asdict(p) for p in brdfs.get(m).spec] for m in models},
     }

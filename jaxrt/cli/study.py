@@ -83,15 +83,16 @@ def run(args: argparse.Namespace) -> int:
 
     devices = devices_option(args.devices)
     if args.space == "image":
-        if args.metric != "ngan" or args.sampling or args.eval_sampling or args.batch is not None:
-            raise InputError("--metric, --sampling, --eval-sampling and --batch apply to --space brdf only")
+        if args.metric != "ngan" or args.sampling or args.eval_sampling:
+            raise InputError("--metric, --sampling and --eval-sampling apply to --space brdf only")
         size = parse_size(args.size)
         scene = study_image.choose_scene(args.scene)
         if args.scene == "auto" and scene == "sphere":
             print("jaxrt study: the bunny mesh is not found (JAXRT_DATA): the image-space study renders a sphere",
                   file=sys.stderr)
         result = study_image.run_image(materials, models, scene=scene, size=size, starts=args.starts,
-                                       max_steps=args.max_steps, progress=not args.quiet)
+                                       max_steps=args.max_steps, progress=not args.quiet, batch=args.batch,
+                                       devices=devices)
     else:
         if args.size or args.scene != "auto":
             raise InputError("--scene and --size apply to --space image only")

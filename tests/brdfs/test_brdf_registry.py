@@ -20,7 +20,7 @@ PARAMS = {
     "blinn_phong": ("rho_d", "rho_s", "s"),
     "cook_torrance": ("rho_d", "rho_s", "m", "eta"),
     "ward": ("rho_d", "rho_s", "alpha_x", "alpha_y"),
-    "ashikhmin_shirley": ("rho_d", "rho_s", "n_u", "n_v"),
+    "ashikhmin_shirley": ("rho_d", "rho_s", "k_s", "n_u", "n_v"),
     "glass": ("n_t",),
     "disney": DISNEY,
     "ward_1992": ("rho_d", "rho_s", "alpha_x", "alpha_y"),
@@ -29,6 +29,7 @@ PARAMS = {
 # The ranges the 2015 system's sliders swept (Größler & Zettwitz 2015): each model's bounds must contain them.
 SEED_RANGES = {"rho_d": (0, 1), "rho_s": (0, 1), "s": (1, 1000), "m": (0.01, 1), "eta": (1, 10),
                "alpha_x": (0.01, 1), "alpha_y": (0.01, 1), "n_u": (1, 10000), "n_v": (1, 10000), "n_t": (1, 2),
+               "k_s": (0, 1),  # Ashikhmin-Shirley's specular scale (not in the 2015 system; 1 is its model)
                **{k: (0, 1) for k in DISNEY}}  # Burley 2012: every Disney parameter spans [0, 1]
 LOG = {"s", "m", "eta", "alpha_x", "alpha_y", "n_u", "n_v"}
 # Ranges real materials need (published fits of the MERL materials; see the model docstrings):
@@ -58,7 +59,7 @@ def test_param_declarations_cover_seed_ranges(name):
         lo, hi = SEED_RANGES[spec.name]
         assert spec.lo <= lo and spec.hi >= hi, spec
         assert spec.lo <= spec.default <= spec.hi
-        assert spec.rgb == (spec.name.startswith("rho") or spec.name == "base_color")
+        assert spec.rgb == (spec.name.startswith("rho") or spec.name in ("base_color", "k_s"))
         assert (spec.scale == "log") == (spec.name in LOG)
         lo, hi = MATERIAL_RANGES.get(spec.name, (spec.lo, spec.hi))
         assert spec.lo <= lo and spec.hi >= hi, spec
@@ -185,3 +186,31 @@ def test_typical_ranges(name):
         assert (lo, hi) == PREVIOUS_BOUNDS.get((name, spec.name), (spec.lo, spec.hi))
     with pytest.raises(ValueError, match="typical"):
         brdfs.Param("x", 0.5, 0.0, 1.0, typical=(0.2, 2.0))
+
+
+def test_ashikhmin_shirley_specular_scale_against_the_paper_in_float64():
+    """Ashikhmin & Shirley 2000 written out in float64 numpy (isotropic and anisotropic exponents), with
+    the specular term times k_s: k_s = 1 is the paper's model, k_s < 1 scales the specular term only."""
+    m = brdfs.get("ashikhmin_shirley")
+    rng = np.random.default_rng(3)
+
+    def hemi(n):
+        v = rng.normal(size=(n, 3))
+        v[:, 2] = np.abs(v[:, 2]) + 0.05
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    wi, wo = hemi(2000), hemi(2000)
+    h = (wi + wo) / np.linalg.norm(wi + wo, axis=1, keepdims=True)
+    kh, ci, co = np.sum(h * wi, 1), wi[:, 2], wo[:, 2]
+    for rho_d, rho_s, k_s, nu, nv in [([0.3, 0.5, 0.7], [0.4, 0.2, 0.6], [1.0, 1.0, 1.0], 40.0, 8.0),
+                                      ([0.3, 0.5, 0.7], [0.05, 0.06, 0.08], [0.2, 0.5, 0.9], 300.0, 300.0)]:
+        rd, rs, ks = (np.asarray(x, np.float64) for x in (rho_d, rho_s, k_s))
+        e = (nu * h[:, 0] ** 2 + nv * h[:, 1] ** 2) / (1 - h[:, 2] ** 2)
+        spec = (math.sqrt((nu + 1) * (nv + 1)) / (8 * math.pi) * h[:, 2] ** e / (kh * np.maximum(ci, co)))[:, None]
+        fres = rs + (1 - rs) * ((1 - kh) ** 5)[:, None]
+        diff = 28 * rd / (23 * math.pi) * (1 - rs) * ((1 - (1 - ci / 2) ** 5) * (1 - (1 - co / 2) ** 5))[:, None]
+        ref = ks * spec * fres + diff
+        p = m.params(rho_d=rho_d, rho_s=rho_s, k_s=k_s, n_u=nu, n_v=nv)
+        f = np.asarray(m.eval(p, jnp.asarray(wi, jnp.float32), jnp.asarray(wo, jnp.float32)), np.float64)
+        np.testing.assert_allclose(f, ref, rtol=2e-4, atol=1e-6)
+    assert m.param("k_s").default == 1.0 and m.param("k_s").fit_start == 0.5

@@ -145,3 +145,56 @@ def test_parameters_that_end_at_a_bound_are_reported(gbuffer):
     r = fit_images(shade, gbuffer, target, TOY, starts=4, progress=False)
     assert r.at_bound == {"s": "upper", "rho_d[r]": "lower"}, (r.at_bound, r.params)
     assert "at a bound" in report.format_result(r) and "s (upper)" in report.format_result(r)
+
+
+def _compilations():
+    """A counter of XLA compilations (persistent-cache hits excluded) from jax.monitoring events."""
+    counts = {"n": 0}
+
+    def on(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            counts["n"] += 1
+
+    jax.monitoring.register_event_duration_secs_listener(on)
+    return counts
+
+
+@pytest.mark.parametrize("solver", ["lm", pytest.param("bfgs", marks=pytest.mark.slow)])
+def test_step_limit_and_tolerances_are_traced_and_match_optimistix(gbuffer, solver):
+    """The user's max_steps, rtol and atol are traced (one compiled solver for all of them below
+    the power-of-two step bound), and a capped solve stops exactly where optimistix's own static
+    `max_steps` stops it: same iterate, same step count, same result code."""
+    import optimistix as optx
+
+    from fitting import solve as S
+
+    truth = {"rho_d": jnp.array([0.2, 0.3, 0.4]), "rho_s": jnp.asarray(0.4), "s": jnp.asarray(60.0)}
+    targets = shade(truth, gbuffer)
+    free = S.free_params(TOY, {}, True)
+    z0 = {fp.param.name: jnp.zeros((fp.size,) if fp.size > 1 else ()) for fp in free}
+    pixels = S._pixels(np.asarray(targets), np.ones(targets.shape[:-1], np.float32))
+    one = S._compiled_solver(shade, free, solver, S.step_cap(40))
+    counter = _compilations()
+    one(z0, gbuffer, pixels, {}, S._controls(1e-7, 1e-9, 3))  # compiles once
+    after_first = counter["n"]
+    settings = [(3, 1e-7, 1e-9), (7, 1e-5, 1e-8), (40, 1e-6, 1e-10)]
+    ours = [one(z0, gbuffer, pixels, {}, S._controls(rtol, atol, max_steps)) for max_steps, rtol, atol in settings]
+    assert counter["n"] == after_first  # new limits and tolerances compiled nothing
+    for (max_steps, rtol, atol), (z, loss, steps, ok) in zip(settings, ours):
+
+        def residuals(z_, args):  # the data as arguments, as the library's solve takes them (same rounding)
+            gb, px = args
+            return S._residuals(shade(S._params_from_z(free, z_, {}), gb), px)
+
+        def reference(z_, gb, px, rtol=rtol, atol=atol, max_steps=max_steps):
+            sol = optx.least_squares(residuals, S.SOLVERS[solver](rtol, atol), z_, args=(gb, px), max_steps=max_steps,
+                                     throw=False)
+            return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+
+        value, num_steps, success = jax.jit(reference)(z0, gbuffer, pixels)
+        ref_ok = bool(success)
+        assert int(steps) == int(num_steps)
+        assert bool(ok) == ref_ok
+        for k in z:
+            np.testing.assert_allclose(np.asarray(z[k]), np.asarray(value[k]), rtol=1e-5, atol=1e-6)
+    assert S.step_cap(40) == S.step_cap(64) == 64 and S.step_cap(65) == 128 and S.step_cap(200) == 256

@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# One call on a bare GPU machine: install the wheels that its image lacks, then run the named
+# benchmark stages in order, each under its own time limit, logging everything to one file.
+#
+#   bash benchmarks/device_call.sh STAGE [STAGE ...]
+#
+# Expects, beside the checkout: .whl/ (trimesh, openexr, colour-science wheels for Python 3.12)
+# and .gpudata/ (a copy of the data folder: meshes/, brdfs/), both carried with the tree.
+# Writes $OUT/log.txt and the stages' JSON/NPZ/PNG files under $OUT (at most 8 files come back).
+set -u
+OUT=${OUT:-/tmp/out}
+mkdir -p "$OUT"
+LOG="$OUT/log.txt"
+export PYTHONUNBUFFERED=1 JAXRT_DATA="$PWD/.gpudata" JAXRT_CACHE_DIR=${JAXRT_CACHE_DIR:-/tmp/jaxrt-cache}
+if [ -d .whl ]; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+        >>"$LOG" 2>&1 || { echo "wheel install failed" | tee -a "$LOG"; exit 1; }
+    export PYTHONPATH="/tmp/site:$PWD"
+else
+    export PYTHONPATH="$PWD"
+fi
+{ date -u; nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader; nproc;
+  python3 -c "import jax, sys; print('python', sys.version.split()[0], 'jax', jax.__version__, jax.devices())";
+  git log -1 --format='commit %h %s' 2>/dev/null; } >>"$LOG" 2>&1
+
+stage() {  # stage NAME LIMIT_S COMMAND...
+    local name=$1 limit=$2; shift 2
+    echo "=== $name: $* (limit ${limit}s) $(date -u +%T)" | tee -a "$LOG"
+    local t0=$SECONDS
+    timeout "$limit" "$@" >>"$LOG" 2>&1
+    echo "=== $name: exit $? in $((SECONDS - t0)) s" | tee -a "$LOG"
+}
+
+for s in "$@"; do
+    case $s in
+        frames)   stage frames 150 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip check --json "$OUT/frames.json" ;;
+        glass)    # the same frames with Whitted's glass shadows transmitting (default) and opaque, one run
+                  stage glass-transmit 70 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip rays check --scenes showcase dragon
+                  stage glass-opaque 70 python3 benchmarks/gpu.py --impls pallas --repeats 5 --skip rays check --scenes showcase dragon \
+                      --override render.glass_shadows=opaque ;;
+        study)    stage study 240 python3 benchmarks/brdf_study.py --materials 100 --json "$OUT/study.json" ;;
+        path)     stage path 80 python3 benchmarks/path.py --size 512 --spp 4 --passes 5 --no-mitsuba ;;
+        sppm)     stage sppm 90 python3 benchmarks/sppm.py --size 128 --passes 8 ;;
+        latency)  stage latency 300 python3 benchmarks/latency.py --no-mitsuba --json "$OUT/latency.json" \
+                      --cases render-dragon render-spheres fit-bunny fit-demo import-jaxrt ;;
+        caustic)  # a converged path-traced reference of the area-light caustic, then SPPM vs path at equal time
+                  stage caustic-ref 170 python3 benchmarks/sppm.py --make-reference 4194304 --max-seconds 100 \
+                      --out "$OUT/caustic_ref.npz"
+                  stage caustic-equal-time 110 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                      --reference "$OUT/caustic_ref.npz" ;;
+        caustic-small)  # the same with a 0.1 m lamp of the same power (9x smaller solid angle)
+                  stage caustic-small-ref 150 python3 benchmarks/sppm.py --lamp 0.1 --make-reference 4194304 \
+                      --max-seconds 90 --out "$OUT/caustic_ref_small.npz"
+                  stage caustic-small-equal-time 100 python3 benchmarks/sppm.py --lamp 0.1 --equal-time 0.25,1,4 \
+                      --reference "$OUT/caustic_ref_small.npz" --bias-seeds 2 ;;
+        peers)    stage peers 110 python3 benchmarks/peers.py --size 1024 --no-mitsuba ;;
+        *)        echo "unknown stage $s" | tee -a "$LOG" ;;
+    esac
+done

@@ -286,7 +286,7 @@ def test_a_worker_that_dies_during_the_job_gives_one_line_and_exit_1(tmp_path):
 
     env = _env(tmp_path / "c")
     path = _socket_path(env)
-    path.parent.mkdir(parents=True)
+    path.parent.mkdir(parents=True, exist_ok=True)  # (a long tmp_path puts the socket in the temporary folder)
     server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     server.bind(str(path))
     server.listen(1)
@@ -307,6 +307,7 @@ def test_a_worker_that_dies_during_the_job_gives_one_line_and_exit_1(tmp_path):
     finally:
         t.join(10)
         server.close()
+        path.unlink()
     assert seen["kind"] == b"J" and seen["job"]["argv"] == ["render", str(tmp_path / "scene.toml"), "--width", "8"]
     assert seen["job"]["cwd"] == str(REPO) and seen["job"]["env"]["JAXRT_CACHE_DIR"] == str(tmp_path / "c")
     assert r.returncode == 1 and r.stdout == "partial output\n"

@@ -5,6 +5,7 @@
     python benchmarks/latency.py --cases imports render-spheres fit-bunny --quick
     python benchmarks/latency.py --preview-wiring        # as if the CLI and scenes used jaxrt.cache already
     python benchmarks/latency.py --no-mitsuba            # skip the Mitsuba 3 column
+    python benchmarks/latency.py --quick --worker        # also: the warm rows as clients of `jaxrt serve`
 
 A case is one process start to exit (files written), timed from outside (wall seconds and the CPU
 seconds of the process and its threads, which a loaded shared machine disturbs far less; `--warm-runs N`
@@ -23,6 +24,11 @@ scene load + first render of the same dragon view and resolution, and a 4-parame
 fit on the bunny view (rough plastic: diffuse and specular reflectance, roughness, IOR; the nearest
 Mitsuba material to the grey Cook-Torrance fit), each as a fresh process, run twice.
 Stanford-mesh cases need $JAXRT_DATA; cases that cannot run say why in the table.
+`--worker` adds a column: after the warm runs, `jaxrt serve` starts a resident worker on the same
+cache folder and the case runs again as fresh client processes (JAXRT_WORKER=use): its first job
+(the worker loads what the command needs) and the median of the `--warm-runs` jobs after it. The
+CPU seconds of those rows are the client's plus the worker's during the job (read from /proc).
+Imports never go through a worker: their rows are the same with and without it.
 """
 
 from __future__ import annotations
@@ -217,6 +223,9 @@ def cases(args) -> dict[str, Case]:
                              ("-c", DRAGON_FRAME.format(size=frame)), needs_data=True, peer="mitsuba-frame"),
         "imports": Case("Python imports before any work (jax, jaxrt.scene/render, fitting.setup)",
                         ("-c", "import jax, jaxrt.scene, jaxrt.api, brdfs, fitting.setup")),
+        "sweep-frame": Case("a notebook's first sweep frame (`jaxrt.sweep.sweep`, phong rho_d, one 128² frame of "
+                            "spheres, as the parameter_sweeps notebook)",
+                            ("-c", "from jaxrt import sweep; sweep.sweep('phong', 'rho_d', [0.5], width=128, height=128)")),
         "import-jaxrt": Case("`import jaxrt`", ("-c", "import jaxrt")),
         "import-brdfs": Case("`import brdfs`", ("-c", "import brdfs")),
         "import-fitting": Case("`import fitting`", ("-c", "import fitting")),
@@ -232,17 +241,51 @@ def _env(cache_dir: Path) -> dict:
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
     env["JAXRT_CACHE_DIR"] = str(cache_dir)
     env["PYTHONUNBUFFERED"] = "1"
+    env["JAXRT_WORKER"] = "off"
     return env
 
 
-def _run(argv: tuple[str, ...], cache_dir: Path, cwd: Path, preview: bool, timeout: float) -> dict:
+def _proc_cpu(pid: int | None) -> float:
+    """CPU seconds (user + system, all threads) of process `pid` so far; 0 where unknown."""
+    if pid is None:
+        return 0.0
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def _serve(action: str, cache_dir: Path, cwd: Path) -> dict | None:
+    """Start (`start`), query (`status`) or stop (`stop`) the worker of `cache_dir`'s environment."""
+    env = _env(cache_dir)
+    argv = {"start": ["serve", "--idle-timeout", "600"], "status": ["serve", "--status"], "stop": ["serve", "--stop"]}
+    p = subprocess.run([sys.executable, "-m", "jaxrt.cli", *argv[action]], env=env, cwd=cwd, capture_output=True,
+                       text=True, check=False)
+    if action == "status":
+        return json.loads(p.stdout) if p.returncode == 0 else None
+    return {"rc": p.returncode, "out": p.stdout + p.stderr}
+
+
+def _run_worker(argv: tuple[str, ...], cache_dir: Path, cwd: Path, timeout: float, pid: int | None) -> dict:
+    """One client process of the running worker; its CPU seconds plus the worker's during the job."""
+    c0 = _proc_cpu(pid)
+    out = _run(argv, cache_dir, cwd, False, timeout, worker=True)
+    out["cpu"] += _proc_cpu(pid) - c0
+    return out
+
+
+def _run(argv: tuple[str, ...], cache_dir: Path, cwd: Path, preview: bool, timeout: float, worker: bool = False) -> dict:
     if preview and argv[:2] == ("-m", "jaxrt.cli"):
         argv = ("-c", PREVIEW + "import sys; from jaxrt.cli import main; sys.exit(main(sys.argv[1:]))", *argv[2:])
     elif preview and argv[0] == "-c":
         argv = ("-c", PREVIEW + argv[1], *argv[2:])
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
-    p = subprocess.run([sys.executable, *argv], env=_env(cache_dir), cwd=cwd, capture_output=True, text=True,
+    env = _env(cache_dir)
+    if worker:
+        env["JAXRT_WORKER"] = "use"
+    p = subprocess.run([sys.executable, *argv], env=env, cwd=cwd, capture_output=True, text=True,
                        timeout=timeout, check=False)
     wall = time.perf_counter() - t
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -347,6 +390,8 @@ def main(argv=None) -> int:
     ap.add_argument("--warm-runs", type=int, default=1, metavar="N",
                     help="run the warm process N times and report the median wall and CPU time (default 1)")
     ap.add_argument("--json", metavar="OUT.json", help="also write every measurement as JSON")
+    ap.add_argument("--worker", action="store_true",
+                    help="also run the warm rows as clients of a resident worker (`jaxrt serve`) on the same cache")
     args = ap.parse_args(argv)
     table = cases(args)
     chosen = args.cases or (list(QUICK) if args.quick else list(table))
@@ -378,6 +423,21 @@ def main(argv=None) -> int:
                     for r in runs:
                         print(f"  {name} {phase}: {_fmt(r)}; cache entries {r['entries']}", flush=True)
                     res[phase] = _median(runs)
+                if args.worker and case.argv[:2] == ("-m", "jaxrt.cli"):
+                    started = _serve("start", cdir, work)
+                    state = _serve("status", cdir, work)
+                    if state is None:
+                        res["worker"] = [{"rc": 1, "error": started["out"].strip()[-160:]}]
+                    else:
+                        runs = [_run_worker(case.argv, cdir, work, args.timeout, state["pid"])
+                                for _ in range(args.warm_runs + 1)]
+                        after = _serve("status", cdir, work) or {}
+                        for r in runs:
+                            print(f"  {name} worker: {_fmt(r)}", flush=True)
+                        print(f"  {name} worker status: jobs {after.get('jobs')}, compile requests "
+                              f"{after.get('compile_requests')}, traces {after.get('traces')}", flush=True)
+                        res["worker"] = [runs[0], _median(runs[1:])]
+                    _serve("stop", cdir, work)
                 shutil.rmtree(cdir, ignore_errors=True)
             if case.peer and variant and has_data:
                 size = {"mitsuba-render": 256 if args.quick else args.dragon_size, "mitsuba-frame": 128 if args.quick
@@ -390,12 +450,14 @@ def main(argv=None) -> int:
             results[name] = res
 
     print()
-    print(f"| what (whole process, start to exit) | jaxrt cold (empty cache folder) | jaxrt warm (second process) | "
-          f"Mitsuba 3 {variant or '(not run)'}: first run / second run |")
-    print("|---|---|---|---|")
+    wcol = " jaxrt warm, through a resident worker: first job / later jobs |" if args.worker else ""
+    print(f"| what (whole process, start to exit) | jaxrt cold (empty cache folder) | jaxrt warm (second process) |"
+          f"{wcol} Mitsuba 3 {variant or '(not run)'}: first run / second run |")
+    print("|---|---|---|" + ("---|" if args.worker else "") + "---|")
     for name, r in results.items():
         peer = " / ".join(_fmt(x) for x in r.get("peer", []))
-        print(f"| {r['row']} | {_fmt(r['cold'])} | {_fmt(r['warm'])} | {peer} |")
+        w = (" " + " / ".join(_fmt(x) for x in r.get("worker", [])) + " |") if args.worker else ""
+        print(f"| {r['row']} | {_fmt(r['cold'])} | {_fmt(r['warm'])} |{w} {peer} |")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
     return 0

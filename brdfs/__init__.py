@@ -23,37 +23,91 @@ finds either kind, and `is_measured` tells them apart.
 
 from __future__ import annotations
 
-from brdfs import (
-    ashikhmin_shirley, blinn_phong, cook_torrance, disney, glass, lambert, measured, phong, ward, ward_1992, ward_duer,
-)
-from brdfs.analysis import albedo, lobe_slice, plot_lobe, reciprocity_error
-from brdfs.base import Component, Dielectric, Lobe, Model, Param, Params
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from brdfs.base import Model
 
 # Registry order: the seven models of Größler & Zettwitz ("An interactive ray tracing system based
 # on Nvidia OptiX", 2015) and Disney, then the two Ward normalisations that Ngan, Durand & Matusik
 # ("Experimental analysis of BRDF models", EGSR 2005) fitted.
-_MODULES = (lambert, phong, blinn_phong, cook_torrance, ward, ashikhmin_shirley, glass, disney, ward_1992, ward_duer)
-MODELS: dict[str, Model] = {m.MODEL.name: m.MODEL for m in _MODULES}
+_MODULES = ("lambert", "phong", "blinn_phong", "cook_torrance", "ward", "ashikhmin_shirley", "glass", "disney",
+            "ward_1992", "ward_duer")
+
+# `import brdfs` loads neither JAX nor a model: each public name is imported on first use (PEP 562),
+# so the `jaxrt` command (whose errors are `brdfs.errors.InputError`) starts without JAX.
+# public name -> the module that defines it
+_LAZY = {
+    "albedo": "brdfs.analysis", "lobe_slice": "brdfs.analysis", "plot_lobe": "brdfs.analysis",
+    "reciprocity_error": "brdfs.analysis",
+    "Component": "brdfs.base", "Dielectric": "brdfs.base", "Lobe": "brdfs.base", "Model": "brdfs.base",
+    "Param": "brdfs.base", "Params": "brdfs.base",
+}
+
+
+def _registry() -> dict[str, Model]:
+    """name -> Model of the analytic models, in registry order (imports them on the first call)."""
+    models = globals().get("MODELS")
+    if models is None:
+        mods = [importlib.import_module(f"{__name__}.{m}") for m in _MODULES]
+        models = globals().setdefault("MODELS", {m.MODEL.name: m.MODEL for m in mods})
+    return models
+
+
+def __getattr__(name: str):
+    if name == "MODELS":
+        return _registry()
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    if not name.startswith("_") and _is_submodule(name):
+        # the model modules, `measured`, `analysis`, ...
+        try:
+            return importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as e:
+            if e.name != f"{__name__}.{name}":
+                raise
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _is_submodule(name: str) -> bool:
+    """Whether `name` is a module or package of this package (looked up on disk, not imported: a
+    probe such as IPython's `_repr_html_` or a misspelt name must not import anything)."""
+    from pathlib import Path
+
+    here = Path(__file__).parent
+    return name.isidentifier() and ((here / f"{name}.py").is_file() or (here / name / "__init__.py").is_file())
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__) | set(_MODULES))
 
 
 def names() -> tuple[str, ...]:
     """The registered model names, in registry order (see `_MODULES`)."""
-    return tuple(MODELS)
+    return tuple(_registry())
 
 
 def get(name: str) -> Model:
     """The model called `name`: an analytic model (`MODELS`) or a measured one (`measured.MODELS`);
     InputError (a ValueError) listing the analytic names otherwise."""
+    models = _registry()
     try:
-        return MODELS[name]
+        return models[name]
     except (KeyError, TypeError):
         pass
+    from brdfs import measured
+
     try:
         return measured.MODELS[name]
     except (KeyError, TypeError):
         from brdfs.errors import InputError
 
-        raise InputError(f"unknown BRDF model {name!r}; allowed: {', '.join(MODELS)}") from None
+        raise InputError(f"unknown BRDF model {name!r}; allowed: {', '.join(models)}") from None
 
 
 def is_measured(model: Model | str) -> bool:

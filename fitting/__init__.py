@@ -8,6 +8,35 @@ BRDF space and `fitting.study` runs Ngan et al. 2005's study over the measured d
 (`fitting.study_image`: the same study in image space, on renders of the measured materials).
 """
 
-from fitting.solve import SOLVERS, FitResult, Solution, fit_images, solve_batch
+import importlib
 
 __all__ = ["SOLVERS", "FitResult", "Solution", "fit_images", "solve_batch"]
+
+
+# `import fitting` loads neither JAX nor the solvers: each public name and submodule is imported on
+# first use (PEP 562), so a command or a script pays only for what it calls.
+def __getattr__(name: str):
+    if name in __all__:
+        value = getattr(importlib.import_module("fitting.solve"), name)
+        globals()[name] = value
+        return value
+    if not name.startswith("_") and _is_submodule(name):
+        try:
+            return importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as e:
+            if e.name != f"{__name__}.{name}":
+                raise
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _is_submodule(name: str) -> bool:
+    """Whether `name` is a module or package of this package (looked up on disk, not imported: a
+    probe such as IPython's `_repr_html_` or a misspelt name must not import anything)."""
+    from pathlib import Path
+
+    here = Path(__file__).parent
+    return name.isidentifier() and ((here / f"{name}.py").is_file() or (here / name / "__init__.py").is_file())
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

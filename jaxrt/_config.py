@@ -20,6 +20,7 @@ standard library and `jaxrt.errors`, so anything may import it without pulling i
 | JAXRT_COORDINATOR | several hosts: the address of process 0's coordination service, host:port (`jax.distributed.initialize`, called by `jaxrt._devices.initialize` and the CLI) | host:port (unset: one process) |
 | JAXRT_PROCESS_COUNT | several hosts: how many processes take part, one per host | an integer ≥ 1 (required with JAXRT_COORDINATOR) |
 | JAXRT_PROCESS_ID | several hosts: this process's index; only process 0 writes output files (`jaxrt.fsutil`) | 0 .. JAXRT_PROCESS_COUNT − 1 (required with JAXRT_COORDINATOR) |
+| JAXRT_WORKER | whether the `jaxrt` command hands its job to a resident worker (`jaxrt serve`, `jaxrt.serve`): use one that is running, start one when none is, or never | use, start, off (use) |
 
 Relative paths are taken relative to the current directory at the time of the call and returned
 absolute, so a value read once means the same folder after a ``chdir``.
@@ -35,7 +36,8 @@ from pathlib import Path
 
 from jaxrt.errors import InputError
 
-__all__ = ["DEFAULT_CACHE_SIZE", "TRAVERSALS", "VARIABLES", "Config", "config", "default_cache_dir", "parse_size"]
+__all__ = ["DEFAULT_CACHE_SIZE", "TRAVERSALS", "VARIABLES", "WORKER_KEY_PREFIXES", "WORKER_KEY_VARIABLES", "WORKER_MODES",
+           "Config", "config", "default_cache_dir", "parse_size"]
 
 #: The traversal implementations `JAXRT_TRAVERSAL` may name (`jaxrt.accel.bvh.IMPLS` holds the same tuple).
 TRAVERSALS = ("auto", "xla", "cpu", "pallas", "pallas-interpret")
@@ -45,7 +47,21 @@ DEFAULT_CACHE_SIZE = 2 << 30
 
 #: Every variable this module reads, in the order of the table above.
 VARIABLES = ("JAXRT_DATA", "JAXRT_DEBUG", "JAXRT_TRAVERSAL", "JAXRT_CACHE_DIR", "JAXRT_CACHE", "JAXRT_CACHE_SIZE",
-             "JAXRT_MEMORY", "JAXRT_CONFINE", "JAXRT_COORDINATOR", "JAXRT_PROCESS_COUNT", "JAXRT_PROCESS_ID")
+             "JAXRT_MEMORY", "JAXRT_CONFINE", "JAXRT_COORDINATOR", "JAXRT_PROCESS_COUNT", "JAXRT_PROCESS_ID",
+             "JAXRT_WORKER")
+
+#: The values of JAXRT_WORKER: use a running worker, start one when none is running, never use one.
+WORKER_MODES = ("use", "start", "off")
+
+#: Environment variables a running process cannot take from a job (JAX and the GPU runtime read
+#: them when they start; jaxrt when it turns the compilation cache on and picks a traversal): a
+#: resident worker serves only clients whose values equal its own (`jaxrt.serve.worker_key`), every
+#: variable starting with one of `WORKER_KEY_PREFIXES` included. Every other JAXRT_* variable
+#: travels with each job.
+WORKER_KEY_VARIABLES = ("JAXRT_CACHE_DIR", "JAXRT_CACHE", "JAXRT_TRAVERSAL", "XDG_CACHE_HOME", "HOME",
+                        "CUDA_VISIBLE_DEVICES", "HIP_VISIBLE_DEVICES", "ROCR_VISIBLE_DEVICES", "TPU_VISIBLE_CHIPS",
+                        "NVIDIA_TF32_OVERRIDE", "OMP_NUM_THREADS", "PYTHONPATH", "PYTHONHASHSEED", "LD_LIBRARY_PATH")
+WORKER_KEY_PREFIXES = ("JAX_", "XLA_", "TF_", "NCCL_")
 
 _TRUE = ("1", "true", "yes", "on")
 _FALSE = ("", "0", "false", "no", "off")
@@ -67,6 +83,7 @@ class Config:
     confine:     JAXRT_CONFINE
     coordinator: JAXRT_COORDINATOR ("host:port"), or None for a single process
     process_count, process_id: JAXRT_PROCESS_COUNT and JAXRT_PROCESS_ID (1 and 0 without a coordinator)
+    worker:      JAXRT_WORKER, one of `WORKER_MODES`
     """
 
     data: Path | None
@@ -80,6 +97,7 @@ class Config:
     coordinator: str | None = None
     process_count: int = 1
     process_id: int = 0
+    worker: str = "use"
 
 
 def default_cache_dir(environ: Mapping[str, str] | None = None) -> Path:
@@ -160,7 +178,7 @@ def config(environ: Mapping[str, str] | None = None) -> Config:
 
     Raises InputError (one line naming the variable, its value and what is allowed) for: a
     JAXRT_DEBUG/JAXRT_CONFINE that is not a yes/no word, a JAXRT_TRAVERSAL not in `TRAVERSALS`,
-    a JAXRT_CACHE other than on/off, a JAXRT_CACHE_SIZE/JAXRT_MEMORY that is not a size, a
+    a JAXRT_CACHE other than on/off, a JAXRT_WORKER not in `WORKER_MODES`, a JAXRT_CACHE_SIZE/JAXRT_MEMORY that is not a size, a
     JAXRT_CACHE_DIR that names an existing non-folder, a JAXRT_COORDINATOR that is not host:port, a
     JAXRT_PROCESS_COUNT/JAXRT_PROCESS_ID missing or out of range with it, or either without it. JAXRT_DATA is not checked for existence here:
     `jaxrt.geometry.data.find` names it when a file is missing.
@@ -191,8 +209,14 @@ def config(environ: Mapping[str, str] | None = None) -> Config:
     if memory == 0:
         raise InputError(f"JAXRT_MEMORY={mem_raw!r}: must be a positive size, e.g. 8G")
 
+    worker_raw = env.get("JAXRT_WORKER", "")
+    worker = worker_raw.strip().lower() or "use"
+    if worker not in WORKER_MODES:
+        raise InputError(f"JAXRT_WORKER={worker_raw!r}: must be one of {', '.join(WORKER_MODES)}")
+
     coordinator, count, pid = _processes(env)
     return Config(
+        worker=worker,
         coordinator=coordinator,
         process_count=count,
         process_id=pid,

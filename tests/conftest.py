@@ -13,6 +13,10 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
+# The CLI subprocesses and `main` calls of the suite run in their own process, never in a resident
+# worker (`jaxrt serve`) that may run on this machine; the worker tests turn it on where they mean to.
+os.environ["JAXRT_WORKER"] = "off"
+
 if not os.environ.get("JAXRT_CACHE_DIR"):
     os.environ["JAXRT_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxrt-test-cache-")
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ast
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -233,3 +234,66 @@ def test_package_imports_and_png_writing_leave_heavy_modules_unloaded(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out == {"brdfs": [], "fitting": [], "jaxrt": [], "png": [], "probe": []}
+
+
+def test_package_imports_and_cli_help_leave_jax_unloaded_and_first_use_turns_the_cache_on(tmp_path):
+    """`import jaxrt, brdfs, fitting`, the `jaxrt` parser (no command, `--help`) and the resident
+    worker's client import no JAX; the first JAX-using module of jaxrt loads it with JAX's persistent
+    compilation cache already pointing at the cache folder (checked before any jaxrt code compiles)."""
+    code = ("import json, sys, contextlib, io\n"
+            "out = {}\n"
+            "import jaxrt, brdfs, fitting\n"
+            "import jaxrt.cli, jaxrt.serve\n"
+            "out['names'] = [set(jaxrt.__all__) <= set(dir(jaxrt)), set(brdfs.__all__) <= set(dir(brdfs))]\n"
+            "with contextlib.redirect_stdout(io.StringIO()) as help_text:\n"
+            "    try:\n"
+            "        jaxrt.cli.main(['--help'])\n"
+            "    except SystemExit as e:\n"
+            "        out['help_exit'] = e.code\n"
+            "out['help'] = 'render' in help_text.getvalue()\n"
+            "out['jax_before'] = 'jax' in sys.modules\n"
+            "render = jaxrt.render\n"
+            "import jax\n"
+            "out['cache_dir'] = jax.config.jax_compilation_cache_dir\n"
+            "out['models'] = list(brdfs.names())[:2]\n"
+            "out['fit'] = fitting.fit_images.__module__\n"
+            "print(json.dumps(out))\n")
+    env = {**os.environ, "JAXRT_CACHE_DIR": str(tmp_path / "c"), "JAXRT_WORKER": "off"}
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out == {"names": [True, True], "help_exit": 0, "help": True, "jax_before": False,
+                   "cache_dir": str(tmp_path / "c" / "xla"), "models": ["lambert", "phong"], "fit": "fitting.solve"}
+    # the console command itself, as a separate process: `python -m jaxrt.cli --help` then the modules it loaded
+    probe = ("import runpy, sys\n"
+             "sys.argv = ['jaxrt', '--help']\n"
+             "try:\n"
+             "    runpy.run_module('jaxrt.cli', run_name='__main__')\n"
+             "except SystemExit:\n"
+             "    pass\n"
+             "print('JAX' if 'jax' in sys.modules else 'NOJAX')\n")
+    r = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, env=env)
+    assert r.returncode == 0 and r.stdout.strip().splitlines()[-1] == "NOJAX", r.stdout[-500:] + r.stderr[-2000:]
+
+
+def test_lazy_package_names_are_the_modules_objects():
+    code = ("import jaxrt, brdfs, fitting\n"
+            "from jaxrt.api import render\n"
+            "from jaxrt.scene import load, Scene\n"
+            "from brdfs.base import Model\n"
+            "from brdfs.lambert import MODEL\n"
+            "from fitting.solve import solve_batch\n"
+            "assert jaxrt.render is render and jaxrt.load_scene is load and jaxrt.Scene is Scene\n"
+            "assert brdfs.Model is Model and brdfs.MODELS['lambert'] is MODEL and brdfs.get('lambert') is MODEL\n"
+            "assert fitting.solve_batch is solve_batch and jaxrt.image.__name__ == 'jaxrt.image'\n"
+            "for pkg in (jaxrt, brdfs, fitting):\n"
+            "    try:\n"
+            "        pkg.no_such_name\n"
+            "    except AttributeError:\n"
+            "        pass\n"
+            "    else:\n"
+            "        raise SystemExit(pkg.__name__)\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                       env={**os.environ, "JAXRT_WORKER": "off"})
+    assert r.returncode == 0, r.stderr[-2000:]

@@ -7,6 +7,11 @@ as one line with exit code 2; set JAXRT_DEBUG=1 for the full traceback. argparse
 unknown option, a value that is not a number) are one line with exit code 2 as well. With
 JAXRT_COORDINATOR (several hosts) the command first joins the other processes; processes other than
 0 run the same command but print nothing on stdout and write no files.
+
+`main` first offers the command to a resident worker (`jaxrt serve`, `jaxrt.serve.forward`): where
+one runs for this environment and JAXRT_WORKER allows, the command runs there and this process
+imports no JAX; otherwise `execute` runs it here. Parsing the arguments imports only the selected
+command's module.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ import sys
 from jaxrt import _config
 from jaxrt.errors import InputError
 
-__all__ = ["COMMANDS", "build_parser", "main"]
+__all__ = ["COMMANDS", "build_parser", "execute", "main"]
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -31,6 +36,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "study": ("jaxrt.cli.study", "fit every analytic model to every measured material (Ngan et al. 2005)"),
     "cache": ("jaxrt.cli.cache", "show or clear the on-disk caches (compiled programs, meshes, BVHs)"),
     "brdf-report": ("jaxrt.cli.brdf_report", "print each BRDF model's albedo table and write a lobe plot PNG"),
+    "serve": ("jaxrt.cli.serve", "keep a warm worker process that runs later jaxrt commands (opt-in; see --help)"),
 }
 
 
@@ -60,9 +66,24 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _command(argv: list[str]) -> str | None:
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """`jaxrt ARGV`: in a resident worker where one runs for this environment and JAXRT_WORKER allows
+    (`jaxrt.serve`; this process then imports no JAX), else here (`execute`). The exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    selected = next((a for a in argv if not a.startswith("-")), None)
+    from jaxrt import serve
+
+    code = serve.forward(argv, _command(argv))
+    return execute(argv) if code is None else code
+
+
+def execute(argv: list[str]) -> int:
+    """Run `jaxrt ARGV` in this process; the exit code (argparse's errors and --help raise SystemExit)."""
+    argv = list(argv)
+    selected = _command(argv)
     parser = build_parser(selected if selected in COMMANDS else None)
     args = parser.parse_args(argv)
     debug = False

@@ -75,6 +75,7 @@ import brdfs
 from brdfs.base import Model, Params
 from brdfs.errors import InputError
 from brdfs.halfdiff import directions
+from fitting.record import FitRecord
 from fitting.solve import solve_batch
 
 __all__ = [
@@ -186,34 +187,12 @@ def errors(f_fit: Float[np.ndarray, "*B N 3"], f_meas: Float[np.ndarray, "*B N 3
 
 
 @dataclasses.dataclass
-class BrdfFit:
-    """One analytic model fitted to one measured material in BRDF space; `to_json()` for files."""
+class BrdfFit(FitRecord):
+    """One analytic model fitted to one measured material in BRDF space (`error`/`errors` on the
+    evaluation sampling, if one was given); `to_json()` for files."""
 
-    material: str
-    model: str
-    metric: str
-    unit: str  # of `error`
-    error: float  # E of `metric` at the fitted parameters (on the evaluation sampling, if one was given)
-    errors: dict[str, float]  # E of every metric at the fitted parameters (same sampling)
-    fit_error: float  # E of `metric` on the fit's own sampling (what the solver minimised)
-    params: dict[str, list[float] | float]
-    stderr: dict[str, list[float] | float]
-    tied: dict[str, str]  # parameter -> the parameter it was set equal to
-    fixed: list[str]
-    at_bound: dict[str, str]  # label -> "lower" | "upper"
-    converged: bool
-    iterations: int
-    total_iterations: int
-    starts: int
-    starts_at_best: int
-    condition_number: float
-    ill_conditioned: bool
-    correlated: list[tuple[str, str, float]]
     samples: int  # direction pairs of the fit's sampling
     eval_samples: int  # ... of the sampling `error` was evaluated on
-
-    def to_json(self) -> dict:
-        return dataclasses.asdict(self)
 
 
 def fit_model(name) -> Model:
@@ -368,15 +347,9 @@ def fit_samples(
     out = []
     for i, (name, sol) in enumerate(zip(names, sols)):
         e = {m: float(errs[m][i]) for m in METRICS}
-        out.append(BrdfFit(
-            material=name, model=model.name, metric=metric, unit=UNITS[metric], error=e[metric], errors=e,
-            fit_error=float(fit_errs[i]),
-            params=sol.params, stderr=sol.stderr, tied=dict(tie), fixed=sol.fixed, at_bound=sol.at_bound,
-            converged=sol.converged, iterations=sol.iterations, total_iterations=sol.total_iterations,
-            starts=sol.starts, starts_at_best=sol.starts_at_best, condition_number=sol.condition_number,
-            ill_conditioned=sol.ill_conditioned, correlated=sol.correlated, samples=samp.size,
-            eval_samples=eval_samp.size,
-        ))
+        out.append(BrdfFit.from_solution(
+            sol, material=name, model=model.name, metric=metric, unit=UNITS[metric], error=e[metric], errors=e,
+            fit_error=float(fit_errs[i]), tied=dict(tie), samples=samp.size, eval_samples=eval_samp.size))
     return out
 
 

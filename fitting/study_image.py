@@ -54,6 +54,7 @@ from brdfs.errors import InputError
 from fitting import brdf_space as bs
 from fitting import compact
 from fitting import setup as fit_setup
+from fitting.record import FitRecord
 from fitting.solve import fit_images
 from fitting.study import Study
 
@@ -80,35 +81,13 @@ _FLOOR = {"model": "lambert", "rho_d": [0.5, 0.5, 0.5]}
 
 
 @dataclasses.dataclass
-class ImageFit:
-    """One image-space fit of `model` to the renders of `material`: the fields of `brdf_space.BrdfFit`
-    that the study's tables read, with the image-space errors."""
+class ImageFit(FitRecord):
+    """One image-space fit of `model` to the renders of `material`: `error` is the RMSE over the
+    compared pixels [linear radiance], `errors` also holds relative_rmse (to the targets' RMS) and
+    delta_e_mean (CIEDE2000), `fit_error` the same RMSE (what the solver minimised)."""
 
-    material: str
-    model: str
-    metric: str
-    unit: str
-    error: float  # RMSE over the compared pixels [linear radiance]
-    errors: dict[str, float]  # rmse, relative_rmse (to the targets' RMS), delta_e_mean (CIEDE2000)
-    fit_error: float  # what the solver minimised: the same RMSE
-    params: dict[str, list[float] | float]
-    stderr: dict[str, list[float] | float]
-    tied: dict[str, str]
-    fixed: list[str]
-    at_bound: dict[str, str]
-    converged: bool
-    iterations: int
-    total_iterations: int
-    starts: int
-    starts_at_best: int
-    condition_number: float
-    ill_conditioned: bool
-    correlated: list[tuple[str, str, float]]
     pixels: int  # compared pixels over both views
     warnings: list[str]
-
-    def to_json(self) -> dict:
-        return dataclasses.asdict(self)
 
 
 def choose_scene(scene: str) -> str:
@@ -336,14 +315,10 @@ def run_image(materials: Sequence[str] = DEFAULT_MATERIALS, models: Sequence[str
                     r.fixed.remove(t)
                     if s in r.at_bound:
                         r.at_bound[t] = r.at_bound[s]
-                fits[(a, name)] = ImageFit(
-                    material=a, model=name, metric=METRIC, unit=UNIT, error=r.rmse,
+                fits[(a, name)] = ImageFit.from_solution(
+                    r, material=a, model=name, metric=METRIC, unit=UNIT, error=r.rmse,
                     errors={"rmse": r.rmse, "relative_rmse": r.relative_rmse, "delta_e_mean": r.delta_e_mean},
-                    fit_error=r.rmse, params=r.params, stderr=r.stderr, tied=dict(tie), fixed=r.fixed,
-                    at_bound=r.at_bound, converged=r.converged, iterations=r.iterations,
-                    total_iterations=r.total_iterations, starts=r.starts, starts_at_best=r.starts_at_best,
-                    condition_number=r.condition_number, ill_conditioned=r.ill_conditioned,
-                    correlated=r.correlated, pixels=pixels, warnings=r.warnings)
+                    fit_error=r.rmse, tied=dict(tie), pixels=pixels, warnings=r.warnings)
                 images[(a, name)] = r.first_view if batched else np.asarray(
                     _render(shade)(_as_params(r.params), setup.fitbuffer)[0])
                 bar.update(1)

@@ -86,9 +86,12 @@ def direct_lighting(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Arr
         # the sum over the (few) lights written out: XLA:CPU runs a reduction over a short axis as a
         # slow library (YNNPACK) fusion
         fw = f * weight
-        total = fw[:, 0]
-        for l in range(1, fw.shape[1]):
-            total = total + fw[:, l]
+        if fw.shape[1] == 0:  # no point lights (area lights only: their light is the path tracer's)
+            total = jnp.zeros(fw.shape[:1] + fw.shape[2:], fw.dtype)
+        else:
+            total = fw[:, 0]
+            for l in range(1, fw.shape[1]):
+                total = total + fw[:, l]
         out = jnp.where(sel[:, None], total, out)
     return out
 

@@ -207,8 +207,11 @@ def test_chi2_sharp_lobes_at_the_bounds(name, kw, theta, phi, width):
     f = np.asarray(m.eval(p, jnp.asarray(wi[k]), wo32))
     okk = ok[k]
     expect = f[okk] * (wi[k][okk, 2] / pdf[k][okk])[:, None]
-    np.testing.assert_allclose(weight[k][okk], expect, rtol=1e-4, atol=1e-7)
-    np.testing.assert_allclose(pdf[k], np.asarray(m.pdf(p, wo32, jnp.asarray(wi[k]))), rtol=1e-4, atol=1e-30)
+    # At the roughness bound the lobe's D term turns one float32 ulp of cos θh into a relative change
+    # of ~1e-4 (D ∝ 1/(cos²θh (α² − 1) + 1)², α ≈ 1e-3): sample() and eval() are separate programs
+    # whose dot products XLA may contract into fused multiply-adds differently, so 1e-3 here.
+    np.testing.assert_allclose(weight[k][okk], expect, rtol=1e-3, atol=1e-7)
+    np.testing.assert_allclose(pdf[k], np.asarray(m.pdf(p, wo32, jnp.asarray(wi[k]))), rtol=1e-3, atol=1e-30)
     np.testing.assert_allclose(weight.mean(0), np.asarray(brdfs.albedo(m, p, wo32)), rtol=0.02, atol=2e-3)
 
 

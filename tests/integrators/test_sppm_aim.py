@@ -208,13 +208,14 @@ def test_no_delta_objects_no_aiming_photons_unchanged():
 
 @pytest.mark.slow
 def test_aimed_sppm_image_equals_unaimed_within_errors():
-    """The SPPM image of the glass ball under the lamp with f = 0.5 and f = 0: over 6 seeds each,
-    the image mean and the 4 quadrant means agree within 4 combined standard errors (seed spread)."""
+    """The SPPM image of the glass ball under the lamp with f = 0.5 and f = 0: over 5 seeds each,
+    the image mean and the 4 quadrant means agree within 4 combined standard errors (seed spread).
+    (Same seed, same camera passes: the direct light is identical, the photons' part differs.)"""
     imgs = {}
     for f in (0.0, 0.5):
         out = []
-        for seed in range(6):
-            scene = R.load_scene(glass_scene(photon_aim=f, photons=8192, radius=0.06, spp=6, seed=seed))
+        for seed in range(5):
+            scene = R.load_scene(glass_scene(photon_aim=f, photons=8192, radius=0.06, spp=4, seed=seed))
             out.append(np.asarray(R.render(scene), np.float64))
         imgs[f] = np.stack(out)
     h, w = imgs[0.0].shape[1:3]

@@ -215,7 +215,7 @@ def test_aimed_sppm_image_equals_unaimed_within_errors():
     for f in (0.0, 0.5):
         out = []
         for seed in range(5):
-            scene = R.load_scene(glass_scene(photon_aim=f, photons=8192, radius=0.06, spp=4, seed=seed))
+            scene = R.load_scene(glass_scene(photon_aim=f, photons=4096, radius=0.06, spp=4, seed=seed))
             out.append(np.asarray(R.render(scene), np.float64))
         imgs[f] = np.stack(out)
     h, w = imgs[0.0].shape[1:3]

@@ -9,6 +9,8 @@ with the reference file made on the GPU:
     # GPU: the reference, then the equal-time table and the bias check
     python benchmarks/sppm.py --make-reference 4194304 --max-seconds 100 --out caustic_ref.npz
     python benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 --reference caustic_ref.npz
+    # the same without photon aiming (the scene's default aims half the photons at the glass)
+    python benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 --reference caustic_ref.npz --photon-aim 0 --bias-seeds 0
     # CPU, with the GPU's caustic_ref.npz (the scene and settings are checked on load)
     python benchmarks/sppm.py --equal-time 5,10,20,40 --reference caustic_ref.npz --bias-seeds 0
     # throughput on the shipped scene; the README's picture

@@ -190,9 +190,8 @@ def test_aiming_sends_more_photons_to_the_glass_with_the_same_flux():
 
 
 def test_no_delta_objects_no_aiming_photons_unchanged():
-    """Without glass or mirrors the default is no aiming, and the photons are those of photon_aim = 0
-    (the 6-uniform emission, bit for bit); with glass, photon_aim = 0 gives the same photons as a
-    scene without the setting would without aiming."""
+    """Without glass or mirrors the default is no aiming: the photons are the 6-uniform emission's,
+    bit for bit (extra uniforms unused); with glass and aiming on, 6 uniforms are refused."""
     plain = R.load_scene(glass_scene(glass=False))
     assert plain.settings.photon_aim == 0.0
     u = _uniforms(1000, 4)

@@ -9,6 +9,8 @@ with the reference file made on the GPU:
     # GPU: the reference, then the equal-time table and the bias check
     python benchmarks/sppm.py --make-reference 4194304 --max-seconds 100 --out caustic_ref.npz
     python benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 --reference caustic_ref.npz
+    # the same without photon aiming (the scene's default aims half the photons at the glass)
+    python benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 --reference caustic_ref.npz --photon-aim 0 --bias-seeds 0
     # CPU, with the GPU's caustic_ref.npz (the scene and settings are checked on load)
     python benchmarks/sppm.py --equal-time 5,10,20,40 --reference caustic_ref.npz --bias-seeds 0
     # throughput on the shipped scene; the README's picture
@@ -46,7 +48,9 @@ reference has converged (its relative standard error there a few per cent), whic
 
 --equal-time T1,T2,... --reference FILE: checks that FILE was made for this very scene (resolution,
 max_depth, every scene value; one line and exit status 2 otherwise), then runs SPPM (--photons per
-pass, initial radius --radius) and the path tracer (--path-spp samples per pass) each once for
+pass, initial radius --radius, --photon-aim F: the fraction of photons aimed at the glass, default
+the scene's 0.5; aiming changes the estimator, not the expected image, so the reference's check
+ignores it) and the path tracer (--path-spp samples per pass) each once for
 max(T) seconds of rendering after compilation (excluded), taking their images when the time passed
 reaches each T. For each T it prints the relative RMS error over the caustic region
 (sqrt(mean (image − reference)²) / mean reference, over the region's pixels and channels), the same
@@ -392,7 +396,7 @@ def _run_until(marks, step):
 
 
 def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: float, path_spp: int | None,
-               bias_seeds: int, lamp: float | None = None) -> None:
+               bias_seeds: int, lamp: float | None = None, aim: float | None = None) -> None:
     ref = load_reference(ref_path, size, lamp)
     meta, doc = ref["meta"], ref["doc"]
     photons = photons or _default(1 << 18, 1 << 16)
@@ -409,12 +413,16 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
     def err(img):
         return float(np.sqrt(np.mean((np.asarray(img, np.float64)[region] - mean[region]) ** 2)) / m)
 
-    sp = _build(doc, photons=photons, radius=radius)
+    # photon aiming changes the estimator, not the expected image: it is passed beside the scene
+    # document that the reference was checked against
+    extra = {} if aim is None else {"photon_aim": aim}
+    sp = _build(doc, photons=photons, radius=radius, **extra)
     pt = _build(doc, integrator="path", spp=path_spp)
     runs_s = _run_until(marks, lambda s: sppm.accumulate(sp, s))
     runs_p = _run_until(marks, lambda a: P.accumulate(pt, a))
     print(f"device {_device()}; equal time on the caustic scene (area light only) {meta['width']}x{meta['height']}, "
-          f"max_depth {meta['max_depth']}; SPPM {photons} photons/pass, initial radius {radius}; path {path_spp} "
+          f"max_depth {meta['max_depth']}; SPPM {photons} photons/pass, initial radius {radius}, photon_aim "
+          f"{sp.settings.photon_aim:g}; path {path_spp} "
           f"spp/pass")
     print(f"reference {ref_path}: {meta['spp']} spp ({meta['chunks']} chunks) on {meta['device']}, commit "
           f"{meta['commit']}; caustic region {int(region.sum())} px, mean {m:.4g}; its relative RMS error "
@@ -435,7 +443,7 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
     T = max(marks)
     means = [float(np.asarray(runs_s[-1][0].image, np.float64)[region].mean())]
     for seed in range(1, bias_seeds):
-        sp_k = _build(doc, photons=photons, radius=radius, seed=seed)
+        sp_k = _build(doc, photons=photons, radius=radius, seed=seed, **extra)
         means.append(float(np.asarray(_run_until([T], lambda s: sppm.accumulate(sp_k, s))[0][0].image,
                                       np.float64)[region].mean()))
     mu = statistics.fmean(means)
@@ -462,6 +470,8 @@ def main() -> None:
     ap.add_argument("--equal-time", default="", metavar="T1,T2,...", help="wall budgets in seconds")
     ap.add_argument("--reference", metavar="FILE", help="the --make-reference file for --equal-time")
     ap.add_argument("--radius", type=float, default=0.03, help="SPPM initial radius for --equal-time [m]")
+    ap.add_argument("--photon-aim", type=float, default=None, metavar="F",
+                    help="SPPM [render] photon_aim for --equal-time (default: the scene's, 0.5 with its glass)")
     ap.add_argument("--path-spp", type=int, default=None, help="path samples per pass (GPU 256, CPU 16)")
     ap.add_argument("--lamp", type=float, default=None, metavar="METRES",
                     help="side of the equal-time scene's square lamp (default 0.3 as shipped; same power)")
@@ -483,7 +493,8 @@ def main() -> None:
             _fail(f"--equal-time {a.equal_time!r}: expected positive seconds separated by commas")
         if not a.reference:
             _fail("--equal-time needs --reference FILE (made with --make-reference)")
-        equal_time(marks, a.reference, a.size or 96, a.photons, a.radius, a.path_spp, a.bias_seeds, a.lamp)
+        equal_time(marks, a.reference, a.size or 96, a.photons, a.radius, a.path_spp, a.bias_seeds, a.lamp,
+                   a.photon_aim)
     else:
         throughput(a.size or 128, a.photons or 65536, a.passes)
 

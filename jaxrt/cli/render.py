@@ -75,6 +75,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--radius", type=float, metavar="R",
                         help="SPPM initial gather radius in scene units (overrides [render] radius; default: "
                              "2 x scene diagonal / max(width, height))")
+    parser.add_argument("--photon-aim", type=float, metavar="F",
+                        help="SPPM fraction of photons aimed at glass and mirror objects, 0 <= F < 1 (overrides "
+                             "[render] photon_aim; default 0.5 with glass or mirrors, else 0)")
     parser.add_argument("--seed", type=int, help="random seed for jittered samples (overrides [render] seed)")
     parser.add_argument("--exposure", type=float, default=0.0,
                         help="PNG exposure in stops: pixel values are scaled by 2^EXPOSURE (default 0)")
@@ -203,6 +206,7 @@ def run(args: argparse.Namespace) -> int:
         "camera.width": args.width, "camera.height": args.height, "render.spp": args.spp,
         "render.max_depth": args.max_depth, "render.seed": args.seed,
         "render.integrator": args.integrator, "render.photons": args.photons, "render.radius": args.radius,
+        "render.photon_aim": args.photon_aim,
     }
     if args.passes is not None:
         overrides["render.spp"] = args.passes

@@ -24,6 +24,18 @@ photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of p
   interreflection, caustics through glass) the photons'. A deposit after b scatterings counts at a
   visible point of vertex count j only when b + j ≤ max_depth, so the longest paths are those of
   the path tracer's max_depth (a scattering vertex count, pbrt's maxDepth).
+* Photon aiming (projection maps, H. W. Jensen, "Global illumination using photon maps", EGWR
+  1996, and "Realistic image synthesis using photon mapping", 2001, §5.3.1): a fraction f =
+  `[render] photon_aim` of the point and area lights' photons is sent towards the glass and mirror
+  objects, which make the caustics, instead of mostly onto diffuse surfaces whose direct light the
+  camera pass already has. The direction is drawn from the mixture p(ω) = (1 − f)·p_emit(ω) +
+  f·p_cone(ω): p_emit the unaimed density (uniform over the sphere for a point light, cos θ/π for an
+  area light), p_cone uniform over the cone subtending the bounding sphere of one of the objects with
+  a delta material (each chosen with the same probability; the density sums over all cones that
+  contain ω, 0 outside them). Each photon carries L_e·cos θ/(p_A·p(ω)) (area) or I/p(ω) (point), so
+  photons inside the cones carry less power, the others more, and the estimate stays unbiased.
+  Default f = DEFAULT_PHOTON_AIM = 0.5 where the scene has glass or mirror materials, 0 (no aiming,
+  the same photons bit for bit) otherwise; environment photons are not aimed.
 
 Gathering uses a hash grid built with array operations: cell size 2·r_max (the largest current
 radius), each deposit's cell hashed into a table of 2^k buckets, the
@@ -76,6 +88,10 @@ CELL_PHOTONS = 32
 DEFAULT_PHOTONS = (1 << 12, 1 << 20)
 #: upper bound of `[render] photons`
 MAX_PHOTONS = 1 << 24
+#: the default `[render] photon_aim` of scenes with glass or mirror (δ > 0) materials (0 without them)
+DEFAULT_PHOTON_AIM = 0.5
+#: objects aimed at one by one up to this many (each photon tests every cone); more share one sphere
+MAX_AIM_OBJECTS = 16
 _sg = lax.stop_gradient
 
 
@@ -130,6 +146,20 @@ def check(scene) -> None:
     r = getattr(scene.settings, "radius", 0.0)
     if not (isinstance(r, (int, float)) and math.isfinite(r) and r >= 0):
         raise InputError(f"{scene.source}: [render] radius = {r!r}: must be a positive finite length (0: default)")
+    f = photon_aim(scene)
+    if not (isinstance(f, (int, float)) and 0.0 <= f < 1.0):
+        raise InputError(f"{scene.source}: [render] photon_aim = {f!r}: allowed 0 <= photon_aim < 1")
+
+
+def default_photon_aim(has_delta: bool) -> float:
+    """The `[render] photon_aim` of a scene that does not set it: DEFAULT_PHOTON_AIM with glass or
+    mirror materials, 0 (no aiming) without."""
+    return DEFAULT_PHOTON_AIM if has_delta else 0.0
+
+
+def photon_aim(scene) -> float:
+    """The fraction f of the point and area lights' photons aimed at the delta objects (static)."""
+    return float(getattr(scene.settings, "photon_aim", 0.0))
 
 
 # ---------------------------------------------------------------------------------------------- BSDFs
@@ -253,13 +283,95 @@ def light_power(scene) -> Float[Array, "3"]:
     return total
 
 
-def emit(scene, u: Float[Array, "n 6"]):
+# ---------------------------------------------------------------------------------------------- aiming
+
+class AimTargets(eqx.Module):
+    """Bounding spheres of the objects with delta (glass or mirror) materials: centre (K, 3),
+    radius (K,), active (K,) (False for objects without delta faces)."""
+
+    centre: Float[Array, "K 3"]
+    radius: Float[Array, " K"]
+    active: Array
+
+
+def aim_targets(scene) -> AimTargets:
+    """The bounding sphere (about its bounding box's centre) of each object's glass and mirror
+    (δ > 0) triangles, from the current values; one sphere of all of them beyond MAX_AIM_OBJECTS."""
+    geo, mats = _sg(scene.geometry), _sg(scene.materials)
+    K = len(geo.object_names)
+    prim = jnp.arange(geo.triangle_count)
+    v = jnp.stack(geo.triangles(prim), 1)  # (F, 3, 3)
+    m = geo.face_material(prim)
+    delta = is_glass(mats, m) | (mats.delta[m] > 0)
+    obj = geo.face_object(prim)
+    if K > MAX_AIM_OBJECTS:
+        obj, K = jnp.zeros_like(obj), 1
+    seg = jnp.where(delta, obj, K)  # non-delta faces go to a dropped segment
+    lo = jax.ops.segment_min(jnp.min(v, 1), seg, K + 1)[:K]
+    hi = jax.ops.segment_max(jnp.max(v, 1), seg, K + 1)[:K]
+    active = jax.ops.segment_max(delta.astype(jnp.int32), seg, K + 1)[:K] > 0
+    centre = jnp.where(active[:, None], 0.5 * (lo + hi), 0.0)
+    dist = jnp.max(jnp.linalg.norm(v - centre[jnp.minimum(seg, K - 1)][:, None, :], axis=-1), axis=1)
+    radius = jax.ops.segment_max(dist, seg, K + 1)[:K]
+    return AimTargets(centre, jnp.where(active, radius, 0.0), active)
+
+
+def _cones(t: AimTargets, x):
+    """Per origin x (n, 3) and target (K): the unit axis (n, K, 3) and 1 − cos θ_max (n, K) of the
+    cone subtending the target's sphere (2: the whole sphere of directions, x inside it)."""
+    axis = t.centre[None] - x[:, None, :]
+    d2 = jnp.sum(axis * axis, -1)
+    s2 = t.radius[None] ** 2 / jnp.where(d2 > 0, d2, 1.0)
+    inside = s2 >= 1.0
+    # 1 − cos θ_max = sin² / (1 + cos): no cancellation for small cones
+    om = jnp.where(inside, 2.0, s2 / (1.0 + jnp.sqrt(jnp.maximum(1.0 - s2, 0.0))))
+    return axis / jnp.sqrt(jnp.where(d2 > 0, d2, 1.0))[..., None], jnp.maximum(om, 1e-12)
+
+
+def cone_pdf(t: AimTargets, x: Float[Array, "n 3"], w: Float[Array, "n 3"]) -> Float[Array, " n"]:
+    """Solid-angle density of the aimed directions w from x: the mean over the active targets of the
+    uniform density 1 / (2π(1 − cos θ_max)) inside each one's cone (0 outside every cone)."""
+    axis, om = _cones(t, x)
+    inside = jnp.sum(axis * w[:, None, :], -1) >= 1.0 - om
+    k = jnp.sum(t.active)
+    dens = jnp.where(inside & t.active[None], 1.0 / (2.0 * math.pi * om), 0.0)
+    return jnp.sum(dens, -1) / jnp.maximum(k, 1)
+
+
+def cone_sample(t: AimTargets, x: Float[Array, "n 3"], u: Float[Array, "n 3"]) -> Float[Array, "n 3"]:
+    """Directions from x uniform in the cone of one active target (chosen uniformly by u[:, 0])."""
+    axis, om = _cones(t, x)
+    k = jnp.maximum(jnp.sum(t.active), 1)
+    cdf = jnp.cumsum(t.active.astype(jnp.float32)) / k
+    j = jnp.clip(jnp.sum(u[:, 0:1] >= cdf[None], -1), 0, t.active.shape[0] - 1)
+    a = jnp.take_along_axis(axis, j[:, None, None], 1)[:, 0]
+    o = jnp.take_along_axis(om, j[:, None], 1)[:, 0]
+    one_minus = u[:, 1] * o
+    cos = 1.0 - one_minus
+    sin = jnp.sqrt(jnp.maximum(one_minus * (2.0 - one_minus), 0.0))
+    phi = 2.0 * math.pi * u[:, 2]
+    loc = jnp.stack([sin * jnp.cos(phi), sin * jnp.sin(phi), cos], -1)
+    return normalize(from_local(loc, local_frame(a, jnp.zeros_like(a))))
+
+
+def aim_pdf(t: AimTargets, f: float, x: Float[Array, "n 3"], normal: Float[Array, "n 3"] | None,
+            w: Float[Array, "n 3"]) -> Float[Array, " n"]:
+    """The emission density p(ω) = (1 − f)·p_emit(ω) + f·p_cone(ω) of directions w from x: p_emit
+    uniform over the sphere (normal None: a point light) or cos θ/π about `normal` (an area light);
+    p_emit alone where no target is active."""
+    p_emit = (jnp.full(w.shape[0], 1.0 / (4.0 * math.pi)) if normal is None
+              else jnp.maximum(dot(w, normal), 0.0) / math.pi)
+    return jnp.where(jnp.any(t.active), (1.0 - f) * p_emit + f * cone_pdf(t, x, w), p_emit)
+
+
+def emit(scene, u: Float[Array, "n c"]):
     """Photons leaving the lights, one per row of uniforms u.
 
     Returns origins (n, 3), unit directions (n, 3) and powers (n, 3) [W], each photon's power its
     light's emitted flux over the probability density of the photon, so the mean power over photons
     is an unbiased estimate of `light_power` (exactly it for one light of one colour), plus, with an
-    environment, π r²·∫L dω, the power it sends into the bounding sphere of radius r."""
+    environment, π r²·∫L dω, the power it sends into the bounding sphere of radius r. u has 6
+    columns, 10 with photon aiming (`photon_aim` > 0: the last 4 choose and sample the cones)."""
     geo = _sg(scene.geometry)
     n = u.shape[0]
     w, table, sphere = _light_choice(scene)
@@ -299,6 +411,27 @@ def emit(scene, u: Float[Array, "n 6"]):
         o = jnp.where(area[:, None], y + n_l * offset_scale(y), o)
         d = jnp.where(area[:, None], d_tri, d)
         power = jnp.where(area[:, None], pw_tri, power)
+    f = photon_aim(scene)
+    if f > 0 and (nl or table is not None):
+        if u.shape[1] < 10:
+            raise ValueError(f"emit: photon aiming needs 10 uniforms per photon, got {u.shape[1]}")
+        t = aim_targets(scene)
+        area = (pick == nl) if table is not None else jnp.zeros(n, bool)
+        # the cone's apex: the point on the lamp (before the ray offset) or the point light
+        x = jnp.where(area[:, None], y, o) if table is not None else o
+        aimed = (u[:, 9] < f) & ((pick < nl) | area) & jnp.any(t.active)
+        d = jnp.where(aimed[:, None], cone_sample(t, x, u[:, 6:9]), d)
+        p_pt = aim_pdf(t, f, x, None, d)
+        if nl:
+            li = jnp.minimum(pick, nl - 1)
+            pw_pt = _sg(scene.lights.intensity)[li] * (inv_p / p_pt)[:, None]
+            power = jnp.where((pick < nl)[:, None], pw_pt, power)
+        if table is not None:
+            p_ar = aim_pdf(t, f, x, n_l, d)
+            cos = dot(d, n_l)
+            ok = (cos > 0) & (p_ar > 0) & (fp > 0)
+            g = jnp.where(ok, cos / jnp.where(ok, fp * p_ar, 1.0), 0.0)
+            power = jnp.where(area[:, None], al.emission[geo.face_material(face)] * (g * inv_p)[:, None], power)
     if sphere is not None:
         # from the environment (pbrt-v4's ImageInfiniteLight::SampleLe): a direction wi from the
         # map's importance sampler, a uniform point on the disk of the bounding sphere's radius
@@ -340,7 +473,10 @@ def trace_photons(scene, key, n: int) -> Deposits:
     scene = _sg(scene)
     D = scene.settings.max_depth
     models = _models(mats)
-    o, d, power = emit(scene, jax.random.uniform(jax.random.fold_in(key, 1 << 20), (n, 6)))
+    u = jax.random.uniform(jax.random.fold_in(key, 1 << 20), (n, 6))
+    if photon_aim(scene) > 0:
+        u = jnp.concatenate([u, jax.random.uniform(jax.random.fold_in(key, (1 << 20) + 1), (n, 4))], 1)
+    o, d, power = emit(scene, u)
     alive = jnp.any(power > 0, axis=-1)
 
     def body(carry, k):

@@ -15,7 +15,7 @@ import jax
 import numpy as np
 
 import brdfs
-from jaxrt import accel, envmap
+from jaxrt import accel, envmap, integrators
 from jaxrt import cache as _cache
 from jaxrt.accel import two_level
 from jaxrt.camera import Camera
@@ -240,6 +240,8 @@ def build(spec: SceneSpec) -> Scene:
         glass_shadows=r.glass_shadows,
         photons=r.photons,
         radius=r.radius,
+        photon_aim=r.photon_aim if r.photon_aim is not None else integrators.sppm.default_photon_aim(
+            any(brdfs.get(spec.materials[n].model).delta or spec.materials[n].delta > 0 for n in mat_names)),
     )
     return Scene(geometry, materials, lights, camera, settings, source=spec.source, area_lights=area_lights,
                  environment=environment, glare=spec.glare)

@@ -89,7 +89,7 @@ from jaxrt.errors import InputError
 
 __all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "gather", "initialize", "local",
            "lpt", "makespan", "mesh", "pad_rows", "padded", "parse", "pass_program", "program", "put_each", "put_rows",
-           "queue_arrays", "queue_program", "replicate", "round_arrays", "select", "shard_map", "sharded",
+           "queue_arrays", "queue_program", "replicate", "round_arrays", "select", "shard_map", "sharded", "sppm_program",
            "tile_pass_program", "timed", "views"]
 
 AXIS = "devices"
@@ -257,6 +257,28 @@ def pass_program(devices: tuple[jax.Device, ...], shape: tuple[int, int, int]):
     smap = _shard_map(body, mesh=m, in_specs=(rep, rows, rows, rep), out_specs=rows, **_UNCHECKED)
     r, split = NamedSharding(m, rep), NamedSharding(m, rows)
     return jax.jit(smap, in_shardings=(r, split, split, r), out_shardings=split)
+
+
+def _device_sppm(scene, state, *, count: int):
+    # one device's share of an SPPM pass: the same visible points everywhere, its own photons and grid,
+    # M and Φ summed over the mesh (the one collective), the same update on every device
+    return integrators.sppm.pass_share(scene, state, AXIS, count)
+
+
+@functools.lru_cache(maxsize=32)
+def sppm_program(devices: tuple[jax.Device, ...]):
+    """One pass of stochastic progressive photon mapping over a mesh of `devices`:
+    ``f(scene, state)`` -> the next `integrators.sppm.SPPMState`, scene and state replicated
+    (`replicate`); each device traces ceil(n/D) of the pass's n photons (the last padded with photons
+    of zero power), gathers from its own hash grid at every visible point, and a `psum` adds the
+    per-pixel photon counts and fluxes before the progressive update (`integrators.sppm.pass_share`).
+    The pass index is the state's (traced): one compilation for every pass."""
+    m = mesh(devices)
+    rep = PartitionSpec()
+    body = functools.partial(_device_sppm, count=len(devices))
+    smap = _shard_map(body, mesh=m, in_specs=(rep, rep), out_specs=rep, **_UNCHECKED)
+    r = NamedSharding(m, rep)
+    return jax.jit(smap, in_shardings=(r, r), out_shardings=r)
 
 
 @functools.lru_cache(maxsize=32)

@@ -60,6 +60,19 @@ round (`fitting.compact.split_shader`): only the shading runs inside a `shard_ma
 `psum` of the partial images, and the solver runs outside it on the replicated residuals,
 differentiating through the collective.
 
+Photon passes
+-------------
+A pass of stochastic progressive photon mapping needs every visible point to meet every photon, so
+it is split by photons, not by tiles (`sppm_program`): the scene and the per-pixel statistics are
+replicated, every device computes the pass's visible points from the pass's keys (the same on every
+device), traces its share of the photons (photon i keeps the random numbers of photon i of the
+one-device pass; the count is padded to a multiple of D with photons of zero power), builds its own
+hash grid and gathers at every visible point; one `psum` adds the per-pixel photon counts and
+fluxes, and every device applies the same progressive update. Against one device: the same photon
+counts and the fluxes up to the summation order, as long as no grid bucket of the one-device pass
+is subsampled (more than `integrators.sppm.CELL_PHOTONS` deposits; each device then subsamples its
+own, another unbiased estimate).
+
 Several hosts
 -------------
 With JAXRT_COORDINATOR, JAXRT_PROCESS_COUNT and JAXRT_PROCESS_ID (`jaxrt._config`), `initialize`

@@ -102,7 +102,7 @@ print(json.dumps(dict(full=full, solo=bool(np.array_equal(solo, np.asarray(st.im
 """
 
 
-@pytest.mark.slow  # about 50 s on the loaded 2-core CPU: the one-device pass, a grid probe, the sharded pass
+@pytest.mark.slow  # 25-65 s on the loaded 2-core CPU: the one-device pass, a grid probe, the sharded pass
 @pytest.mark.parametrize("kind, devices, photons, radius", [
     ("diffuse", 4, 3001, 0.2),  # point lights and an emissive quad; 4 does not divide 3001
     ("glass", 3, 2002, 0.1),  # an area light focused by a glass ball; 3 does not divide 2002

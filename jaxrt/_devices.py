@@ -102,8 +102,8 @@ from jaxrt.errors import InputError
 
 __all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "gather", "initialize", "local",
            "lpt", "makespan", "mesh", "pad_rows", "padded", "parse", "pass_program", "program", "put_each", "put_rows",
-           "queue_arrays", "queue_program", "replicate", "round_arrays", "select", "shard_map", "sharded", "sppm_program",
-           "tile_pass_program", "timed", "views"]
+           "queue_arrays", "queue_program", "replicate", "round_arrays", "select", "shard_map", "sharded",
+           "sppm_program", "tile_pass_program", "timed", "views"]
 
 AXIS = "devices"
 # A render on several devices is split into at least max(MIN_TILES, TILES_PER_DEVICE·D) tiles, so

@@ -88,8 +88,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="memory budget for the render, e.g. 2G or 512M (binary units; default: JAXRT_MEMORY, "
                              "else half the RAM on a CPU, 90%% of the free memory on a GPU)")
     parser.add_argument("--devices", metavar="N", default="all",
-                        help="spread the render's tiles (sppm: photons) over the first N devices of jax.devices() (default: all; "
-                             "1 renders on the default device alone)")
+                        help="spread the render's tiles (sppm: each pass's photons) over the first N devices of "
+                             "jax.devices() (default: all; 1 renders on the default device alone)")
     parser.add_argument("--glare", metavar="SPEC",
                         help="diffraction glare of the aperture, applied to the finished image: on (the scene's "
                              "[glare] table, else the defaults), off, or KEY=VALUE[,KEY=VALUE...] with the keys of "

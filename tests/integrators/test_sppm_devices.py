@@ -114,3 +114,17 @@ def test_sppm_passes_on_devices_equal_the_one_device_passes(kind, devices, photo
     assert out["m"] > 0.3 and out["tau"] > 0 and out["max"] > 0.05, out  # photons are found: not a direct-only image
     # the same photons and visible points: per-pixel fluxes summed in another order (a few ulps)
     assert out["beyond"] == 0.0 and out["diff"] <= 1e-5 * out["max"], out
+
+
+def test_bad_devices_of_an_sppm_render_are_one_line_errors():
+    """A device count this host does not have is refused in one line before any pass is compiled."""
+    from jaxrt import render_tiles
+    from jaxrt.errors import InputError
+    from tests.integrators.test_sppm import diffuse_scene
+
+    scene = R.load_scene(diffuse_scene(width=8, height=6, photons=64))
+    n = len(jax.devices())
+    for bad in (n + 1, 0, "two"):
+        with pytest.raises(InputError) as e:
+            render_tiles.render(scene, memory="1G", devices=bad, should_stop=lambda: pytest.fail("a pass ran"))
+        assert "devices=" in str(e.value) and "\n" not in str(e.value), str(e.value)

@@ -548,7 +548,7 @@ def check_passes(scene, *, memory: int | str | None = None, aovs: bool = False, 
     state_bytes = sum(int(np.prod(x.shape)) * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
     copies = len(devices) if devices and _on_cpu(devices) else 1  # virtual CPU devices share the RAM
     fixed = copies * (_tree_bytes(scene) + state_bytes) + host
-    each = f" on each of {len(devices)} devices" if devices else ""
+    each = f" on {len(devices)} devices" if devices else ""
     what = (f"{scene.source}: {cam.width}x{cam.height}, {sppm.photons_per_pass(scene)} photons per pass "
             f"(integrator sppm){each}")
     need, compiled = fixed, None

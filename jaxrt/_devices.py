@@ -60,6 +60,19 @@ round (`fitting.compact.split_shader`): only the shading runs inside a `shard_ma
 `psum` of the partial images, and the solver runs outside it on the replicated residuals,
 differentiating through the collective.
 
+Photon passes
+-------------
+A pass of stochastic progressive photon mapping needs every visible point to meet every photon, so
+it is split by photons, not by tiles (`sppm_program`): the scene and the per-pixel statistics are
+replicated, every device computes the pass's visible points from the pass's keys (the same on every
+device), traces its share of the photons (photon i keeps the random numbers of photon i of the
+one-device pass; the count is padded to a multiple of D with photons of zero power), builds its own
+hash grid and gathers at every visible point; one `psum` adds the per-pixel photon counts and
+fluxes, and every device applies the same progressive update. Against one device: the same photon
+counts and the fluxes up to the summation order, as long as no grid bucket of the one-device pass
+is subsampled (more than `integrators.sppm.CELL_PHOTONS` deposits; each device then subsamples its
+own, another unbiased estimate).
+
 Several hosts
 -------------
 With JAXRT_COORDINATOR, JAXRT_PROCESS_COUNT and JAXRT_PROCESS_ID (`jaxrt._config`), `initialize`
@@ -90,7 +103,7 @@ from jaxrt.errors import InputError
 __all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "gather", "initialize", "local",
            "lpt", "makespan", "mesh", "pad_rows", "padded", "parse", "pass_program", "program", "put_each", "put_rows",
            "queue_arrays", "queue_program", "replicate", "round_arrays", "select", "shard_map", "sharded",
-           "tile_pass_program", "timed", "views"]
+           "sppm_program", "tile_pass_program", "timed", "views"]
 
 AXIS = "devices"
 # A render on several devices is split into at least max(MIN_TILES, TILES_PER_DEVICE·D) tiles, so
@@ -257,6 +270,28 @@ def pass_program(devices: tuple[jax.Device, ...], shape: tuple[int, int, int]):
     smap = _shard_map(body, mesh=m, in_specs=(rep, rows, rows, rep), out_specs=rows, **_UNCHECKED)
     r, split = NamedSharding(m, rep), NamedSharding(m, rows)
     return jax.jit(smap, in_shardings=(r, split, split, r), out_shardings=split)
+
+
+def _device_sppm(scene, state, *, count: int):
+    # one device's share of an SPPM pass: the same visible points everywhere, its own photons and grid,
+    # M and Φ summed over the mesh (the one collective), the same update on every device
+    return integrators.sppm.pass_share(scene, state, AXIS, count)
+
+
+@functools.lru_cache(maxsize=32)
+def sppm_program(devices: tuple[jax.Device, ...]):
+    """One pass of stochastic progressive photon mapping over a mesh of `devices`:
+    ``f(scene, state)`` -> the next `integrators.sppm.SPPMState`, scene and state replicated
+    (`replicate`); each device traces ceil(n/D) of the pass's n photons (the last padded with photons
+    of zero power), gathers from its own hash grid at every visible point, and a `psum` adds the
+    per-pixel photon counts and fluxes before the progressive update (`integrators.sppm.pass_share`).
+    The pass index is the state's (traced): one compilation for every pass."""
+    m = mesh(devices)
+    rep = PartitionSpec()
+    body = functools.partial(_device_sppm, count=len(devices))
+    smap = _shard_map(body, mesh=m, in_specs=(rep, rep), out_specs=rep, **_UNCHECKED)
+    r = NamedSharding(m, rep)
+    return jax.jit(smap, in_shardings=(r, r), out_shardings=r)
 
 
 @functools.lru_cache(maxsize=32)

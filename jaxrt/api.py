@@ -40,7 +40,8 @@ def render(scene: Any, *, aovs: bool = False, overrides: dict | None = None, mem
             or "all" every device of `jax.devices()`, an int N the first N, or a list of devices
             (`jaxrt.render_tiles.plan`; the same pixels on any number of devices ≥ 2, within a few
             ulps of one device's, see `jaxrt._devices`). Given without `memory`, the render is tiled
-            within the default budget ("auto"). A bad value is an InputError.
+            within the default budget ("auto"). An SPPM scene splits each pass's photons over the
+            devices instead (`jaxrt._devices.sppm_program`). A bad value is an InputError.
 
     The scene's glare (`Scene.glare`, a scene file's [glare] table; `jaxrt.glare`) is applied to the
     finished image (not to the AOVs); without it, the image is the renderer's, untouched.

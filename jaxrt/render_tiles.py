@@ -16,8 +16,10 @@ budget then applies to each device (on a CPU, whose virtual devices share the RA
 between them), and the image has at least max(32, 4·N) tiles for load balance.
 
 A progressive whole-frame integrator (`integrators.sppm`: each pass needs every pixel's visible point
-and the whole photon map) is not tiled: `render` runs its passes one compiled call at a time on the
-default device, the progress bar counting passes and Ctrl-C checked between them.
+and the whole photon map) is not tiled: `render` runs its passes one compiled call at a time, the
+progress bar counting passes and Ctrl-C checked between them; on several devices each pass's photons
+are split over them and the per-pixel photon statistics summed (`jaxrt._devices.sppm_program`), on
+one device it is the one-device pass (`integrators.sppm.step`) unchanged.
 
 
 Memory model
@@ -467,9 +469,11 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
     # It runs after the tiles, as the writers do: the budget keeps room for the larger of the two.
     post, scene = scene.glare, scene.without_glare()
     if scene.settings.integrator == "sppm":
+        devs = use_plan.devices if use_plan is not None else _devices.select(devices, devices_source)
+        devs = devs if devs and _devices.sharded(devs) else ()
         _, step = check_passes(scene, memory=memory, aovs=aovs, reserve=max(int(reserve), glare.work_bytes(
-            scene.camera.height, scene.camera.width, post)), budget_source=budget_source)
-        out = _render_passes(scene, step, aovs, progress, should_stop)
+            scene.camera.height, scene.camera.width, post)), budget_source=budget_source, devices=devs)
+        out = _render_passes(scene, step, aovs, progress, should_stop, devs)
         if post is None:
             return out
         img, aov = out if aovs else (out, None)
@@ -518,19 +522,23 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
 
 
 def check_passes(scene, *, memory: int | str | None = None, aovs: bool = False, reserve: int = 0,
-                 budget_source: str | None = None) -> tuple[int, Callable]:
+                 budget_source: str | None = None, devices: tuple = ()) -> tuple[int, Callable]:
     """(bytes, compiled pass): the bytes one pass of a progressive whole-frame integrator (`integrators.sppm`) needs, checked
     against the memory budget before any pass runs: the scene, the per-pixel statistics, the compiled
     pass's temporaries and outputs (`memory_analysis()` of the program compiled for the scene's
     shapes; the statistics are described by `jax.eval_shape`, never allocated) and the host image.
     Such a pass cannot be tiled (every visible point meets the whole photon map), so a frame that does
     not fit is refused here with one line instead of running out of memory. The program measured is
-    the one the passes run (`step(scene, state)`), so checking costs no extra compilation.
+    the one the passes run (`step(scene, state)`), so checking costs no extra compilation. With
+    `devices` (several, `jaxrt._devices.select`) that is the sharded pass (`jaxrt._devices.sppm_program`,
+    photons split over the devices), called with the scene and state replicated over them; the scene,
+    statistics and pass are then needed on each device, and on a CPU (virtual devices sharing the
+    host's RAM) once per device.
 
     Raises:
         InputError: the pass does not fit in the budget.
     """
-    budget, source = _resolve_budget(memory, scene)
+    budget, source = _resolve_budget(memory, scene, devices)
     source = budget_source or source
     sppm = integrators.sppm
     sppm.check(scene)
@@ -538,13 +546,18 @@ def check_passes(scene, *, memory: int | str | None = None, aovs: bool = False, 
     cam = scene.camera
     host = cam.height * cam.width * (RGB_BYTES + (AOV_BYTES if aovs else 0)) + int(reserve)
     state_bytes = sum(int(np.prod(x.shape)) * x.dtype.itemsize for x in jax.tree_util.tree_leaves(state))
-    fixed = _tree_bytes(scene) + state_bytes + host
+    copies = len(devices) if devices and _on_cpu(devices) else 1  # virtual CPU devices share the RAM
+    fixed = copies * (_tree_bytes(scene) + state_bytes) + host
+    each = f" on {len(devices)} devices" if devices else ""
     what = (f"{scene.source}: {cam.width}x{cam.height}, {sppm.photons_per_pass(scene)} photons per pass "
-            f"(integrator sppm)")
+            f"(integrator sppm){each}")
     need, compiled = fixed, None
     if fixed <= budget:  # else refused without compiling: the arrays alone are too large
-        compiled = sppm.step.lower(scene, state).compile()
-        need += _compiled_bytes(compiled)
+        if devices:
+            compiled = _devices.sppm_program(tuple(devices)).lower(scene, state).compile()
+        else:
+            compiled = sppm.step.lower(scene, state).compile()
+        need += copies * _compiled_bytes(compiled)
     if need > budget:
         raise InputError(f"{what} needs {format_bytes(need)} per pass (a pass is one whole-frame program, not "
                          f"tiled) but the memory budget is {format_bytes(budget)} ({source}); render a smaller "
@@ -552,11 +565,13 @@ def check_passes(scene, *, memory: int | str | None = None, aovs: bool = False, 
     return need, compiled
 
 
-def _render_passes(scene, step, aovs, progress, should_stop):
+def _render_passes(scene, step, aovs, progress, should_stop, devices=()):
     """A progressive integrator's image (`integrators.sppm`): settings.spp passes of one compiled
     whole-frame program, the progress bar counting passes and Ctrl-C (`should_stop`) checked between
     them, `step` the compiled pass (`check_passes`). Its working set is one pass's (visible points and
-    photons), checked against the budget before."""
+    photons), checked against the budget before. With several `devices`, `step` is the sharded pass
+    and the scene and statistics are replicated over them; the image is read from this process's
+    first copy of the (replicated) statistics."""
     sppm = integrators.sppm
     passes = scene.settings.spp
     bar, own = progress, False
@@ -571,14 +586,19 @@ def _render_passes(scene, step, aovs, progress, should_stop):
         if bar:
             bar.set_description_str("compiling")
         state = sppm.start(scene)
+        run_scene = scene
+        if devices:
+            run_scene, state = _devices.replicate(scene, devices), _devices.replicate(state, devices)
         for i in range(passes):
             if should_stop is not None and should_stop():
                 raise KeyboardInterrupt
-            state = step(scene, state)
+            state = step(run_scene, state)
             state.passes.block_until_ready()
             if bar:
                 bar.set_description_str("rendering")
                 bar.update(1)
+        if devices:  # every device holds the same statistics: this process's first copy
+            state = jax.tree.map(lambda x: x.addressable_data(0) if isinstance(x, jax.Array) else x, state)
         img = np.asarray(state.image)
         _check_finite(img, f"{scene.source}")
         if not aovs:

@@ -36,7 +36,8 @@ in one piece is rendered in tiles of pixels and batches of samples, with a progr
 
 Devices: the tiles are spread over every device JAX sees (all GPUs of the host; a CPU is one
 device unless XLA_FLAGS=--xla_force_host_platform_device_count=N), each device rendering its own
-tiles with the whole scene; --devices N uses the first N. The memory budget applies to each device.
+tiles with the whole scene (integrator sppm: each pass's photons split over them); --devices N uses
+the first N. The memory budget applies to each device.
 
 Glare: --glare on|off|KEY=VALUE,... adds (or removes) the diffraction glare of the camera's aperture,
 a post-process of the whole finished image that preserves its sum (the [glare] table of a scene file;
@@ -90,8 +91,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="memory budget for the render, e.g. 2G or 512M (binary units; default: JAXRT_MEMORY, "
                              "else half the RAM on a CPU, 90%% of the free memory on a GPU)")
     parser.add_argument("--devices", metavar="N", default="all",
-                        help="spread the render's tiles over the first N devices of jax.devices() (default: all; "
-                             "1 renders on the default device alone)")
+                        help="spread the render's tiles (sppm: each pass's photons) over the first N devices of "
+                             "jax.devices() (default: all; 1 renders on the default device alone)")
     parser.add_argument("--glare", metavar="SPEC",
                         help="diffraction glare of the aperture, applied to the finished image: on (the scene's "
                              "[glare] table, else the defaults), off, or KEY=VALUE[,KEY=VALUE...] with the keys of "

@@ -56,6 +56,11 @@ bounding-box diagonal) / max(width, height), a couple of pixels' footprint when 
 view. The number of passes is `[render] spp` (one camera sample per pixel per pass), so
 `jaxrt render --passes N` and `--spp N` are the same setting.
 
+Several devices (`pass_share`, run by `jaxrt._devices.sppm_program`): the visible points are
+computed on every device from the pass's keys, the photons are split (photon count per pass padded
+to a multiple of the device count with photons of zero power), each device gathers from its own
+grid and M, Φ are summed over the devices before the update.
+
 Not modelled: differentiation (the render is a Monte Carlo density estimate; gradients are not
 meaningful), tiles (a pass is one whole-frame program).
 """
@@ -465,9 +470,26 @@ class Deposits(eqx.Module):
     valid: Array
 
 
-def trace_photons(scene, key, n: int) -> Deposits:
+def _share_rows(x, share):
+    # this device's rows of a whole pass's array of per-photon random numbers: the array is drawn for
+    # all n photons (so photon i's numbers are the one-device pass's whatever device traces it),
+    # padded to D·ceil(n/D) rows and cut into D equal slices
+    if share is None:
+        return x
+    d, count = share
+    n = x.shape[0]
+    per = -(-n // count)
+    x = jnp.pad(x, ((0, per * count - n),) + ((0, 0),) * (x.ndim - 1))
+    return lax.dynamic_slice_in_dim(x, d * per, per, 0)
+
+
+def trace_photons(scene, key, n: int, share: tuple | None = None) -> Deposits:
     """Emit `n` photons and trace them for max_depth − 1 scatterings; a deposit at every non-delta
-    hit after the first scattering (see the module docstring)."""
+    hit after the first scattering (see the module docstring).
+
+    share: None (all n photons), or (d, D): device d's ceil(n/D) of the photons split over D devices
+    (d traced, D static), photon i the same as in the whole pass (its random numbers are row i of the
+    whole pass's); the last device's rows past photon n − 1 are padding with zero power, never traced."""
     geo = _sg(scene.geometry)
     mats = _sg(scene.materials)
     scene = _sg(scene)
@@ -476,7 +498,12 @@ def trace_photons(scene, key, n: int) -> Deposits:
     u = jax.random.uniform(jax.random.fold_in(key, 1 << 20), (n, 6))
     if photon_aim(scene) > 0:
         u = jnp.concatenate([u, jax.random.uniform(jax.random.fold_in(key, (1 << 20) + 1), (n, 4))], 1)
-    o, d, power = emit(scene, u)
+    o, d, power = emit(scene, _share_rows(u, share))
+    if share is not None:
+        per = o.shape[0]
+        real = share[0] * per + jnp.arange(per) < n
+        power = jnp.where(real[:, None], power, 0.0)
+    n_all, n = n, o.shape[0]
     alive = jnp.any(power > 0, axis=-1)
 
     def body(carry, k):
@@ -484,7 +511,7 @@ def trace_photons(scene, key, n: int) -> Deposits:
 
         def work(c):
             o, d, alive, beta = c
-            u = jax.random.uniform(jax.random.fold_in(key, k), (n, 3))
+            u = _share_rows(jax.random.uniform(jax.random.fold_in(key, k), (n_all, 3)), share)
             hit = intersect_active(geo, o, d, alive)
             prim = jnp.where(alive, hit.prim, -1)
             found = prim >= 0
@@ -752,23 +779,58 @@ def start(scene) -> SPPMState:
                      jnp.asarray(0, jnp.int32), cam.height, cam.width, photons_per_pass(scene))
 
 
-def _pass(scene, state: SPPMState, with_first: bool = False):
-    # pass P's random numbers: fold_in(key(seed), P), split between camera, photons and the grid
+def pass_keys(scene, passes) -> Array:
+    """Pass P's random keys, (3,): fold_in(key(seed), P) split between camera, photons and the grid."""
     key = jax.random.fold_in(jax.random.key(jnp.asarray(scene.settings.seed, jnp.uint32)),
-                             state.passes.astype(jnp.uint32))
-    kvp, kph, kgrid = jax.random.split(key, 3)
-    vp, direct, first = visible_points(scene, kvp)
-    dep = trace_photons(scene, kph, state.photons)
+                             jnp.asarray(passes).astype(jnp.uint32))
+    return jax.random.split(key, 3)
+
+
+def _cell(state: SPPMState, vp) -> Array:
+    # the grid's cell edge: 2·r_max, the largest current radius of a pixel with a visible point
     r_max = jnp.sqrt(jnp.max(jnp.where(vp["found"], state.r2, 0.0)))
-    grid = build_grid(dep, jnp.maximum(2.0 * r_max, 1e-6), kgrid)
-    m, phi = gather(scene, grid, vp, state.r2)
+    return jnp.maximum(2.0 * r_max, 1e-6)
+
+
+def _update(state: SPPMState, m, phi, direct) -> SPPMState:
+    # the progressive update of Hachisuka & Jensen 2009 (module docstring) with this pass's M and Φ
     n_new = state.n + ALPHA * m
     ratio = jnp.where(state.n + m > 0, n_new / jnp.where(state.n + m > 0, state.n + m, 1.0), 1.0)
     r2_new = state.r2 * ratio
     tau = (state.tau + phi) * ratio[:, None]
-    new = SPPMState(n_new, r2_new, tau, state.direct + direct, state.passes + 1, state.height, state.width,
-                    state.photons)
+    return SPPMState(n_new, r2_new, tau, state.direct + direct, state.passes + 1, state.height, state.width,
+                     state.photons)
+
+
+def _pass(scene, state: SPPMState, with_first: bool = False):
+    kvp, kph, kgrid = pass_keys(scene, state.passes)
+    vp, direct, first = visible_points(scene, kvp)
+    dep = trace_photons(scene, kph, state.photons)
+    grid = build_grid(dep, _cell(state, vp), kgrid)
+    m, phi = gather(scene, grid, vp, state.r2)
+    new = _update(state, m, phi, direct)
     return (new, first) if with_first else new
+
+
+def pass_share(scene, state: SPPMState, axis: str, count: int) -> SPPMState:
+    """One pass with its photons split over the `count` devices of mesh axis `axis`, to run inside
+    `shard_map` with the scene and the state replicated: every device computes the same visible
+    points (the pass's camera keys), traces its share of the photons (`trace_photons`' share: photon
+    i the one-device pass's photon i; ceil(n/count) per device, the padding carrying no power),
+    builds its own hash grid of its deposits and gathers at every visible point; M and Φ are summed
+    over the devices (`psum`) before the progressive update, which every device then applies alike.
+
+    Equal to `step` up to the summation order of M and Φ (and the rounding of a differently compiled
+    program) wherever no bucket of the one-device grid holds more than CELL_PHOTONS deposits: then
+    every deposit within a radius is read on either side. A fuller bucket is subsampled on each
+    device among that device's deposits, which is another unbiased estimate of the same sum."""
+    kvp, kph, kgrid = pass_keys(scene, state.passes)
+    vp, direct, _ = visible_points(scene, kvp)
+    d = lax.axis_index(axis)
+    dep = trace_photons(scene, kph, state.photons, share=(d, count))
+    grid = build_grid(dep, _cell(state, vp), jax.random.fold_in(kgrid, d))
+    m, phi = lax.psum(gather(scene, grid, vp, state.r2), axis)
+    return _update(state, m, phi, direct)
 
 
 #: One pass (camera pass, photon pass, hash grid, gather, progressive update), compiled once per scene

@@ -55,6 +55,11 @@ for s in "$@"; do
                       --max-seconds 90 --out "$OUT/caustic_ref_small.npz"
                   stage caustic-small-equal-time 100 python3 benchmarks/sppm.py --lamp 0.1 --equal-time 0.25,1,4 \
                       --reference "$OUT/caustic_ref_small.npz" --bias-seeds 2 ;;
+        caustic-aim)  # equal time against a reference carried in .gpudata/, photon aiming on (the default) and off
+                  stage caustic-aim 90 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                      --reference .gpudata/caustic_ref.npz
+                  stage caustic-aim-65k 60 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                      --reference .gpudata/caustic_ref.npz --photons 65536 --bias-seeds 0 ;;
         peers)    stage peers 110 python3 benchmarks/peers.py --size 1024 --no-mitsuba ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac

@@ -60,3 +60,29 @@ def test_readme_example_runs(code, tmp_path):
     proc = subprocess.run([sys.executable, "-c", small(code)], cwd=tmp_path, capture_output=True, text=True,
                           timeout=900, env={**os.environ, "MPLBACKEND": "Agg", "PYTHONPATH": path})
     assert proc.returncode == 0, f"README example failed:\n{code}\n--- stderr:\n{proc.stderr[-4000:]}"
+
+
+def test_the_readme_model_table_matches_the_parameter_declarations():
+    """Each row of README's BRDF table gives every parameter's default, bounds, scale and RGB-ness as
+    declared once in `brdfs` (`Param`), and lists every registered model: the table is checked, not
+    trusted, since it is written by hand."""
+    import re
+
+    import brdfs
+
+    rows = {}
+    for line in README.read_text().splitlines():
+        m = re.match(r"\| (\w+)(?: \(delta\))? \| (.+?) \| .+ \| .+ \|$", line)
+        if m and m.group(1) in brdfs.names():
+            rows[m.group(1)] = m.group(2)
+    assert sorted(rows) == sorted(brdfs.names())
+    for name, cell in rows.items():
+        seen = {}
+        for group in re.sub(r"\([^)]*\)", "", cell).split(";"):  # remarks in parentheses dropped
+            g = re.match(r"\s*(.*?)\[([^,\]]+),([^\]]+)\]\s*(.*)$", group)
+            assert g, (name, group)
+            lo, hi, flags = float(g.group(2)), float(g.group(3)), g.group(4).split()
+            for pname, default in re.findall(r"(\w+) ([-\d.e+]+)", g.group(1)):
+                seen[pname] = (float(default), lo, hi, "log" if "log" in flags else "linear", "rgb" in flags)
+        declared = {p.name: (p.default, p.lo, p.hi, p.scale, p.rgb) for p in brdfs.get(name).spec}
+        assert seen == declared, name

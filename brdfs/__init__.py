@@ -23,10 +23,10 @@ finds either kind, and `is_measured` tells them apart.
 
 from __future__ import annotations
 
-from __future__ import annotations
-
 import importlib
 from typing import TYPE_CHECKING
+
+from brdfs import lazy as _lazy
 
 if TYPE_CHECKING:
     from brdfs.base import Model
@@ -64,23 +64,8 @@ def __getattr__(name: str):
         value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value
         return value
-    if not name.startswith("_") and _is_submodule(name):
-        # the model modules, `measured`, `analysis`, ...
-        try:
-            return importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError as e:
-            if e.name != f"{__name__}.{name}":
-                raise
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def _is_submodule(name: str) -> bool:
-    """Whether `name` is a module or package of this package (looked up on disk, not imported: a
-    probe such as IPython's `_repr_html_` or a misspelt name must not import anything)."""
-    from pathlib import Path
-
-    here = Path(__file__).parent
-    return name.isidentifier() and ((here / f"{name}.py").is_file() or (here / name / "__init__.py").is_file())
+    # any other name: a submodule (the model modules, `measured`, `analysis`, ...)
+    return _lazy.submodule(__name__, __file__, name)
 
 
 def __dir__() -> list[str]:

@@ -10,6 +10,8 @@ BRDF space and `fitting.study` runs Ngan et al. 2005's study over the measured d
 
 import importlib
 
+from brdfs import lazy as _lazy
+
 __all__ = ["SOLVERS", "FitResult", "Solution", "fit_images", "solve_batch"]
 
 
@@ -20,22 +22,7 @@ def __getattr__(name: str):
         value = getattr(importlib.import_module("fitting.solve"), name)
         globals()[name] = value
         return value
-    if not name.startswith("_") and _is_submodule(name):
-        try:
-            return importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError as e:
-            if e.name != f"{__name__}.{name}":
-                raise
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def _is_submodule(name: str) -> bool:
-    """Whether `name` is a module or package of this package (looked up on disk, not imported: a
-    probe such as IPython's `_repr_html_` or a misspelt name must not import anything)."""
-    from pathlib import Path
-
-    here = Path(__file__).parent
-    return name.isidentifier() and ((here / f"{name}.py").is_file() or (here / name / "__init__.py").is_file())
+    return _lazy.submodule(__name__, __file__, name)
 
 
 def __dir__() -> list[str]:

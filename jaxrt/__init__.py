@@ -27,6 +27,7 @@ import importlib
 import sys
 import threading
 
+from brdfs import lazy as _lazy
 from jaxrt.errors import InputError
 
 __version__ = "0.1.0"
@@ -61,23 +62,8 @@ def __getattr__(name: str):
             value = getattr(value, attr)
         globals()[name] = value  # later look-ups skip this function
         return value
-    if not name.startswith("_") and _is_submodule(name):
-        # any other submodule (`jaxrt.image`, `jaxrt.sweep`, ...), as `import jaxrt` used to leave them bound
-        try:
-            return importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError as e:
-            if e.name != f"{__name__}.{name}":
-                raise
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def _is_submodule(name: str) -> bool:
-    """Whether `name` is a module or package of this package (looked up on disk, not imported: a
-    probe such as IPython's `_repr_html_` or a misspelt name must not import anything)."""
-    from pathlib import Path
-
-    here = Path(__file__).parent
-    return name.isidentifier() and ((here / f"{name}.py").is_file() or (here / name / "__init__.py").is_file())
+    # any other name: a submodule (`jaxrt.image`, `jaxrt.sweep`, ..., as `import jaxrt` used to leave them bound)
+    return _lazy.submodule(__name__, __file__, name)
 
 
 def __dir__() -> list[str]:

@@ -676,13 +676,19 @@ def accumulate(scene, state: integrators.Accumulation | None = None, *, devices:
     return (out, p) if return_plan else out
 
 
+def _own_pixels(r, c, r0, c0, th, tw, h, w):
+    """A tile's own pixels, from its nominal origin (r, c) to the next tile's or the image's edge:
+    (rows, cols) of the image and the same window in the rendered tile, which starts at (r0, c0)."""
+    rows, cols = slice(r, min(r + th, h)), slice(c, min(c + tw, w))
+    return rows, cols, (slice(r - r0, r - r0 + rows.stop - r), slice(c - c0, c - c0 + cols.stop - c))
+
+
 def _place(img, steps, th, tw, parts, where):
     """Write tiles (`parts`, one per step of `steps`) into `img`: each tile's own pixels, from its
     nominal origin to the next tile's or the image's edge, a later sample batch added to the earlier."""
     h, w = img.shape[:2]
     for ((r, c), (r0, c0), (s0, _)), part in zip(steps, parts):
-        rows, cols = slice(r, min(r + th, h)), slice(c, min(c + tw, w))
-        local = (slice(r - r0, r - r0 + rows.stop - r), slice(c - c0, c - c0 + cols.stop - c))
+        rows, cols, local = _own_pixels(r, c, r0, c0, th, tw, h, w)
         part = np.asarray(part)[local]
         _check_finite(part, where)
         if s0 == 0:
@@ -774,9 +780,7 @@ def _render_tiles(scene, p: Plan, aovs, bar, should_stop, where, pass_index: int
             parts = [(img_d[j], {key: v[j] for key, v in aov_d.items()} if aovs else None)
                      for j in range(len(steps))]
         for ((r, c), (r0, c0), (s0, _)), (part, part_aov) in zip(steps, parts):
-            # the tile's own pixels: from its nominal origin to the next tile's (or the image's edge)
-            rows, cols = slice(r, min(r + th, h)), slice(c, min(c + tw, w))
-            local = (slice(r - r0, r - r0 + rows.stop - r), slice(c - c0, c - c0 + cols.stop - c))
+            rows, cols, local = _own_pixels(r, c, r0, c0, th, tw, h, w)
             part = np.asarray(part)[local]
             _check_finite(part, where)
             if s0 == 0:

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from test_tiles import SCENE_TOML  # the Ctrl-C tests' scene: a sphere on a plane, several tiles in 8 MiB
+
 REPO = Path(__file__).resolve().parents[1]
 SMALL = ["--width", "16", "--height", "12"]
 
@@ -130,34 +132,6 @@ def test_a_client_of_another_environment_runs_in_its_own_process(worker, tmp_pat
     r = _cli({**env, "JAXRT_CACHE_DIR": str(tmp_path / "other")}, "render", str(tmp_path / "missing.toml"))
     assert r.returncode == 2 and "missing.toml" in r.stderr
     assert _status(env)["jobs"] == before
-
-
-# a sphere on a plane in a 256² frame: several tiles within 8 MiB, each a fraction of a second here
-SCENE_TOML = """
-[camera]
-position = [0.0, 1.6, 5.0]
-look_at = [0.0, 0.7, 0.0]
-width = 256
-height = 256
-[render]
-max_depth = 2
-[[lights]]
-position = [3.0, 6.0, 4.0]
-intensity = 60.0
-[materials.m]
-model = "lambert"
-rho_d = 0.5
-delta = 0.3
-[[objects]]
-primitive = "sphere"
-radius = 0.9
-translate = [0.0, 0.9, 0.0]
-material = "m"
-[[objects]]
-primitive = "plane"
-size = [20.0, 20.0]
-material = "m"
-"""
 
 
 def _start_client(env, tmp_path, *argv):

@@ -98,7 +98,9 @@ class _CompilationCacheFirst:
             if self.done:
                 return None
             self.done = True
-        from jaxrt import cache
+        from jaxrt import _config, cache
+
+        _config.apply_runtime_defaults()
 
         try:
             cache.enable_compilation_cache()

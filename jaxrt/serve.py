@@ -6,10 +6,13 @@ and reading cached scenes. `jaxrt serve` starts a process that pays it once and 
 commands of later `jaxrt` invocations in itself, with everything it has loaded and compiled kept in
 memory; the client (`jaxrt.cli.main`) imports no JAX when a worker takes its job.
 
-Opt-in, not the default: a lingering process holds memory (on a GPU, JAX reserves most of the
-device's memory when it starts) and would surprise a user who did not ask for it. It is used only
-after `jaxrt serve` (or with JAXRT_WORKER=start) and exits after `--idle-timeout` seconds without
-a job (900 by default).
+When. `JAXRT_WORKER=auto` (the default) hands a command to a running worker, and where none runs
+starts one only for a command typed at a terminal outside CI (`wants_worker`): there the next
+command follows soon, and scripts, pipes, tests and CI never leave a process behind. One line says
+that a worker started; it exits after `AUTO_IDLE_TIMEOUT` seconds without a job (`jaxrt serve`
+started by hand: `--idle-timeout`, 900 s by default). It holds only the memory its jobs used: jaxrt
+turns JAX's preallocation of most of a GPU's memory off (`jaxrt._config.RUNTIME_DEFAULTS`).
+`use` only uses a running worker, `start` starts one for any command, `off` never uses one.
 
 Where and which. The worker listens on a Unix socket (mode 0600) named by `worker_key()`: a hash of
 what a warm process cannot change for a job: the Python executable, jaxrt's version, where its
@@ -67,11 +70,14 @@ from pathlib import Path
 
 from jaxrt import _config
 
-__all__ = ["DEFAULT_IDLE_TIMEOUT", "LOCAL_COMMANDS", "MAX_JOBS", "forward", "request", "serve", "socket_path",
-           "start", "worker_key"]
+__all__ = ["AUTO_IDLE_TIMEOUT", "DEFAULT_IDLE_TIMEOUT", "LOCAL_COMMANDS", "MAX_JOBS", "forward", "request", "serve",
+           "socket_path", "start", "wants_worker", "worker_key"]
 
 #: Seconds a worker waits for a job before it exits.
 DEFAULT_IDLE_TIMEOUT = 900.0
+#: The same for a worker that `JAXRT_WORKER=auto` started without being asked (shorter: nobody chose
+#: to keep it).
+AUTO_IDLE_TIMEOUT = 600.0
 #: Jobs after which a worker retires (its compiled programs and cached scenes are freed with it).
 MAX_JOBS = 200
 #: Commands a client never hands to a worker (see the module docstring).
@@ -120,7 +126,8 @@ def worker_key(environ=None) -> str:
     """A hash of what a running worker cannot change for a job (see the module docstring)."""
     import jaxrt
 
-    env = os.environ if environ is None else environ
+    # the defaults a worker's own process applies before JAX starts count as set in the client too
+    env = _config.apply_runtime_defaults(dict(os.environ if environ is None else environ))
     names = set(_config.WORKER_KEY_VARIABLES) | {k for k in env if k.startswith(_config.WORKER_KEY_PREFIXES)}
     key = {"python": sys.executable, "prefix": sys.prefix, "version": jaxrt.__version__, "sources": _sources(),
            "environment": {k: env.get(k) for k in sorted(names)}}
@@ -225,13 +232,36 @@ def forward(argv: list[str], command: str | None) -> int | None:
     path = socket_path(cfg)
     sock = _connect(path)
     if sock is None:
-        if cfg.worker != "start" or start(path) is None:
+        want = wants_worker(cfg.worker, os.environ, {n: _isatty(getattr(sys, n)) for n in ("stdin", "stderr")})
+        if want is None:
+            return None
+        if cfg.worker == "auto":
+            print(f"jaxrt: starting a resident worker, so that later commands skip JAX's start-up (it exits after "
+                  f"{want / 60:.0f} idle minutes; `jaxrt serve --stop` ends it, JAXRT_WORKER=off runs "
+                  f"commands without one)", file=sys.stderr, flush=True)
+        if start(path, idle_timeout=want) is None:
             return None
         sock = _connect(path)
         if sock is None:
             return None
     with sock:
         return _client(sock, argv, path)
+
+
+def wants_worker(mode: str, environ, isatty: dict) -> float | None:
+    """Whether a command that found no running worker starts one: its idle timeout in seconds, or None.
+
+    `start` always does. `auto` (the default) does only for a command a person typed at a terminal
+    (stdin and stderr are terminals) outside continuous integration (no ``CI`` variable), since that is
+    where a second command follows soon and waits for the first's start-up: JAX's import and the
+    device runtime's start cost 1-2.5 s of every process (~1.3 s on an H200 before the first array),
+    which a warm worker pays once. Scripts, pipes, test runs and CI never leave a process behind.
+    """
+    if mode == "start":
+        return DEFAULT_IDLE_TIMEOUT
+    if mode == "auto" and isatty.get("stdin") and isatty.get("stderr") and not environ.get("CI"):
+        return AUTO_IDLE_TIMEOUT
+    return None
 
 
 def _client(sock: socket.socket, argv: list[str], path: Path) -> int | None:

@@ -297,3 +297,21 @@ def test_lazy_package_names_are_the_modules_objects():
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                        env={**os.environ, "JAXRT_WORKER": "off"})
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+@pytest.mark.parametrize("given", [None, "true"])
+def test_first_jax_module_sets_gpu_preallocation_off_unless_the_environment_says(tmp_path, given):
+    """JAX's GPU client reserves most of the GPU at its first allocation unless
+    XLA_PYTHON_CLIENT_PREALLOCATE=false; jaxrt sets that default before its first JAX-using module
+    loads (the backend starts later), and leaves a value the user gave alone."""
+    code = ("import os, jaxrt\n"
+            "before = os.environ.get('XLA_PYTHON_CLIENT_PREALLOCATE')\n"
+            "import jaxrt.scene\n"
+            "print(before, os.environ.get('XLA_PYTHON_CLIENT_PREALLOCATE'))\n")
+    env = {**os.environ, "JAXRT_CACHE_DIR": str(tmp_path / "c"), "JAXRT_WORKER": "off"}
+    env.pop("XLA_PYTHON_CLIENT_PREALLOCATE", None)
+    if given is not None:
+        env["XLA_PYTHON_CLIENT_PREALLOCATE"] = given
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == ([str(given), given] if given else ["None", "false"])

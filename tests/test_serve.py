@@ -207,7 +207,11 @@ def test_the_socket_name_follows_what_a_warm_process_cannot_change(tmp_path):
     for change in ({"JAX_PLATFORMS": "cpu"}, {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"},
                    {"CUDA_VISIBLE_DEVICES": "1"}, {"JAXRT_CACHE_DIR": str(tmp_path / "x")}, {"JAXRT_CACHE": "off"}):
         assert serve.worker_key({**base, **change}) != key, change
-    for same in ({"JAXRT_DATA": "/data"}, {"JAXRT_DEBUG": "1"}, {"JAXRT_MEMORY": "1G"}, {"TERM": "dumb"}):
+    # the worker's process sets XLA_PYTHON_CLIENT_PREALLOCATE=false itself where unset: a client
+    # whose environment lacks it and one that sets it to that value are the same; "true" is not
+    assert serve.worker_key({**base, "XLA_PYTHON_CLIENT_PREALLOCATE": "true"}) != key
+    for same in ({"JAXRT_DATA": "/data"}, {"JAXRT_DEBUG": "1"}, {"JAXRT_MEMORY": "1G"}, {"TERM": "dumb"},
+                 {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}):
         assert serve.worker_key({**base, **same}) == key, same
     short = Path("/tmp/jx")  # a cache folder short enough that the socket lives in it (tmp_path may not be)
     assert serve.socket_path(environ={**base, "JAXRT_CACHE_DIR": str(short)}).parent == short
@@ -288,3 +292,53 @@ def test_a_worker_that_dies_during_the_job_gives_one_line_and_exit_1(tmp_path):
     assert seen["job"]["cwd"] == str(REPO) and seen["job"]["env"]["JAXRT_CACHE_DIR"] == str(tmp_path / "c")
     assert r.returncode == 1 and r.stdout == "partial output\n"
     assert len(r.stderr.strip().splitlines()) == 1 and "stopped during the job" in r.stderr
+
+
+def test_auto_mode_starts_a_worker_only_for_a_command_typed_at_a_terminal():
+    from jaxrt import serve
+
+    assert serve.wants_worker("start", {}, {}) == serve.DEFAULT_IDLE_TIMEOUT
+    tty = {"stdin": True, "stderr": True}
+    assert serve.wants_worker("auto", {}, tty) == serve.AUTO_IDLE_TIMEOUT
+    for mode, environ, streams in (("auto", {"CI": "true"}, tty), ("auto", {}, {"stdin": False, "stderr": True}),
+                                   ("auto", {}, {"stdin": True, "stderr": False}), ("use", {}, tty), ("off", {}, tty)):
+        assert serve.wants_worker(mode, environ, streams) is None, (mode, environ, streams)
+
+
+def test_default_mode_starts_a_worker_from_a_terminal_and_not_from_a_pipe(tmp_path):
+    """JAXRT_WORKER unset (auto), CI unset: the same command from a pipe runs in its own process and
+    leaves nothing behind; typed at a terminal (a pseudo-terminal for stdin and stderr) it starts a
+    worker, says so in one line, and the worker ran the job."""
+    import pty
+
+    env = {k: v for k, v in _env(tmp_path / "c").items() if k not in ("JAXRT_WORKER", "CI")}
+    argv = ["render", "spheres", *SMALL, "-q"]
+    r = subprocess.run([sys.executable, "-m", "jaxrt.cli", *argv, "--out", str(tmp_path / "pipe.exr")], cwd=REPO,
+                       env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and r.stderr == "", r.stderr[-2000:]
+    assert _status(env) is None and not _socket_path(env).exists()
+    primary, secondary = pty.openpty()
+    try:
+        proc = subprocess.run([sys.executable, "-m", "jaxrt.cli", *argv, "--out", str(tmp_path / "tty.exr")],
+                              cwd=REPO, env=env, stdin=secondary, stdout=subprocess.PIPE, stderr=secondary,
+                              timeout=300)
+        os.close(secondary)
+        said = b""
+        while True:
+            try:
+                chunk = os.read(primary, 4096)
+            except OSError:
+                break
+            if not chunk:
+                break
+            said += chunk
+    finally:
+        os.close(primary)
+    try:
+        assert proc.returncode == 0, said[-2000:]
+        assert b"starting a resident worker" in said, said[-2000:]
+        status = _status(env)
+        assert status is not None and status["jobs"] == 1, status
+        assert (tmp_path / "pipe.exr").read_bytes() == (tmp_path / "tty.exr").read_bytes()
+    finally:
+        _cli(env, "serve", "--stop", timeout=60)

@@ -36,7 +36,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "study": ("jaxrt.cli.study", "fit every analytic model to every measured material (Ngan et al. 2005)"),
     "cache": ("jaxrt.cli.cache", "show or clear the on-disk caches (compiled programs, meshes, BVHs)"),
     "brdf-report": ("jaxrt.cli.brdf_report", "print each BRDF model's albedo table and write a lobe plot PNG"),
-    "serve": ("jaxrt.cli.serve", "keep a warm worker process that runs later jaxrt commands (opt-in; see --help)"),
+    "serve": ("jaxrt.cli.serve", "keep a warm worker process that runs later jaxrt commands (see --help)"),
 }
 
 

@@ -14,13 +14,15 @@ runtime, loading stored programs and cached scenes (seconds; README "Start-up ti
 environment variables are run inside it, with their output streamed back, the exit code returned
 and Ctrl-C forwarded. Images and fits are bit-identical to a run without the worker.
 
-The worker is opt-in because it lingers: it holds memory (on a GPU, JAX reserves most of the
-device's memory while it runs) until it has been idle for --idle-timeout seconds (default 900),
-until `jaxrt serve --stop`, or until it retires after many jobs or when its memory grows past half
-the RAM. One job at a time: a command started while the worker is busy runs in its own process.
-`view`, `cache` and runs over several hosts (JAXRT_COORDINATOR) never use it.
+By default (JAXRT_WORKER=auto) a command typed at a terminal starts a worker when none runs (one
+line says so; it exits after 600 idle seconds), and every command uses a running one; scripts,
+pipes and CI never start one. A worker holds the memory its jobs used (jaxrt turns JAX's
+preallocation of most of a GPU off) until it has been idle for --idle-timeout seconds (default 900
+when started here), until `jaxrt serve --stop`, or until it retires after many jobs or when its
+memory grows past half the RAM. One job at a time: a command started while the worker is busy runs
+in its own process. `view`, `cache` and runs over several hosts (JAXRT_COORDINATOR) never use it.
 
-JAXRT_WORKER=use (default) uses a running worker; JAXRT_WORKER=start also starts one when none runs;
+JAXRT_WORKER=use only uses a running worker; JAXRT_WORKER=start starts one for any command;
 JAXRT_WORKER=off never uses one. The worker listens on a Unix socket (mode 0600) in the cache folder.
 
 Examples:

@@ -90,20 +90,23 @@ def _reset_for_tests() -> None:
 
 def traverse(triangles: Float[Array, "F 9"], origins: Float[Array, "N 3"], directions: Float[Array, "N 3"],
              tmin: Float[Array, " N"], tmax: Float[Array, " N"], *, any_hit: bool, refine: bool = False,
-             coherent: bool = True, packet: int = 16, threads: int = 0):
+             coherent: str = "auto", packet: int = 16, threads: int = 0):
     """Trace N rays through Embree; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `traverse_cpu.traverse`.
 
     triangles: the BVH's (F,9) float32 leaf-order table; origins, directions (N,3) float32; tmin,
     tmax (N,) float32. Rays with a NaN, an infinite origin or direction, a zero direction or
-    tmin > tmax miss. refine: t of each hit in double (as `traverse_cpu`). coherent: Embree's hint
-    that neighbouring rays are alike (camera rays, shadow rays to one light); packet: 16 (packets
-    of 16 rays) or 1 (one ray at a time); threads: worker threads (0: XLA's intra-op thread pool);
-    these three only affect speed. Lowers for the CPU only; under vmap it runs once per batch
+    tmin > tmax miss. refine: t of each hit in double (as `traverse_cpu`). coherent: Embree's mode
+    for a packet, "yes" (traversed as one: camera rays, shadow rays to one light), "no" (split into
+    single rays as they diverge: bounced rays) or "auto" (per packet: "yes" where its rays' directions
+    share an octant); packet: 16 (packets of 16 rays) or 1 (one ray at a time); threads: worker
+    threads (0: XLA's intra-op thread pool); these three only affect speed. Lowers for the CPU only; under vmap it runs once per batch
     element. Raises RuntimeError where the kernel is not `available()`.
     """
-    if packet not in (1, 16) or threads < 0:
-        raise ValueError(f"traverse_embree.traverse: packet must be 1 or 16 and threads >= 0; got {packet}, {threads}")
+    modes = {"no": 0, "yes": 1, "auto": 2}
+    if packet not in (1, 16) or threads < 0 or coherent not in modes:
+        raise ValueError(f"traverse_embree.traverse: packet must be 1 or 16, threads >= 0 and coherent one of "
+                         f"{tuple(modes)}; got {packet}, {threads}, {coherent!r}")
     if not available():
         raise RuntimeError("jaxrt.accel.traverse_embree: the Embree kernel is not available")
     n = origins.shape[0]
@@ -112,7 +115,7 @@ def traverse(triangles: Float[Array, "F 9"], origins: Float[Array, "N 3"], direc
     call = jax.ffi.ffi_call(TARGET, (f32, i32, f32, f32), vmap_method="sequential")
     t, best, u, v = call(jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32),
                          jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32), triangles,
-                         any_hit=bool(any_hit), refine=bool(refine), coherent=bool(coherent),
+                         any_hit=bool(any_hit), refine=bool(refine), coherent=np.int64(modes[coherent]),
                          packet=np.int64(packet), quality=np.int64(QUALITY), chunk=np.int64(CHUNK),
                          threads=np.int64(threads))
     return best >= 0, t, best, u, v

@@ -99,7 +99,7 @@ def test_matches_native_kernel(bunny, leaf_size):
     occ = _embree(tree, o, d, lo, hi, any_hit=True)[0]
     np.testing.assert_array_equal(occ, fe)
     # one ray at a time, incoherent, own threads: only the speed changes
-    for kw in ({"packet": 1}, {"coherent": False}, {"threads": 3}):
+    for kw in ({"packet": 1}, {"coherent": "no"}, {"coherent": "yes"}, {"threads": 3}):
         other = _embree(tree, o, d, lo, hi, any_hit=False, refine=True, **kw)
         np.testing.assert_array_equal(other[0], fe, err_msg=str(kw))
         np.testing.assert_array_equal(other[1], te, err_msg=str(kw))

@@ -164,7 +164,8 @@ struct Job {
   const float* tmax;
   const float* tri;
   int64_t n;
-  bool any_hit, refine, coherent;
+  bool any_hit, refine;
+  int64_t coherent;  // 0: incoherent, 1: coherent, 2: per packet (see Packet16)
   int64_t packet;
   RTCScene scene;
   float* t;
@@ -267,6 +268,23 @@ void Packet16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
     rh.hit.geomID[k] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.primID[k] = RTC_INVALID_GEOMETRY_ID;
   }
+  if (J.coherent == 2) {
+    // Embree's coherent mode traverses the packet as one (fast where its rays take the same path:
+    // camera tiles, shadow rays to one light); its incoherent mode splits it into single rays as
+    // they diverge (bounced rays of a path tracer). Coherent here when the packet's valid rays share
+    // a direction octant.
+    unsigned all = 0, any = 0;
+    bool first = true;
+    for (int k = 0; k < 16; ++k) {
+      if (!valid[k]) continue;
+      const unsigned oct = (std::signbit(r.dir_x[k]) ? 1u : 0u) | (std::signbit(r.dir_y[k]) ? 2u : 0u) |
+                           (std::signbit(r.dir_z[k]) ? 4u : 0u);
+      all = first ? oct : all;
+      any |= oct != all;
+      first = false;
+    }
+    ctx->flags = any ? RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT : RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
+  }
   if (J.any_hit) {
     rtcOccluded16(valid, J.scene, ctx, &r);
   } else {
@@ -347,7 +365,7 @@ void Single(const Job& J, RTCIntersectContext* ctx, int64_t i) {
 void Work(Job& J) {
   RTCIntersectContext ctx;
   rtcInitIntersectContext(&ctx);
-  ctx.flags = J.coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
+  ctx.flags = J.coherent == 1 ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
   for (;;) {
     const int64_t s = J.next.fetch_add(J.chunk);
     if (s >= J.n) return;
@@ -373,14 +391,14 @@ int64_t Count(const ffi::AnyBuffer::Dimensions& dims) {
 ffi::Error Trace(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi::F32> d, ffi::Buffer<ffi::F32> tmin,
                  ffi::Buffer<ffi::F32> tmax, ffi::Buffer<ffi::F32> tri, ffi::ResultBuffer<ffi::F32> t,
                  ffi::ResultBuffer<ffi::S32> best, ffi::ResultBuffer<ffi::F32> u, ffi::ResultBuffer<ffi::F32> v,
-                 bool any_hit, bool refine, bool coherent, int64_t packet, int64_t quality, int64_t chunk,
+                 bool any_hit, bool refine, int64_t coherent, int64_t packet, int64_t quality, int64_t chunk,
                  int64_t threads) {
   const int64_t n = Count(tmin.dimensions());
   const int64_t nf = Count(tri.dimensions()) / 9;
   if (Count(o.dimensions()) != 3 * n || Count(d.dimensions()) != 3 * n || Count(tmax.dimensions()) != n ||
       Count(t->dimensions()) != n || Count(best->dimensions()) != n || Count(u->dimensions()) != n ||
       Count(v->dimensions()) != n || Count(tri.dimensions()) != 9 * nf || nf < 1 || nf >= (int64_t{1} << 31) / 3 ||
-      chunk < 1 || (packet != 1 && packet != 16) || quality < 0 || quality > 2) {
+      chunk < 1 || (packet != 1 && packet != 16) || coherent < 0 || coherent > 2 || quality < 0 || quality > 2) {
     return ffi::Error::InvalidArgument("jaxrt_embree_trace: inconsistent array shapes or attributes");
   }
   if (n == 0) return ffi::Error::Success();
@@ -445,7 +463,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtEmbreeTrace, Trace,
                                   .Ret<ffi::Buffer<ffi::F32>>()  // v
                                   .Attr<bool>("any_hit")
                                   .Attr<bool>("refine")
-                                  .Attr<bool>("coherent")
+                                  .Attr<int64_t>("coherent")
                                   .Attr<int64_t>("packet")
                                   .Attr<int64_t>("quality")
                                   .Attr<int64_t>("chunk")

@@ -244,6 +244,8 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
     # XLA loop. A GPU process does not build them for "auto" (its functions are lowered for the GPU).
     on_cpu = impl in ("cpu", "embree") or (impl == "auto" and jax.default_backend() == "cpu")
     has_embree = on_cpu and impl != "cpu" and traverse_embree.available()
+    if impl == "embree" and not has_embree:
+        traverse_embree.note_missing()  # asked for by name: say once that it is not there
     has_native = on_cpu and not has_embree and traverse_cpu.available()
     cpu = embree if has_embree else native if has_native else xla
     if impl in ("cpu", "embree"):

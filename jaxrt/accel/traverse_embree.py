@@ -19,7 +19,8 @@ their own traversal.
 No build step at install: `available()` compiles the shipped source as `traverse_cpu` does (cached,
 keyed, atomic) and links it with -lembree3 (Debian: `apt-get install libembree-dev`). Where no Embree
 library is found it returns False without a word and `bvh` uses the native kernel; where one is
-found but compiling against it fails it warns once.
+found but compiling against it fails it warns once; `impl="embree"` (JAXRT_TRAVERSAL=embree) without
+Embree warns once too.
 """
 
 from __future__ import annotations
@@ -57,8 +58,9 @@ def _source() -> bytes:
 
 
 def _load() -> bool:
-    if ctypes.util.find_library(_library or "embree3") is None:
-        return False  # Embree is not installed: the native kernel, silently
+    _state["missing"] = ctypes.util.find_library(_library or "embree3") is None
+    if _state["missing"]:
+        return False  # Embree is not installed: the native kernel, silently (unless asked for by name)
     compiler = _compiler or os.environ.get("CXX") or "c++"
     try:
         lib = ctypes.CDLL(str(traverse_cpu.compile_library("embree", _source(), compiler, LIBS)))
@@ -82,10 +84,21 @@ def available() -> bool:
         return _state["ok"]
 
 
+def note_missing() -> None:
+    """Warn once per process that Embree was asked for (JAXRT_TRAVERSAL=embree) but is not installed."""
+    with _lock:
+        if _state.get("noted") or not _state.get("missing"):
+            return  # said already, or installed but not built (`available` warned)
+        _state["noted"] = True
+    warnings.warn("jaxrt: JAXRT_TRAVERSAL=embree, but no Embree 3 library was found (Debian: apt-get install "
+                  "libembree-dev); using jaxrt's own CPU kernel", RuntimeWarning, stacklevel=4)
+
+
 def _reset_for_tests() -> None:
     """Forget the load result so the next `available()` tries again (the FFI target stays registered)."""
     with _lock:
         _state.pop("ok", None)
+        _state.pop("noted", None)
 
 
 def traverse(triangles: Float[Array, "F 9"], origins: Float[Array, "N 3"], directions: Float[Array, "N 3"],

@@ -16,7 +16,8 @@ Both work on CPU and GPU unchanged, can be called inside another jitted function
 traced argument, and are not differentiable: their inputs pass through `lax.stop_gradient`, and a
 renderer recomputes the differentiable hit point from `prim` (trace once, shade many: docs/ARCHITECTURE.md).
 Triangle tests are watertight (see `jaxrt.accel.traverse_xla`): a ray aimed at an edge or vertex shared
-by two triangles of a closed mesh always hits one of them. Build and traversal details are in
+by two triangles of a closed mesh always hits one of them (Embree's test: at edges; a ray through a
+vertex exactly can slip through, see `jaxrt.accel.traverse_embree`). Build and traversal details are in
 `jaxrt.accel.builder` and `jaxrt.accel.traverse_xla` (pure JAX, portable), `jaxrt.accel.traverse_pallas` (one Pallas
 kernel, the default where the computation is lowered for an NVIDIA GPU), `jaxrt.accel.traverse_embree`
 (Embree's packet traversal through a C++ XLA FFI kernel, the default where the computation is lowered

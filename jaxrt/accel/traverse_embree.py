@@ -10,8 +10,9 @@ Results keep `traverse_cpu.traverse`'s contract: the triangle index in leaf orde
 built from the BVH's own triangle table, so its primID is that index), barycentrics of v1 and v2,
 t in units of |direction| and, with `refine`, t of the chosen triangle recomputed in double. Embree's
 triangle test rounds differently from the native kernel's, so t, u, v agree to a few ulps and of two
-triangles at the same distance to within an ulp either may be chosen; its robust mode keeps the test
-watertight. Embree's tree is built on the first call that sees a triangle table and kept in the
+triangles at the same distance to within an ulp either may be chosen, and the ends of [tmin, tmax] are
+decided with Embree's float32 t; its robust mode keeps the test watertight at edges, not exactly at
+vertices (a ray through a vertex exactly slips through about 1 % of the time; `native/embree.cc`). Embree's tree is built on the first call that sees a triangle table and kept in the
 process (a few tables, keyed by a hash of the table's bytes that every call computes): a frame never
 rebuilds it, a changed mesh never reuses a stale one. Instanced scenes (`jaxrt.accel.two_level`) keep
 their own traversal.

@@ -64,12 +64,21 @@ struct Scene {
 
 std::mutex g_mu;
 RTCDevice g_device = nullptr;
+std::mutex g_error_mu;  // Embree may report from its build threads
 std::string g_error;
 std::list<std::shared_ptr<Scene>> g_scenes;  // most recently used first
 constexpr size_t kMaxScenes = 4;             // a fit or a notebook alternates between a few meshes
 
 void OnError(void*, RTCError code, const char* str) {
+  std::lock_guard<std::mutex> lock(g_error_mu);
   g_error = std::string("Embree error ") + std::to_string(static_cast<int>(code)) + ": " + (str ? str : "");
+}
+
+std::string TakeError() {
+  std::lock_guard<std::mutex> lock(g_error_mu);
+  std::string e;
+  e.swap(g_error);
+  return e;
 }
 
 // 64-bit hash of the table's bytes: four independent multiply-xor lanes over 8-byte words (the
@@ -169,7 +178,7 @@ std::shared_ptr<Scene> GetScene(const float* tri, int64_t nf, uint64_t h, int qu
     }
     rtcSetDeviceErrorFunction(g_device, OnError, nullptr);
   }
-  g_error.clear();
+  TakeError();  // an earlier, unrelated report
   auto s = std::make_shared<Scene>();
   s->hash = h;
   s->nf = nf;
@@ -185,7 +194,7 @@ std::shared_ptr<Scene> GetScene(const float* tri, int64_t nf, uint64_t h, int qu
       rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(unsigned), nf));
   if (!v || !idx) {
     rtcReleaseGeometry(g);
-    *err = "could not allocate Embree buffers for " + std::to_string(nf) + " triangles (" + g_error + ")";
+    *err = "could not allocate Embree buffers for " + std::to_string(nf) + " triangles (" + TakeError() + ")";
     return nullptr;
   }
   std::memcpy(v, tri, static_cast<size_t>(nf) * 9 * sizeof(float));
@@ -194,8 +203,9 @@ std::shared_ptr<Scene> GetScene(const float* tri, int64_t nf, uint64_t h, int qu
   rtcAttachGeometryByID(s->scene, g, 0);
   rtcReleaseGeometry(g);
   rtcCommitScene(s->scene);
-  if (!g_error.empty()) {
-    *err = g_error;
+  std::string e = TakeError();
+  if (!e.empty()) {
+    *err = e;
     return nullptr;
   }
   g_scenes.push_front(s);

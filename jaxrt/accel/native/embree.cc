@@ -20,14 +20,15 @@
 //
 // Ties and ulps. Embree's triangle test rounds differently from traverse.cc's, so of two triangles at
 // the same distance to within an ulp either may be returned, and it decides the ends of
-// [tmin, tmax] with its own float32 t (tnear < t <= tfar; tnear is set one float below tmin). t, u, v
+// [tmin, tmax] with its own float32 t (tnear < t <= tfar; tnear is set one float below tmin, and
+// at least 0: a hit at exactly t = 0 does not count). t, u, v
 // of the chosen triangle are recomputed in double (traverse.cc does so for t), so the reported hits
 // agree to ~1e-7 relative whichever kernel traced the ray.
 //
 // Threads: chunks of consecutive rays (coherent image tiles) handed out by an atomic counter to the
 // caller and to tasks on XLA's intra-op thread pool, as in traverse.cc. Each chunk is traced in
-// packets of 16 rays (rtcIntersect16 / rtcOccluded16); Embree picks the packet kernel of the widest
-// instruction set the CPU supports (16-wide AVX-512, or two 8-wide AVX2 halves).
+// packets of 16 rays (rtcIntersect16 / rtcOccluded16); Embree picks its kernels for the instruction
+// set of the CPU it runs on (this file needs no -march).
 
 #include <embree3/rtcore.h>
 

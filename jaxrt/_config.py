@@ -11,7 +11,7 @@ standard library and `jaxrt.errors`, so anything may import it without pulling i
 |---|---|---|
 | JAXRT_DATA | a folder searched first for the registry's data files (`jaxrt.geometry.data`) | a path (unset: only the user cache) |
 | JAXRT_DEBUG | the CLI prints tracebacks instead of one-line errors | 1/true/yes/on, 0/false/no/off ("" = off) |
-| JAXRT_TRAVERSAL | BVH traversal when a call passes none (`jaxrt.accel.bvh.intersect`) | auto, xla, cpu, pallas, pallas-interpret (auto) |
+| JAXRT_TRAVERSAL | BVH traversal when a call passes none (`jaxrt.accel.bvh.intersect`) | auto, xla, cpu, embree, pallas, pallas-interpret (auto) |
 | JAXRT_CACHE_DIR | the per-user cache folder (compiled programs, meshes, BVHs) | a path ($XDG_CACHE_HOME/jaxrt, else ~/.cache/jaxrt) |
 | JAXRT_CACHE | whether the on-disk caches are used | on, off (on) |
 | JAXRT_CACHE_SIZE | the cache folder's size bound; least recently used entries go first | bytes, or a number with K/M/G/T (binary units) (2G) |
@@ -40,7 +40,7 @@ __all__ = ["DEFAULT_CACHE_SIZE", "RUNTIME_DEFAULTS", "TRAVERSALS", "VARIABLES", 
            "Config", "apply_runtime_defaults", "config", "default_cache_dir", "parse_size"]
 
 #: The traversal implementations `JAXRT_TRAVERSAL` may name (`jaxrt.accel.bvh.IMPLS` holds the same tuple).
-TRAVERSALS = ("auto", "xla", "cpu", "pallas", "pallas-interpret")
+TRAVERSALS = ("auto", "xla", "cpu", "embree", "pallas", "pallas-interpret")
 
 #: The default bound of the cache folder, in bytes (2 GiB).
 DEFAULT_CACHE_SIZE = 2 << 30

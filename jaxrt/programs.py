@@ -49,8 +49,9 @@ from jaxrt import _config
 __all__ = ["ProgramStats", "cached_jit", "program_stats", "source_digest"]
 
 # Custom-call targets in jaxrt's programs that `jax.export` does not list as stable: the Pallas GPU
-# traversal (Triton) and the native CPU traversal kernel (`jaxrt.accel.traverse_cpu.TARGET`).
-_UNLISTED_TARGETS = ("__gpu$xla.gpu.triton", "jaxrt_bvh_traverse")
+# traversal (Triton) and the CPU traversal kernels (`jaxrt.accel.traverse_cpu.TARGET`,
+# `jaxrt.accel.traverse_embree.TARGET`).
+_UNLISTED_TARGETS = ("__gpu$xla.gpu.triton", "jaxrt_bvh_traverse", "jaxrt_embree_trace")
 # JAX options that change what tracing produces (or whether it raises).
 _TRACE_OPTIONS = ("jax_enable_x64", "jax_numpy_rank_promotion", "jax_numpy_dtype_promotion",
                   "jax_default_matmul_precision", "jax_default_prng_impl", "jax_threefry_partitionable")
@@ -221,11 +222,13 @@ class _CachedJit:
             return {"program": np.frombuffer(exp.serialize(), np.uint8)}
 
         try:
-            if platform == "cpu" and cfg.traversal in ("auto", "cpu"):
-                # a stored program may call the native kernel: register its FFI target first
-                from jaxrt.accel import traverse_cpu
+            if platform == "cpu" and cfg.traversal in ("auto", "cpu", "embree"):
+                # a stored program may call a native kernel: register its FFI targets first
+                from jaxrt.accel import traverse_cpu, traverse_embree
 
                 traverse_cpu.available()
+                if cfg.traversal != "cpu":
+                    traverse_embree.available()
             arrays = cache.cached_arrays("program", key, build)
             if exported:
                 exp = exported[0]

@@ -8,6 +8,7 @@ Modules: `builder` (the LBVH topology, threading and layouts shared by every bui
 (binned SAH topology), `morton` (Morton codes), `predicates` (the exact ray/triangle and slab
 predicates shared by every traversal), `traverse_xla` (the portable stackless loop),
 `traverse_pallas` (one Pallas kernel for NVIDIA GPUs), `traverse_cpu` (a C++ XLA FFI kernel),
+`traverse_embree` (Embree 3's packet traversal in a C++ XLA FFI kernel, the CPU default where installed),
 `two_level` (instanced geometry: a top-level tree over instances of bottom-level trees) and `bvh`
 (the `BVH` pytree and the dispatch between back ends).
 """

@@ -16,11 +16,14 @@ Both work on CPU and GPU unchanged, can be called inside another jitted function
 traced argument, and are not differentiable: their inputs pass through `lax.stop_gradient`, and a
 renderer recomputes the differentiable hit point from `prim` (trace once, shade many: docs/ARCHITECTURE.md).
 Triangle tests are watertight (see `jaxrt.accel.traverse_xla`): a ray aimed at an edge or vertex shared
-by two triangles of a closed mesh always hits one of them. Build and traversal details are in
+by two triangles of a closed mesh always hits one of them (Embree's test: at edges; a ray through a
+vertex exactly can slip through, see `jaxrt.accel.traverse_embree`). Build and traversal details are in
 `jaxrt.accel.builder` and `jaxrt.accel.traverse_xla` (pure JAX, portable), `jaxrt.accel.traverse_pallas` (one Pallas
-kernel, the default where the computation is lowered for an NVIDIA GPU) and `jaxrt.accel.traverse_cpu` (a C++
-XLA FFI kernel compiled on first use, the default where the computation is lowered for the CPU);
-`impl=` / JAXRT_TRAVERSAL choose one.
+kernel, the default where the computation is lowered for an NVIDIA GPU), `jaxrt.accel.traverse_embree`
+(Embree's packet traversal through a C++ XLA FFI kernel, the default where the computation is lowered
+for the CPU and Embree is installed) and `jaxrt.accel.traverse_cpu` (jaxrt's own C++ XLA FFI kernel,
+the CPU default without Embree); both kernels are compiled on first use. `impl=` / JAXRT_TRAVERSAL
+choose one.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from jaxrt.accel.sah import DEFAULT as SAH_DEFAULT
 from jaxrt.accel.sah import SahSettings
 from jaxrt import _config
 from jaxrt.accel import traverse_cpu
+from jaxrt.accel import traverse_embree
 from jaxrt.accel import traverse_pallas
 from jaxrt.accel import traverse_xla
 from jaxrt.errors import InputError
@@ -223,6 +227,11 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         out = traverse_cpu.traverse(arrays, o, d, lo, hi, any_hit=any_hit, refine=refine)
         return (*out, jnp.zeros(n, jnp.int32))
 
+    def embree(o, d, lo, hi):
+        # Embree's scene is built from the leaf-order triangle table: its primID is `best`
+        out = traverse_embree.traverse(tree.triangles, o, d, lo, hi, any_hit=any_hit, refine=refine)
+        return (*out, jnp.zeros(n, jnp.int32))
+
     impl = _impl(impl)
     args = (origins, directions, tmin, tmax)
     if impl == "xla" or count_steps:
@@ -231,13 +240,17 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         return pallas(*args)
     if impl == "pallas-interpret":
         return pallas(*args, interpret=True)
-    # available() compiles the C++ kernel on first use; where it cannot, it warns once and "cpu"
-    # and "auto" use the XLA loop. A GPU process does not build it for "auto" (its functions are
-    # lowered for the GPU).
-    has_native = (impl == "cpu" or (impl == "auto" and jax.default_backend() == "cpu")) and traverse_cpu.available()
-    if impl == "cpu":
-        return native(*args) if has_native else xla(*args)
-    cpu = native if has_native else xla
+    # available() compiles the C++ kernels on first use; where Embree is not installed "embree" and
+    # "auto" use the native kernel, and where that cannot be compiled it warns once and they use the
+    # XLA loop. A GPU process does not build them for "auto" (its functions are lowered for the GPU).
+    on_cpu = impl in ("cpu", "embree") or (impl == "auto" and jax.default_backend() == "cpu")
+    has_embree = on_cpu and impl != "cpu" and traverse_embree.available()
+    if impl == "embree" and not has_embree:
+        traverse_embree.note_missing()  # asked for by name: say once that it is not there
+    has_native = on_cpu and not has_embree and traverse_cpu.available()
+    cpu = embree if has_embree else native if has_native else xla
+    if impl in ("cpu", "embree"):
+        return cpu(*args)
     backend = jax.default_backend()
     if backend == "cpu":
         # a process without an accelerator lowers everything for the CPU: trace only that branch
@@ -270,12 +283,14 @@ def intersect(
     the queue); steps_per_iter: traversal steps per loop iteration (default 2 on CPU, 16 on GPU).
     Both only affect speed, never results, and apply to the XLA loop only. impl: "auto" (default;
     the default device's kernel: the Pallas kernel of `jaxrt.accel.traverse_pallas` where it is an
-    NVIDIA GPU, the C++ kernel of `jaxrt.accel.traverse_cpu` where it is the CPU, else the XLA loop;
-    a process that places work on a device other than its default one chooses with impl), "xla" (the pure-JAX loop of
-    `jaxrt.accel.traverse_xla`), "cpu" (the C++ kernel; CPU only), "pallas" (GPU only) or
+    NVIDIA GPU, Embree (`jaxrt.accel.traverse_embree`) where it is the CPU and Embree is installed, else
+    the C++ kernel of `jaxrt.accel.traverse_cpu` there, else the XLA loop; a process that places work
+    on a device other than its default one chooses with impl), "xla" (the pure-JAX loop of
+    `jaxrt.accel.traverse_xla`), "cpu" (the C++ kernel; CPU only), "embree" (Embree, else the C++
+    kernel; CPU only), "pallas" (GPU only) or
     "pallas-interpret" (the kernel in the Pallas interpreter, any backend, slow: for tests); the
     env var JAXRT_TRAVERSAL sets it when the argument is None. Where the C++ kernel cannot be
-    compiled, "auto" and "cpu" warn once and use the XLA loop.
+    compiled, "auto", "embree" and "cpu" warn once and use the XLA loop.
     All give the same hits up to ties between triangles at the same distance to within an ulp.
     """
     # t comes refined (each traversal's t of the chosen triangle in double(-float) precision) and is

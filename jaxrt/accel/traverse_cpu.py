@@ -68,19 +68,26 @@ def _cache_dir() -> Path:
 
 def _compile(src: bytes, compiler: str) -> Path:
     """Path of the compiled library (compiled now unless cached). Raises OSError/CalledProcessError."""
-    key = hashlib.sha256(b"\0".join([src, compiler.encode(), " ".join(FLAGS).encode(),
+    return compile_library("traverse", src, compiler)
+
+
+def compile_library(stem: str, src: bytes, compiler: str, libs: tuple[str, ...] = ()) -> Path:
+    """Path of the FFI library compiled from C++ `src` with `FLAGS` (and linked with `libs`, e.g.
+    ("-lembree3",)), compiled now unless cached under <cache folder>/native/<stem>-<key>.so, key a
+    hash of the source, compiler, flags, libraries and jaxlib version. Raises OSError/CalledProcessError."""
+    key = hashlib.sha256(b"\0".join([src, compiler.encode(), " ".join(FLAGS + libs).encode(),
                                      jaxlib.__version__.encode(), os.uname().machine.encode()])).hexdigest()[:20]
-    out = _cache_dir() / f"traverse-{key}.so"
+    out = _cache_dir() / f"{stem}-{key}.so"
     if out.is_file():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="jaxrt-build-") as tmp:
-        cc = Path(tmp) / "traverse.cc"
+        cc = Path(tmp) / f"{stem}.cc"
         cc.write_bytes(src)
         fd, part = tempfile.mkstemp(prefix=out.stem + ".", suffix=".so.part", dir=out.parent)
         os.close(fd)
         try:
-            subprocess.run([compiler, *FLAGS, "-I", jax.ffi.include_dir(), str(cc), "-o", part],
+            subprocess.run([compiler, *FLAGS, "-I", jax.ffi.include_dir(), str(cc), "-o", part, *libs],
                            check=True, capture_output=True, text=True, timeout=300)
             os.replace(part, out)  # atomic: a concurrent compile of the same key renames the same bytes
         finally:

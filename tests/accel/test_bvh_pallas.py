@@ -96,13 +96,16 @@ def test_traversal_switch(monkeypatch):
     with pytest.raises(InputError, match="'fast'"):
         bvh.occluded(tree, o, d)
     monkeypatch.delenv("JAXRT_TRAVERSAL")
-    # "auto" on a CPU lowers the native kernel only (jaxrt.accel.traverse_cpu: no Triton call, no XLA loop);
-    # "xla" the portable loop.
+    # "auto" on a CPU lowers one kernel only (no Triton call, no XLA loop): Embree
+    # (jaxrt.accel.traverse_embree) where it is installed, as here and in CI, else the native kernel
+    # (jaxrt.accel.traverse_cpu); "cpu" the native kernel, "xla" the portable loop.
     text = jax.jit(bvh.intersect).lower(tree, o, d).as_text()
     assert "triton" not in text.lower()
-    assert "jaxrt_bvh_traverse" in text and "while" not in text
+    assert "jaxrt_embree_trace" in text and "jaxrt_bvh_traverse" not in text and "while" not in text
+    text = jax.jit(lambda *a: bvh.intersect(*a, impl="cpu")).lower(tree, o, d).as_text()
+    assert "jaxrt_bvh_traverse" in text and "jaxrt_embree_trace" not in text and "while" not in text
     text = jax.jit(lambda *a: bvh.intersect(*a, impl="xla")).lower(tree, o, d).as_text()
-    assert "while" in text and "jaxrt_bvh_traverse" not in text
+    assert "while" in text and "jaxrt_bvh_traverse" not in text and "jaxrt_embree_trace" not in text
     hit = bvh.intersect(tree, o, d)
     t = np.asarray(hit.t)  # a closed polyhedron inscribed in the unit sphere, seen from its centre
     assert np.all(np.asarray(hit.prim) >= 0) and np.all((t > 0.79) & (t <= 1.0))

@@ -1,0 +1,531 @@
+// Closest-hit and any-hit ray queries through Embree 3 as an XLA FFI custom call (see
+// jaxrt/accel/traverse_embree.py).
+//
+// Embree (Wald et al., "Embree: A Kernel Framework for Efficient CPU Ray Tracing", SIGGRAPH 2014)
+// builds its own wide BVH (4 or 8 children per node) over the triangles and traverses ray packets
+// with SIMD instructions chosen at run time for the CPU it runs on; jaxrt's own kernel
+// (traverse.cc) traces one ray at a time through a binary tree.
+//
+// The scene. The triangles come in as jaxrt's (F, 9) leaf-order table, so Embree's primID is the
+// same leaf-order index as the native kernel's `best`, and Embree's (u, v) have jaxrt's meaning: the
+// hit point is (1-u-v) v0 + u v1 + v v2. Embree's tree is built once per distinct triangle table and
+// kept (a few per process): every call hashes the table's bytes (one pass over memory, spread over
+// the threads: ~1.7 ms for the 871k-triangle dragon's 31 MB on two loaded cores, 3-4 ms on one) and
+// reuses the scene built for an identical table, so a frame
+// never rebuilds it and a changed mesh never reuses a stale one. RTC_SCENE_FLAG_ROBUST selects
+// Embree's Pluecker triangle test, watertight at edges (a ray through an edge shared by two triangles
+// hits one of them; without the flag ~10 % of such rays slip through) but not exactly at vertices:
+// a ray through a vertex can pass between the triangles of its fan when their edge functions'
+// rounding noise has one sign (traverse.cc's exact signs of Woop et al. 2013 cannot).
+//
+// Ties and ulps. Embree's triangle test rounds differently from traverse.cc's, so of two triangles at
+// the same distance to within an ulp either may be returned, and it decides the ends of
+// [tmin, tmax] with its own float32 t (tnear < t <= tfar; tnear is set one float below tmin, and
+// at least 0: a hit at exactly t = 0 does not count). t, u, v
+// of the chosen triangle are recomputed in double (traverse.cc does so for t), so the reported hits
+// agree to ~1e-7 relative whichever kernel traced the ray.
+//
+// Threads: chunks of consecutive rays (coherent image tiles) handed out by an atomic counter to the
+// caller and to tasks on XLA's intra-op thread pool, as in traverse.cc. Each chunk is traced in
+// packets of 16 rays (rtcIntersect16 / rtcOccluded16); Embree picks its kernels for the instruction
+// set of the CPU it runs on (this file needs no -march).
+
+#include <embree3/rtcore.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <condition_variable>
+#include <cstdint>
+#include <cstring>
+#include <list>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+namespace {
+
+// ---------------------------------------------------------------------------------------------
+// Scenes, built once per distinct triangle table.
+
+struct Scene {
+  RTCScene scene = nullptr;
+  uint64_t hash = 0;
+  int64_t nf = 0;
+  ~Scene() {
+    if (scene) rtcReleaseScene(scene);
+  }
+};
+
+std::mutex g_mu;
+RTCDevice g_device = nullptr;
+std::mutex g_error_mu;  // Embree may report from its build threads
+std::string g_error;
+std::list<std::shared_ptr<Scene>> g_scenes;  // most recently used first
+constexpr size_t kMaxScenes = 4;             // a fit or a notebook alternates between a few meshes
+
+void OnError(void*, RTCError code, const char* str) {
+  std::lock_guard<std::mutex> lock(g_error_mu);
+  g_error = std::string("Embree error ") + std::to_string(static_cast<int>(code)) + ": " + (str ? str : "");
+}
+
+std::string TakeError() {
+  std::lock_guard<std::mutex> lock(g_error_mu);
+  std::string e;
+  e.swap(g_error);
+  return e;
+}
+
+// 64-bit hash of the table's bytes: four independent multiply-xor lanes over 8-byte words (the
+// loop is memory bound), then mixed (the finaliser of SplitMix64).
+uint64_t Hash(const void* data, size_t bytes) {
+  const unsigned char* p = static_cast<const unsigned char*>(data);
+  uint64_t h[4] = {0x9E3779B97F4A7C15ull, 0xC2B2AE3D27D4EB4Full, 0x165667B19E3779F9ull, 0x27D4EB2F165667C5ull};
+  constexpr uint64_t kMul = 0xff51afd7ed558ccdull;
+  size_t i = 0;
+  for (; i + 32 <= bytes; i += 32) {
+    uint64_t w[4];
+    std::memcpy(w, p + i, 32);
+    for (int k = 0; k < 4; ++k) h[k] = (h[k] ^ w[k]) * kMul;
+  }
+  uint64_t tail = 0;
+  std::memcpy(&tail, p + i, bytes - i < 8 ? bytes - i : 8);  // the table is float32: 4-byte multiples
+  for (size_t j = i + 8; j < bytes; j += 8) {
+    uint64_t w = 0;
+    std::memcpy(&w, p + j, std::min<size_t>(8, bytes - j));
+    tail = (tail ^ w) * kMul;
+  }
+  uint64_t x = h[0] ^ (h[1] << 1 | h[1] >> 63) ^ (h[2] << 2 | h[2] >> 62) ^ (h[3] << 3 | h[3] >> 61) ^ tail ^ bytes;
+  x ^= x >> 30;
+  x *= 0xbf58476d1ce4e5b9ull;
+  x ^= x >> 27;
+  x *= 0x94d049bb133111ebull;
+  x ^= x >> 31;
+  return x;
+}
+
+// Hash of the table in pieces of 4 MB (each piece's Hash, then the pieces' hashes hashed; the same
+// value however many threads share the work), pieces taken from a counter by the caller and by
+// tasks on the pool: the table is read once per call, so on a large mesh this pass is worth
+// spreading over the cores.
+struct HashJob {
+  const unsigned char* data;
+  size_t bytes, n;
+  std::vector<uint64_t> out;
+  std::atomic<size_t> next{0};
+  std::atomic<size_t> done{0};
+  std::mutex mu;
+  std::condition_variable cv;
+};
+
+constexpr size_t kPiece = size_t{4} << 20;
+
+void HashPieces(HashJob& H) {
+  for (;;) {
+    const size_t k = H.next.fetch_add(1);
+    if (k >= H.n) return;
+    const size_t s = k * kPiece, e = std::min(H.bytes, s + kPiece);
+    H.out[k] = Hash(H.data + s, e - s);
+    if (H.done.fetch_add(1) + 1 == H.n) {
+      std::lock_guard<std::mutex> lock(H.mu);
+      H.cv.notify_all();
+    }
+  }
+}
+
+uint64_t TableHash(ffi::ThreadPool& pool, bool use_pool, const float* tri, int64_t nf) {
+  const size_t bytes = static_cast<size_t>(nf) * 9 * sizeof(float);
+  const size_t n = (bytes + kPiece - 1) / kPiece;
+  if (n <= 1) return Hash(tri, bytes);
+  auto H = std::make_shared<HashJob>();
+  H->data = reinterpret_cast<const unsigned char*>(tri);
+  H->bytes = bytes;
+  H->n = n;
+  H->out.assign(n, 0);
+  const int64_t helpers = use_pool ? std::min<int64_t>(pool.num_threads(), static_cast<int64_t>(n)) - 1 : 0;
+  // a task that starts after the pieces are gone returns at once; the caller waits for every piece
+  for (int64_t k = 0; k < helpers; ++k) pool.Schedule([H] { HashPieces(*H); });
+  HashPieces(*H);
+  {
+    std::unique_lock<std::mutex> lock(H->mu);
+    H->cv.wait(lock, [&] { return H->done.load() == H->n; });
+  }
+  return Hash(H->out.data(), n * sizeof(uint64_t)) ^ bytes;
+}
+
+// The scene of a table with hash h (built now unless an identical table's is kept); nullptr and
+// `err` set on failure.
+std::shared_ptr<Scene> GetScene(const float* tri, int64_t nf, uint64_t h, int quality, std::string* err) {
+  std::lock_guard<std::mutex> lock(g_mu);
+  for (auto it = g_scenes.begin(); it != g_scenes.end(); ++it) {
+    if ((*it)->hash == h && (*it)->nf == nf) {
+      auto s = *it;
+      g_scenes.erase(it);
+      g_scenes.push_front(s);
+      return s;
+    }
+  }
+  if (!g_device) {
+    g_device = rtcNewDevice("verbose=0");
+    if (!g_device) {
+      *err = "rtcNewDevice failed (error " + std::to_string(static_cast<int>(rtcGetDeviceError(nullptr))) + ")";
+      return nullptr;
+    }
+    rtcSetDeviceErrorFunction(g_device, OnError, nullptr);
+  }
+  TakeError();  // an earlier, unrelated report
+  auto s = std::make_shared<Scene>();
+  s->hash = h;
+  s->nf = nf;
+  s->scene = rtcNewScene(g_device);
+  rtcSetSceneFlags(s->scene, RTC_SCENE_FLAG_ROBUST);
+  rtcSetSceneBuildQuality(s->scene, static_cast<RTCBuildQuality>(quality));
+  RTCGeometry g = rtcNewGeometry(g_device, RTC_GEOMETRY_TYPE_TRIANGLE);
+  // Embree copies the corners (its buffers are padded for its 16-byte loads); the table's memory
+  // belongs to XLA and may be reused after this call.
+  float* v = static_cast<float*>(
+      rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), 3 * nf));
+  unsigned* idx = static_cast<unsigned*>(
+      rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(unsigned), nf));
+  if (!v || !idx) {
+    rtcReleaseGeometry(g);
+    *err = "could not allocate Embree buffers for " + std::to_string(nf) + " triangles (" + TakeError() + ")";
+    return nullptr;
+  }
+  std::memcpy(v, tri, static_cast<size_t>(nf) * 9 * sizeof(float));
+  for (int64_t k = 0; k < 3 * nf; ++k) idx[k] = static_cast<unsigned>(k);
+  rtcCommitGeometry(g);
+  rtcAttachGeometryByID(s->scene, g, 0);
+  rtcReleaseGeometry(g);
+  rtcCommitScene(s->scene);
+  std::string e = TakeError();
+  if (!e.empty()) {
+    *err = e;
+    return nullptr;
+  }
+  g_scenes.push_front(s);
+  if (g_scenes.size() > kMaxScenes) g_scenes.pop_back();  // a call still tracing it holds a reference
+  return s;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Tracing.
+
+struct Job {
+  const float* o;
+  const float* d;
+  const float* tmin;
+  const float* tmax;
+  const float* tri;
+  int64_t n;
+  bool any_hit, refine;
+  int64_t coherent;  // 0: incoherent, 1: coherent, 2: per packet (see Packet16)
+  int64_t packet;
+  RTCScene scene;
+  float* t;
+  int32_t* best;
+  float* u;
+  float* v;
+  int64_t chunk;
+  std::atomic<int64_t> next{0};
+  std::atomic<int64_t> done{0};
+  std::mutex mu;
+  std::condition_variable cv;
+};
+
+// t, u, v of ray i's line through the plane of triangle `best`, in double: differences of floats and
+// their products are exact or nearly so in double, so the float32 test's errors go (traverse.cc's
+// RefineT does the same for t; Embree's float32 (u, v) stray by up to ~1e-4 of the triangle on rays
+// nearly parallel to it). u, v solve q = u e1 + v e2 for the hit point q relative to v0:
+// u = (q x e2).n / n.n, v = (e1 x q).n / n.n with n = e1 x e2, clamped onto the triangle (the hit
+// is on it up to rounding). Kept as Embree's values where the double result is not finite or t
+// strays by more than 1 %.
+inline void Refine(const Job& J, int64_t i, int32_t best, float* t_io, float* u_io, float* v_io) {
+  const float* T = J.tri + 9 * static_cast<int64_t>(best);
+  const float* o = J.o + 3 * i;
+  const float* d = J.d + 3 * i;
+  double e1[3], e2[3], a[3];
+  for (int k = 0; k < 3; ++k) {
+    e1[k] = static_cast<double>(T[3 + k]) - T[k];
+    e2[k] = static_cast<double>(T[6 + k]) - T[k];
+    a[k] = static_cast<double>(T[k]) - o[k];
+  }
+  const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]};
+  const double num = n[0] * a[0] + n[1] * a[1] + n[2] * a[2];
+  const double den = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
+  const double nn = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
+  const double td = num / den;
+  const float t32 = *t_io;
+  const float t = static_cast<float>(td);
+  if (!(den != 0 && nn > 0 && std::isfinite(t) && std::fabs(t - t32) <= 1e-2f * std::fabs(t32) + 1e-30f)) return;
+  *t_io = t;
+  const double q[3] = {td * d[0] - a[0], td * d[1] - a[1], td * d[2] - a[2]};
+  const double qe2[3] = {q[1] * e2[2] - q[2] * e2[1], q[2] * e2[0] - q[0] * e2[2], q[0] * e2[1] - q[1] * e2[0]};
+  const double e1q[3] = {e1[1] * q[2] - e1[2] * q[1], e1[2] * q[0] - e1[0] * q[2], e1[0] * q[1] - e1[1] * q[0]};
+  double u = (qe2[0] * n[0] + qe2[1] * n[1] + qe2[2] * n[2]) / nn;
+  double v = (e1q[0] * n[0] + e1q[1] * n[1] + e1q[2] * n[2]) / nn;
+  if (!(std::isfinite(u) && std::isfinite(v))) return;
+  u = std::max(u, 0.0);
+  v = std::max(v, 0.0);
+  if (u + v > 1.0) {
+    const double s = u + v;
+    u /= s;
+    v /= s;
+  }
+  *u_io = static_cast<float>(u);
+  *v_io = static_cast<float>(v);
+}
+
+// Embree's rays must be finite with tnear <= tfar (NaN or inverted intervals are jaxrt's inactive
+// slots): the others are misses without being traced.
+inline bool Valid(const Job& J, int64_t i) {
+  const float* o = J.o + 3 * i;
+  const float* d = J.d + 3 * i;
+  const float lo = J.tmin[i], hi = J.tmax[i];
+  const bool finite = std::isfinite(o[0]) && std::isfinite(o[1]) && std::isfinite(o[2]) && std::isfinite(d[0]) &&
+                      std::isfinite(d[1]) && std::isfinite(d[2]) && std::isfinite(lo) && !std::isnan(hi);
+  return finite && lo <= hi && (d[0] != 0.0f || d[1] != 0.0f || d[2] != 0.0f);
+}
+
+// Embree counts t > tnear: start the interval one float below tmin so that t == tmin counts too.
+inline float Below(float x) { return std::nextafter(x, -INFINITY); }
+
+inline void Miss(const Job& J, int64_t i) {
+  J.t[i] = J.tmax[i];
+  J.best[i] = -1;
+  J.u[i] = 0.0f;
+  J.v[i] = 0.0f;
+}
+
+// Closest hit of the rays [s, e) (e - s <= 16) in one packet.
+void Packet16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
+  alignas(64) int valid[16];
+  alignas(64) RTCRayHit16 rh;
+  RTCRay16& r = rh.ray;
+  for (int k = 0; k < 16; ++k) {
+    const int64_t i = s + k;
+    const bool ok = i < e && Valid(J, i);
+    valid[k] = ok ? -1 : 0;
+    const int64_t j = ok ? i : s;
+    r.org_x[k] = J.o[3 * j];
+    r.org_y[k] = J.o[3 * j + 1];
+    r.org_z[k] = J.o[3 * j + 2];
+    r.dir_x[k] = J.d[3 * j];
+    r.dir_y[k] = J.d[3 * j + 1];
+    r.dir_z[k] = J.d[3 * j + 2];
+    r.tnear[k] = ok ? std::max(0.0f, Below(J.tmin[j])) : 0.0f;
+    r.tfar[k] = ok ? J.tmax[j] : -INFINITY;
+    r.time[k] = 0.0f;
+    r.mask[k] = 0xFFFFFFFFu;
+    r.id[k] = k;
+    r.flags[k] = 0;
+    rh.hit.geomID[k] = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.primID[k] = RTC_INVALID_GEOMETRY_ID;
+  }
+  if (J.coherent == 2) {
+    // Embree's coherent mode traverses the packet as one (fast where its rays take the same path:
+    // camera tiles, shadow rays to one light); its incoherent mode splits it into single rays as
+    // they diverge (bounced rays of a path tracer). Coherent here when the packet's valid rays share
+    // a direction octant.
+    unsigned all = 0, any = 0;
+    bool first = true;
+    for (int k = 0; k < 16; ++k) {
+      if (!valid[k]) continue;
+      const unsigned oct = (std::signbit(r.dir_x[k]) ? 1u : 0u) | (std::signbit(r.dir_y[k]) ? 2u : 0u) |
+                           (std::signbit(r.dir_z[k]) ? 4u : 0u);
+      all = first ? oct : all;
+      any |= oct != all;
+      first = false;
+    }
+    ctx->flags = any ? RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT : RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
+  }
+  if (J.any_hit) {
+    rtcOccluded16(valid, J.scene, ctx, &r);
+  } else {
+    rtcIntersect16(valid, J.scene, ctx, &rh);
+  }
+  for (int64_t i = s; i < e; ++i) {
+    const int k = static_cast<int>(i - s);
+    if (!valid[k]) {
+      Miss(J, i);
+      continue;
+    }
+    if (J.any_hit) {
+      // Embree marks an occluded ray with tfar = -inf
+      const bool hit = r.tfar[k] == -INFINITY;
+      J.t[i] = J.tmax[i];
+      J.best[i] = hit ? 0 : -1;
+      J.u[i] = J.v[i] = 0.0f;
+      continue;
+    }
+    const unsigned prim = rh.hit.geomID[k] == RTC_INVALID_GEOMETRY_ID ? RTC_INVALID_GEOMETRY_ID : rh.hit.primID[k];
+    if (prim == RTC_INVALID_GEOMETRY_ID) {
+      Miss(J, i);
+      continue;
+    }
+    const int32_t b = static_cast<int32_t>(prim);
+    float t = r.tfar[k], u = rh.hit.u[k], v = rh.hit.v[k];
+    if (J.refine) Refine(J, i, b, &t, &u, &v);
+    J.t[i] = t;
+    J.best[i] = b;
+    J.u[i] = u;
+    J.v[i] = v;
+  }
+}
+
+// One ray at a time (rtcIntersect1 / rtcOccluded1): the A/B reference for the packets.
+void Single(const Job& J, RTCIntersectContext* ctx, int64_t i) {
+  if (!Valid(J, i)) {
+    Miss(J, i);
+    return;
+  }
+  RTCRayHit rh;
+  RTCRay& r = rh.ray;
+  r.org_x = J.o[3 * i];
+  r.org_y = J.o[3 * i + 1];
+  r.org_z = J.o[3 * i + 2];
+  r.dir_x = J.d[3 * i];
+  r.dir_y = J.d[3 * i + 1];
+  r.dir_z = J.d[3 * i + 2];
+  r.tnear = std::max(0.0f, Below(J.tmin[i]));
+  r.tfar = J.tmax[i];
+  r.time = 0.0f;
+  r.mask = 0xFFFFFFFFu;
+  r.id = 0;
+  r.flags = 0;
+  rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+  rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
+  if (J.any_hit) {
+    rtcOccluded1(J.scene, ctx, &r);
+    J.t[i] = J.tmax[i];
+    J.best[i] = r.tfar == -INFINITY ? 0 : -1;
+    J.u[i] = J.v[i] = 0.0f;
+    return;
+  }
+  rtcIntersect1(J.scene, ctx, &rh);
+  if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) {
+    Miss(J, i);
+    return;
+  }
+  const int32_t b = static_cast<int32_t>(rh.hit.primID);
+  float t = r.tfar, u = rh.hit.u, v = rh.hit.v;
+  if (J.refine) Refine(J, i, b, &t, &u, &v);
+  J.t[i] = t;
+  J.best[i] = b;
+  J.u[i] = u;
+  J.v[i] = v;
+}
+
+void Work(Job& J) {
+  RTCIntersectContext ctx;
+  rtcInitIntersectContext(&ctx);
+  ctx.flags = J.coherent == 1 ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
+  for (;;) {
+    const int64_t s = J.next.fetch_add(J.chunk);
+    if (s >= J.n) return;
+    const int64_t e = std::min(s + J.chunk, J.n);
+    if (J.packet == 16) {
+      for (int64_t p = s; p < e; p += 16) Packet16(J, &ctx, p, std::min(p + 16, e));
+    } else {
+      for (int64_t i = s; i < e; ++i) Single(J, &ctx, i);
+    }
+    if (J.done.fetch_add(e - s) + (e - s) == J.n) {
+      std::lock_guard<std::mutex> lock(J.mu);
+      J.cv.notify_all();
+    }
+  }
+}
+
+int64_t Count(const ffi::AnyBuffer::Dimensions& dims) {
+  int64_t c = 1;
+  for (auto x : dims) c *= x;
+  return c;
+}
+
+ffi::Error Trace(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi::F32> d, ffi::Buffer<ffi::F32> tmin,
+                 ffi::Buffer<ffi::F32> tmax, ffi::Buffer<ffi::F32> tri, ffi::ResultBuffer<ffi::F32> t,
+                 ffi::ResultBuffer<ffi::S32> best, ffi::ResultBuffer<ffi::F32> u, ffi::ResultBuffer<ffi::F32> v,
+                 bool any_hit, bool refine, int64_t coherent, int64_t packet, int64_t quality, int64_t chunk,
+                 int64_t threads) {
+  const int64_t n = Count(tmin.dimensions());
+  const int64_t nf = Count(tri.dimensions()) / 9;
+  if (Count(o.dimensions()) != 3 * n || Count(d.dimensions()) != 3 * n || Count(tmax.dimensions()) != n ||
+      Count(t->dimensions()) != n || Count(best->dimensions()) != n || Count(u->dimensions()) != n ||
+      Count(v->dimensions()) != n || Count(tri.dimensions()) != 9 * nf || nf < 1 || nf >= (int64_t{1} << 31) / 3 ||
+      chunk < 1 || (packet != 1 && packet != 16) || coherent < 0 || coherent > 2 || quality < 0 || quality > 2) {
+    return ffi::Error::InvalidArgument("jaxrt_embree_trace: inconsistent array shapes or attributes");
+  }
+  if (n == 0) return ffi::Error::Success();
+  std::string err;
+  const uint64_t h = TableHash(pool, threads <= 0 && pool.num_threads() > 0, tri.typed_data(), nf);
+  std::shared_ptr<Scene> scene = GetScene(tri.typed_data(), nf, h, static_cast<int>(quality), &err);
+  if (!scene) return ffi::Error::Internal("jaxrt_embree_trace: " + err);
+  auto job = std::make_shared<Job>();
+  Job& J = *job;
+  J.o = o.typed_data();
+  J.d = d.typed_data();
+  J.tmin = tmin.typed_data();
+  J.tmax = tmax.typed_data();
+  J.tri = tri.typed_data();
+  J.n = n;
+  J.any_hit = any_hit;
+  J.refine = refine;
+  J.coherent = coherent;
+  J.packet = packet;
+  J.scene = scene->scene;
+  J.t = t->typed_data();
+  J.best = best->typed_data();
+  J.u = u->typed_data();
+  J.v = v->typed_data();
+  J.chunk = chunk;
+  const int64_t chunks = (n + chunk - 1) / chunk;
+  int64_t workers = threads > 0 ? threads : pool.num_threads();
+  std::vector<std::thread> own;
+  const bool use_pool = threads <= 0 && workers > 0;
+  if (workers <= 0) workers = std::max<int64_t>(1, std::thread::hardware_concurrency());
+  const int64_t helpers = std::min(workers, chunks) - 1;
+  for (int64_t k = 0; k < helpers; ++k) {
+    // A helper that starts after the work is gone finds no chunk and returns; `job` (and through
+    // `scene` below, the Embree scene) stays alive for it.
+    if (use_pool) {
+      pool.Schedule([job, scene] { Work(*job); });
+    } else {
+      own.emplace_back([job, scene] { Work(*job); });
+    }
+  }
+  Work(J);
+  {
+    std::unique_lock<std::mutex> lock(J.mu);
+    J.cv.wait(lock, [&] { return J.done.load() == J.n; });
+  }
+  for (auto& th : own) th.join();
+  return ffi::Error::Success();
+}
+
+}  // namespace
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtEmbreeTrace, Trace,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // origins (N,3)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // directions (N,3)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // tmin (N,)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // tmax (N,)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // triangles (F,9), leaf order
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // t
+                                  .Ret<ffi::Buffer<ffi::S32>>()  // best (leaf order, -1 = miss)
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // u
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // v
+                                  .Attr<bool>("any_hit")
+                                  .Attr<bool>("refine")
+                                  .Attr<int64_t>("coherent")
+                                  .Attr<int64_t>("packet")
+                                  .Attr<int64_t>("quality")
+                                  .Attr<int64_t>("chunk")
+                                  .Attr<int64_t>("threads"));

@@ -1,0 +1,135 @@
+"""Ray queries through Embree 3 on the CPU: an XLA FFI custom call written in C++ (`native/embree.cc`).
+
+Embree (Wald et al. 2014) builds a wide BVH of its own and traverses packets of rays with the SIMD
+instructions of the CPU it runs on (chosen at run time); where the library is installed it is the
+CPU traversal `jaxrt.accel.bvh` uses by default (`JAXRT_TRAVERSAL=auto`; `embree` asks for it, `cpu`
+for jaxrt's own single-ray kernel, `jaxrt.accel.traverse_cpu`). BENCHMARKS.md ("jaxrt beside Mitsuba
+3") has the measurements.
+
+Results keep `traverse_cpu.traverse`'s contract: the triangle index in leaf order (Embree's scene is
+built from the BVH's own triangle table, so its primID is that index), barycentrics of v1 and v2,
+t in units of |direction| and, with `refine`, t of the chosen triangle recomputed in double. Embree's
+triangle test rounds differently from the native kernel's, so t, u, v agree to a few ulps and of two
+triangles at the same distance to within an ulp either may be chosen, and the ends of [tmin, tmax] are
+decided with Embree's float32 t; its robust mode keeps the test watertight at edges, not exactly at
+vertices (a ray through a vertex exactly slips through about 1 % of the time; `native/embree.cc`). Embree's tree is built on the first call that sees a triangle table and kept in the
+process (a few tables, keyed by a hash of the table's bytes that every call computes): a frame never
+rebuilds it, a changed mesh never reuses a stale one. Instanced scenes (`jaxrt.accel.two_level`) keep
+their own traversal.
+
+No build step at install: `available()` compiles the shipped source as `traverse_cpu` does (cached,
+keyed, atomic) and links it with -lembree3 (Debian: `apt-get install libembree-dev`). Where no Embree
+library is found it returns False without a word and `bvh` uses the native kernel; where one is
+found but compiling against it fails it warns once; `impl="embree"` (JAXRT_TRAVERSAL=embree) without
+Embree warns once too.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import threading
+import warnings
+from importlib import resources
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from jaxrt.accel import traverse_cpu
+
+TARGET = "jaxrt_embree_trace"
+_SYMBOL = "JaxrtEmbreeTrace"
+LIBS = ("-lembree3",)
+CHUNK = 256  # rays per work item handed to a thread (16 packets of 16)
+# Embree's RTCBuildQuality: 0 low, 1 medium (its default: binned SAH), 2 high (spatial splits). The
+# tree is built once per mesh and traced every frame.
+QUALITY = 1
+
+_compiler: str | None = None  # overrides $CXX / "c++" (tests)
+_library: str | None = None  # overrides the library lookup (tests): a name that is not found
+_lock = threading.Lock()
+_state: dict = {}
+
+
+def _source() -> bytes:
+    return resources.files("jaxrt.accel").joinpath("native", "embree.cc").read_bytes()
+
+
+def _load() -> bool:
+    _state["missing"] = ctypes.util.find_library(_library or "embree3") is None
+    if _state["missing"]:
+        return False  # Embree is not installed: the native kernel, silently (unless asked for by name)
+    compiler = _compiler or os.environ.get("CXX") or "c++"
+    try:
+        lib = ctypes.CDLL(str(traverse_cpu.compile_library("embree", _source(), compiler, LIBS)))
+        if "lib" not in _state:  # once per process
+            jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(getattr(lib, _SYMBOL)), platform="cpu")
+            _state["lib"] = lib
+    except Exception as e:  # noqa: BLE001 -- any failure means: use the native kernel
+        detail = getattr(e, "stderr", None) or str(e)
+        warnings.warn(f"jaxrt: Embree is installed but the Embree traversal could not be built (compiler "
+                      f"{compiler!r}: {detail.strip()[-500:]}); using jaxrt's own CPU kernel", RuntimeWarning,
+                      stacklevel=3)
+        return False
+    return True
+
+
+def available() -> bool:
+    """Whether the Embree kernel is compiled, loaded and registered (compiling on first call)."""
+    with _lock:
+        if "ok" not in _state:
+            _state["ok"] = _load()
+        return _state["ok"]
+
+
+def note_missing() -> None:
+    """Warn once per process that Embree was asked for (JAXRT_TRAVERSAL=embree) but is not installed."""
+    with _lock:
+        if _state.get("noted") or not _state.get("missing"):
+            return  # said already, or installed but not built (`available` warned)
+        _state["noted"] = True
+    warnings.warn("jaxrt: JAXRT_TRAVERSAL=embree, but no Embree 3 library was found (Debian: apt-get install "
+                  "libembree-dev); using jaxrt's own CPU kernel", RuntimeWarning, stacklevel=4)
+
+
+def _reset_for_tests() -> None:
+    """Forget the load result so the next `available()` tries again (the FFI target stays registered)."""
+    with _lock:
+        _state.pop("ok", None)
+        _state.pop("noted", None)
+
+
+def traverse(triangles: Float[Array, "F 9"], origins: Float[Array, "N 3"], directions: Float[Array, "N 3"],
+             tmin: Float[Array, " N"], tmax: Float[Array, " N"], *, any_hit: bool, refine: bool = False,
+             coherent: str = "auto", packet: int = 16, threads: int = 0):
+    """Trace N rays through Embree; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
+    `traverse_cpu.traverse`.
+
+    triangles: the BVH's (F,9) float32 leaf-order table; origins, directions (N,3) float32; tmin,
+    tmax (N,) float32. Rays with a NaN, an infinite origin or direction, a zero direction or
+    tmin > tmax miss. refine: t of each hit in double (as `traverse_cpu`). coherent: Embree's mode
+    for a packet, "yes" (traversed as one: camera rays, shadow rays to one light), "no" (split into
+    single rays as they diverge: bounced rays) or "auto" (per packet: "yes" where its rays' directions
+    share an octant); packet: 16 (packets of 16 rays) or 1 (one ray at a time); threads: worker
+    threads (0: XLA's intra-op thread pool); these three only affect speed. Lowers for the CPU only; under vmap it runs once per batch
+    element. Raises RuntimeError where the kernel is not `available()`.
+    """
+    modes = {"no": 0, "yes": 1, "auto": 2}
+    if packet not in (1, 16) or threads < 0 or coherent not in modes:
+        raise ValueError(f"traverse_embree.traverse: packet must be 1 or 16, threads >= 0 and coherent one of "
+                         f"{tuple(modes)}; got {packet}, {threads}, {coherent!r}")
+    if not available():
+        raise RuntimeError("jaxrt.accel.traverse_embree: the Embree kernel is not available")
+    n = origins.shape[0]
+    f32 = jax.ShapeDtypeStruct((n,), jnp.float32)
+    i32 = jax.ShapeDtypeStruct((n,), jnp.int32)
+    call = jax.ffi.ffi_call(TARGET, (f32, i32, f32, f32), vmap_method="sequential")
+    t, best, u, v = call(jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32),
+                         jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32), triangles,
+                         any_hit=bool(any_hit), refine=bool(refine), coherent=np.int64(modes[coherent]),
+                         packet=np.int64(packet), quality=np.int64(QUALITY), chunk=np.int64(CHUNK),
+                         threads=np.int64(threads))
+    return best >= 0, t, best, u, v

@@ -1,0 +1,247 @@
+"""The Embree traversal (`jaxrt.accel.traverse_embree`) against independent references.
+
+The native kernel's raw outputs on the same tree and rays (same triangle up to ties at the same
+distance; t, u, v to a few ulps; the ties and ulp differences counted and bounded); brute force in
+float64 and watertightness run in tests/test_bvh.py for every CPU traversal; closed-form hits at
+exactly tmin / tmax; inactive rays (NaN, tmin > tmax); the scene cache (a changed triangle table is
+never traced through an old scene); a direct frame equal to the native kernel's within tolerance;
+N = 0, jit and vmap; the silent fallback where no Embree library is found.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import trimesh
+from test_bvh import RTOL, check_against_reference, ray_mix
+
+from jaxrt.accel import bvh
+from jaxrt.accel import traverse_cpu
+from jaxrt.accel import traverse_embree
+from jaxrt.geometry import data
+from jaxrt.geometry import mesh
+
+
+def test_embree_builds_here():
+    # CI installs Embree (.ci/run): the CPU default must be what the suite exercises, not a fallback.
+    assert traverse_embree.available()
+
+
+@pytest.fixture(scope="module")
+def bunny(data_dir):
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("JAXRT_DATA", str(data_dir))
+        return mesh.load(data.find("bunny"))
+
+
+def _arrays(tree):
+    return {"node_box": tree.node_box, "node_leaf": tree.node_leaf, "links": tree.links, "triangles": tree.triangles}
+
+
+def _embree(tree, o, d, lo, hi, **kw):
+    return tuple(map(np.asarray, jax.jit(lambda tr, *r: traverse_embree.traverse(tr, *r, **kw))(
+        tree.triangles, o, d, lo, hi)))
+
+
+def _native(tree, o, d, lo, hi, **kw):
+    return tuple(map(np.asarray, jax.jit(lambda a, *r: traverse_cpu.traverse(a, *r, **kw))(
+        _arrays(tree), o, d, lo, hi)))
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("leaf_size", [1, 4])
+def test_matches_native_kernel(bunny, leaf_size):
+    """Raw outputs of Embree and the native kernel on one tree: a different triangle only as a tie,
+    t (refined in double by both) to RTOL, u, v to float32 rounding of the same barycentrics."""
+    tree = bvh.build(bunny.vertices, bunny.faces, leaf_size=leaf_size)
+    o, d, lo, hi = ray_mix(bunny, 6000, seed=11 + leaf_size)
+    fe, te, be, ue, ve = _embree(tree, o, d, lo, hi, any_hit=False, refine=True)
+    fn, tn, bn, un, vn = _native(tree, o, d, lo, hi, any_hit=False, refine=True)
+    # A different answer (hit or miss, or another triangle) only where float32 rounding decides:
+    # ties at the same distance, rays through an edge or grazing a triangle. Few, and each one
+    # must pass the float64 brute-force rules of tests/test_bvh.py.
+    differ = (fe != fn) | (fe & fn & (be != bn))
+    assert differ.sum() <= 0.005 * len(o), int(differ.sum())
+    tri = bunny.vertices.astype(np.float64)[bunny.faces]
+    pid = np.asarray(tree.prim_ids)
+    for f_, t_, b_, u_, v_ in ((fe, te, be, ue, ve), (fn, tn, bn, un, vn)):
+        sub = bvh.Hit(t=np.where(f_, t_, np.inf)[differ], prim=np.where(f_, pid[np.maximum(b_, 0)], -1)[differ],
+                      u=u_[differ], v=v_[differ])
+        check_against_reference(tri, o[differ].astype(np.float64), d[differ].astype(np.float64),
+                                lo[differ].astype(np.float64), hi[differ].astype(np.float64), sub)
+    same = fe & fn & (be == bn)
+    # the same triangle: t is the double-precision plane distance in both, rounded to float32
+    assert np.mean(te[same] == tn[same]) > 0.99
+    # (u, v) against float64 barycentrics of the ray's line through the triangle's plane
+    # (Moller-Trumbore, written here independently): the kernel recomputes them in double, so they are
+    # the float32 rounding of those (the native kernel's float32 quotients stray by up to ~1e-4);
+    # rays nearly in the plane are checked across the ray in test_bvh.py
+    tri = np.asarray(tree.triangles, np.float64)[be[same]]
+    o64, d64 = o[same].astype(np.float64), d[same].astype(np.float64)
+    e1, e2, s0 = tri[:, 3:6] - tri[:, 0:3], tri[:, 6:9] - tri[:, 0:3], o64 - tri[:, 0:3]
+    p = np.cross(d64, e2)
+    det = np.sum(e1 * p, 1)
+    u64, v64 = np.sum(s0 * p, 1) / det, np.sum(d64 * np.cross(s0, e1), 1) / det
+    nrm = np.cross(e1, e2)
+    cos = np.abs(np.sum(nrm * d64, 1)) / (np.linalg.norm(nrm, axis=1) * np.linalg.norm(d64, axis=1))
+    steep = cos > 0.05
+    assert steep.mean() > 0.6
+    err_e = np.maximum(np.abs(ue[same] - u64), np.abs(ve[same] - v64))[steep]
+    err_n = np.maximum(np.abs(un[same] - u64), np.abs(vn[same] - v64))[steep]
+    assert err_e.max() < 1e-6, err_e.max()
+    assert np.median(err_e) < np.median(err_n)
+    # misses: t = tmax, u = v = 0 (the native kernel's contract)
+    np.testing.assert_array_equal(te[~fe], hi[~fe])
+    assert np.all(ue[~fe] == 0) and np.all(ve[~fe] == 0) and np.all(be[~fe] == -1)
+    # any-hit: blocked exactly where Embree's own closest-hit query finds a hit
+    occ = _embree(tree, o, d, lo, hi, any_hit=True)[0]
+    np.testing.assert_array_equal(occ, fe)
+    # one ray at a time, incoherent, own threads: only the speed changes
+    for kw in ({"packet": 1}, {"coherent": "no"}, {"coherent": "yes"}, {"threads": 3}):
+        other = _embree(tree, o, d, lo, hi, any_hit=False, refine=True, **kw)
+        np.testing.assert_array_equal(other[0], fe, err_msg=str(kw))
+        np.testing.assert_array_equal(other[1], te, err_msg=str(kw))
+    with pytest.raises(ValueError, match="packet"):
+        traverse_embree.traverse(tree.triangles, o, d, lo, hi, any_hit=False, packet=8)
+
+
+def test_t_limits_are_inclusive_and_inactive_rays_miss():
+    v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    tree = bvh.build(v, f)
+    xy = np.array([[0.3, -0.2], [-0.5, 0.4], [0.0, 0.0], [0.9, -0.9], [1.0, 1.0]], np.float32)
+    o = np.concatenate([xy, np.ones((len(xy), 1), np.float32)], axis=1)
+    d = np.tile(np.float32([0, 0, -1]), (len(o), 1))
+    # The plane is at t = 1 exactly. Embree decides the ends of [tmin, tmax] with its own rounded t, so
+    # a hit within a few ulps outside the interval may count (the native kernel's are exact ends):
+    # checked at exactly the ends and 1e-5 outside them.
+    below, above = np.float32(1 - 1e-5), np.float32(1 + 1e-5)
+    cases = [(0.0, np.inf, True), (0.0, 1.0, True), (1.0, 1.0, True), (1.0, np.inf, True), (0.0, below, False),
+             (above, np.inf, False), (1.0, 0.5, False), (np.nan, np.inf, False), (0.0, np.nan, False)]
+    for lo, hi, expect in cases:
+        hit = bvh.intersect(tree, o, d, lo, hi, impl="embree")
+        occ = bvh.occluded(tree, o, d, hi, lo, impl="embree")
+        prim = np.asarray(hit.prim)
+        np.testing.assert_array_equal(prim >= 0, expect, err_msg=f"tmin {lo} tmax {hi}")
+        np.testing.assert_array_equal(np.asarray(occ), expect, err_msg=f"tmin {lo} tmax {hi}")
+        if expect:
+            np.testing.assert_array_equal(np.asarray(hit.t), 1.0)
+            p = np.asarray(hit.u)[:, None] * (v[f[prim, 1]] - v[f[prim, 0]]) + np.asarray(hit.v)[:, None] * (
+                v[f[prim, 2]] - v[f[prim, 0]]) + v[f[prim, 0]]
+            np.testing.assert_allclose(p[:, :2], xy, atol=1e-6)
+    # NaN origins or directions and zero directions miss without being traced
+    bad_o = o.copy()
+    bad_o[0, 1] = np.nan
+    bad_d = d.copy()
+    bad_d[1] = np.nan
+    bad_d[2] = 0.0
+    hit = bvh.intersect(tree, bad_o, bad_d, impl="embree")
+    np.testing.assert_array_equal(np.asarray(hit.prim) >= 0, [False, False, False, True, True])
+    assert np.all(np.isfinite(np.asarray(hit.u))) and np.all(np.isfinite(np.asarray(hit.v)))
+
+
+def test_a_changed_triangle_table_is_not_traced_through_the_old_scene():
+    """The kernel keeps Embree scenes keyed by the table's bytes: moving one vertex (same triangle
+    count, maybe the same buffer address) must give the moved mesh's hits."""
+    s = trimesh.creation.icosphere(subdivisions=3)
+    tree = bvh.build(s.vertices, s.faces)
+    o = np.float32([[0, 0, 5], [0, 0, -5]])
+    d = np.float32([[0, 0, -1], [0, 0, 1]])
+    f = jax.jit(lambda tr, o, d: bvh.intersect(tr, o, d, impl="embree"))
+    t0 = np.asarray(f(tree, o, d).t)
+    np.testing.assert_allclose(t0, 4.0, rtol=1e-3)  # the unit sphere, polygonised
+    tri = np.asarray(tree.triangles).copy()
+    tri[:, 2::3] *= 2.0  # stretch z: the sphere's poles move to +-2
+    moved = bvh.BVH(**{**{k: getattr(tree, k) for k in ("node_box", "node_leaf", "links", "prim_ids", "rows",
+                                                        "skips", "leaf_size")}, "triangles": jnp.asarray(tri)})
+    np.testing.assert_allclose(np.asarray(f(moved, o, d).t), 3.0, rtol=1e-3)
+    np.testing.assert_array_equal(np.asarray(f(tree, o, d).t), t0)  # and back
+
+
+def test_a_change_in_the_last_piece_of_a_large_table_is_seen():
+    """Tables over 4 MB are hashed in pieces (by several threads): a change confined to the last
+    triangle of a 327,680-triangle table (11.8 MB, three pieces) must still select a new scene."""
+    s = trimesh.creation.icosphere(subdivisions=7)
+    tree = bvh.build(s.vertices, s.faces)
+    tri = np.asarray(tree.triangles).copy()
+    assert tri.nbytes > 2 * (4 << 20)
+    c = tri[-1].reshape(3, 3).mean(0)
+    c /= np.linalg.norm(c)
+    o, d = np.float32(5 * c)[None], np.float32(-c)[None]
+    f = jax.jit(lambda tr, o, d: bvh.intersect(tr, o, d, impl="embree"))
+    np.testing.assert_allclose(np.asarray(f(tree, o, d).t), 4.0, atol=1e-3)
+    tri[-1] *= 0.5  # the last triangle moves halfway to the centre: the ray passes its hole and meets it there
+    moved = eqx.tree_at(lambda t: t.triangles, tree, jnp.asarray(tri))
+    hit = f(moved, o, d)
+    np.testing.assert_allclose(np.asarray(hit.t), 4.5, atol=1e-3)
+    assert int(hit.prim[0]) == int(np.asarray(tree.prim_ids)[-1])
+
+
+@pytest.mark.data
+def test_direct_frame_equals_native_kernel_frame(data_dir, monkeypatch):
+    """The shipped bunny scene rendered with Embree and with the native kernel: the same image up to
+    the few pixels whose camera or shadow ray meets a tie or an edge differently."""
+    monkeypatch.setenv("JAXRT_DATA", str(data_dir))
+    import jaxrt
+
+    images = {}
+    for impl in ("embree", "cpu"):
+        monkeypatch.setenv("JAXRT_TRAVERSAL", impl)
+        scn = jaxrt.load_scene("bunny", overrides={"camera.width": 96, "camera.height": 72})
+        images[impl] = np.asarray(jaxrt.render(scn))
+    a, b = images["embree"], images["cpu"]
+    assert np.all(np.isfinite(a))
+    differ = np.any(np.abs(a - b) > 2e-5, axis=-1)
+    assert differ.mean() < 0.002, f"{int(differ.sum())} pixels differ"
+    assert abs(a.mean() - b.mean()) < 1e-4 * b.mean()
+
+
+def test_zero_rays_jit_and_vmap():
+    s = trimesh.creation.icosphere(subdivisions=2)
+    tree = bvh.build(s.vertices, s.faces)
+    z = jnp.zeros((0, 3), jnp.float32)
+    assert bvh.intersect(tree, z, z, impl="embree").prim.shape == (0,)
+    rng = np.random.default_rng(0)
+    o = np.float32(rng.normal(size=(3, 5, 3)) * 4)
+    d = np.float32(-o + rng.normal(size=(3, 5, 3)) * 0.1)
+    f = jax.jit(jax.vmap(lambda o, d: bvh.intersect(tree, o, d, impl="embree")))
+    hit = f(o, d)
+    for b in range(3):
+        one = bvh.intersect(tree, o[b], d[b], impl="cpu")
+        np.testing.assert_array_equal(np.asarray(hit.prim[b]) >= 0, np.asarray(one.prim) >= 0)
+        np.testing.assert_allclose(np.asarray(hit.t[b]), np.asarray(one.t), rtol=RTOL)
+
+
+def test_silent_fallback_without_embree(monkeypatch):
+    """No Embree library: "auto" traces with the native kernel without a word, "embree" (asked for by
+    name) with one warning per process."""
+    import warnings
+
+    s = trimesh.creation.icosphere(subdivisions=2)
+    tree = bvh.build(s.vertices, s.faces)
+    o = np.float32([[0, 0, 5], [3, 3, 3]])
+    d = np.float32([[0, 0, -1], [1, 0, 0]])
+    monkeypatch.setattr(traverse_embree, "_library", "jaxrt-no-such-library")
+    traverse_embree._reset_for_tests()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert not traverse_embree.available()
+            hit = jax.jit(lambda tr, o, d: bvh.intersect(tr, o, d, impl="auto"))(tree, o, d)
+            text = jax.jit(lambda tr, o, d: bvh.intersect(tr, o, d, impl="auto")).lower(tree, o, d).as_text()
+        np.testing.assert_array_equal(np.asarray(hit.prim) >= 0, [True, False])
+        assert traverse_cpu.TARGET in text and traverse_embree.TARGET not in text
+        with pytest.warns(RuntimeWarning, match="no Embree 3 library") as caught:
+            for _ in range(2):
+                text = jax.jit(lambda tr, o, d: bvh.intersect(tr, o, d, impl="embree")).lower(tree, o, d).as_text()
+        assert len([w for w in caught if "Embree" in str(w.message)]) == 1
+        assert traverse_cpu.TARGET in text and traverse_embree.TARGET not in text
+        with pytest.raises(RuntimeError, match="not available"):
+            traverse_embree.traverse(tree.triangles, o, d, jnp.zeros(2), jnp.full(2, jnp.inf), any_hit=False)
+    finally:
+        monkeypatch.undo()
+        traverse_embree._reset_for_tests()
+    assert traverse_embree.available()

@@ -10,6 +10,8 @@ N = 0, jit and vmap; the silent fallback where no Embree library is found.
 
 from __future__ import annotations
 
+import os
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -23,6 +25,14 @@ from jaxrt.accel import traverse_cpu
 from jaxrt.accel import traverse_embree
 from jaxrt.geometry import data
 from jaxrt.geometry import mesh
+
+
+# Embree is an optional system library (Debian: libembree-dev). CI installs it (.ci/run), so there
+# these tests must run and a missing or unbuildable Embree fails them; on a developer's machine
+# without it they are skipped with the reason, and the CPU uses the native kernel instead.
+if not os.environ.get("CI") and not traverse_embree.available():
+    pytest.skip("Embree 3 is not installed (apt-get install libembree-dev); CI runs these tests",
+                allow_module_level=True)
 
 
 def test_embree_builds_here():

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
+import threading
 import time
 from pathlib import Path
 
@@ -255,9 +258,25 @@ def hidden_params(model, seed: int) -> dict:
     return out
 
 
-def _demo(args, outs) -> int:
-    from concurrent.futures import ThreadPoolExecutor
+def _in_thread(fn, *args) -> dict:
+    """Start `fn(*args)` in a daemon thread; the returned dict gets "value" or "error", then its "done"
+    Event is set. (Waiting on an Event, not `Thread.join`: a join interrupted by KeyboardInterrupt can
+    mark a running thread as stopped in CPython 3.11.)"""
+    box: dict = {"done": threading.Event()}
 
+    def target():
+        try:
+            box["value"] = fn(*args)
+        except BaseException as e:  # re-raised in the main thread
+            box["error"] = e
+        finally:
+            box["done"].set()
+
+    threading.Thread(target=target, name=f"jaxrt-{getattr(fn, '__name__', 'work')}", daemon=True).start()
+    return box
+
+
+def _demo(args, outs) -> int:
     from fitting import report
     from fitting import setup as fit_setup
     from jaxrt import integrators, scene
@@ -287,19 +306,32 @@ def _demo(args, outs) -> int:
         return truth, np.asarray(target[0]), result, fitted
 
     targets, fits, titles, summary = [], [], [], []
-    with ThreadPoolExecutor(len(DEMO_MODELS), thread_name_prefix="jaxrt-demo") as pool, \
-            tqdm(total=len(DEMO_MODELS), desc="fit --demo", unit="model", leave=False, disable=args.quiet,
-                 delay=0.5) as bar:
-        jobs = [pool.submit(one, i, name) for i, name in enumerate(DEMO_MODELS)]
-        for name, job in zip(DEMO_MODELS, jobs):
-            truth, target, result, fitted = job.result()
-            bar.update(1)
-            print(report.format_result(result, truth=truth))
-            print()
-            targets.append(target)
-            fits.append(fitted)
-            titles.append(name)
-            summary.append({"truth": truth, "fit": result.to_json()})
+    boxes = [_in_thread(one, i, name) for i, name in enumerate(DEMO_MODELS)]
+    with tqdm(total=len(DEMO_MODELS), desc="fit --demo", unit="model", leave=False, disable=args.quiet,
+              delay=0.5) as bar:
+        try:
+            for name, box in zip(DEMO_MODELS, boxes):
+                while not box["done"].wait(0.1):
+                    pass
+                if "error" in box:  # the others finish first: no thread is left inside XLA at exit
+                    for other in boxes:
+                        other["done"].wait()
+                    raise box["error"]
+                truth, target, result, fitted = box["value"]
+                bar.update(1)
+                print(report.format_result(result, truth=truth))
+                print()
+                targets.append(target)
+                fits.append(fitted)
+                titles.append(name)
+                summary.append({"truth": truth, "fit": result.to_json()})
+        except KeyboardInterrupt:
+            # The models' threads may be inside a compilation or a compiled call, which nothing can
+            # stop from Python: exit at once (nothing has been written; outputs come at the end).
+            bar.close()
+            print("jaxrt: interrupted", file=sys.stderr, flush=True)
+            sys.stdout.flush()
+            os._exit(130)
     print(f"demo: {len(DEMO_MODELS)} fits in {time.perf_counter() - t0:.1f} s (including compilation)")
     plot = Path(args.plot or "fit_demo.png")
     with outs.writing() as tmp:  # both outputs or neither

@@ -289,9 +289,9 @@ def _demo(args, outs) -> int:
     # and the demo's object is opaque); then each model's preparation, target, fit and fitted image run
     # in a thread of their own. Their programs are independent, and XLA compiles with the GIL released,
     # so the models' compilations (most of a first run) overlap; each thread computes what the same
-    # calls compute one after another, bit for bit. The fits themselves run one at a time: run at once
-    # they contend for XLA's CPU thread pool and cost more than they overlap (measured on 2 cores: a
-    # warm `fit --demo` took 18-21 CPU s with concurrent fits against 9.5 run one after another).
+    # calls compute one after another, bit for bit. The fits themselves run one at a time, as before:
+    # their solves share XLA's CPU thread pool (nothing to gain from running them at once on a warm
+    # run, which is almost all solving), and each fit's reported time stays its own.
     specs = [scene.parse(v if isinstance(v, dict) else scene.find_scene(v), overrides=DEMO_OVERRIDES)
              for v in demo_views()]
     traces = [integrators.trace(scene.build(s)) for s in specs]

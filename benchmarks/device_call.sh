@@ -46,8 +46,8 @@ for s in "$@"; do
                       --runs 1 --json "$OUT/image.json" ;;
         path)     stage path 80 python3 benchmarks/path.py --size 512 --spp 4 --passes 5 --no-mitsuba ;;
         sppm)     stage sppm 90 python3 benchmarks/sppm.py --size 128 --passes 8 ;;
-        latency)  stage latency 330 python3 benchmarks/latency.py --no-mitsuba --worker --warm-runs 3 --json "$OUT/latency.json" \
-                      --cases render-dragon render-spheres fit-demo fit-bunny sweep-frame import-jaxrt import-brdfs import-fitting ;;
+        latency)  stage latency 420 python3 benchmarks/latency.py --no-mitsuba --worker --warm-runs 3 --json "$OUT/latency.json" \
+                      --cases render-dragon render-spheres fit-demo fit-bunny fit-cli sweep-frame import-jaxrt import-brdfs import-fitting ;;
         caustic)  # a converged path-traced reference of the area-light caustic, then SPPM vs path at equal time
                   stage caustic-ref 170 python3 benchmarks/sppm.py --make-reference 4194304 --max-seconds 100 \
                       --out "$OUT/caustic_ref.npz"

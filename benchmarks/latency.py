@@ -6,13 +6,16 @@
     python benchmarks/latency.py --preview-wiring        # as if the CLI and scenes used jaxrt.cache already
     python benchmarks/latency.py --no-mitsuba            # skip the Mitsuba 3 column
     python benchmarks/latency.py --quick --worker        # also: the warm rows as clients of `jaxrt serve`
+    python benchmarks/latency.py --quick --cases fit-cli  # `jaxrt fit TARGET.exr ...` of a 64² target
 
 A case is one process start to exit (files written), timed from outside (wall seconds and the CPU
 seconds of the process and its threads, which a loaded shared machine disturbs far less; `--warm-runs N`
 reports the medians of N warm processes); the CLI cases are the
 commands exactly as typed (`python -m jaxrt.cli` for `jaxrt`, run in an empty folder, so
 `jaxrt render` writes its default EXR and PNG); scripted cases also print
-their phases (load / compile / first frame, prepare / first fit / solve). Each case runs with
+their phases (load / compile / first frame, prepare / first fit / solve). `fit-cli` first writes,
+untimed and with a cache folder of its own, the scene file at the fit size and a target EXR into the
+work folder; then `jaxrt fit target.exr --scene scene.toml ...` is the timed command. Each case runs with
 JAXRT_CACHE_DIR set to a new empty folder (cold), then again with the same folder (warm), so the
 figures show what a second process reuses, whether or not the commands use `jaxrt.cache` yet.
 The native CPU kernel's library ($XDG_CACHE_HOME/jaxrt, compiled once per machine) is not reset.
@@ -112,6 +115,29 @@ print("%s" + json.dumps({{"imports": t1 - t0, "prepare": t2 - t1, "target": t3 -
                           "solve": t6 - t5, "iterations": int(r2.iterations)}}))
 """ % PHASES
 
+# The fit-cli case's untimed preparation, in its work folder: the scene file at the fit size and a target
+# rendered with grey "hidden" parameters, as `fit-bunny` renders its target.
+FIT_TARGET = """
+import re, sys
+from pathlib import Path
+import numpy as np
+import brdfs
+from fitting import setup as scene_fit
+from jaxrt import image, scene
+from jaxrt.cli.fit import hidden_params
+name, size, obj = sys.argv[1], int(sys.argv[2]), sys.argv[3] or None
+# the shipped file with its resolution replaced (its meshes are data-registry names, found from anywhere)
+text = scene.find_scene(name).read_text()
+for key in ("width", "height"):
+    text, n = re.subn(rf"(?m)^{key} = \\d+", f"{key} = {size}", text)
+    assert n == 1, key
+Path("scene.toml").write_text(text)
+model = brdfs.get("cook_torrance")
+setup = scene_fit.prepare(["scene.toml"], model, object=obj)
+truth = model.params(**{k: (np.mean(v) if isinstance(v, list) else v) for k, v in hidden_params(model, 0).items()})
+image.write("target.exr", np.asarray(scene_fit.render_with(setup, truth))[0])
+"""
+
 MITSUBA_RENDER = """
 import json, sys, time
 t0 = time.perf_counter()
@@ -204,6 +230,7 @@ class Case:
     argv: tuple[str, ...]  # after `python`
     needs_data: bool = False
     peer: str | None = None  # the Mitsuba case beside it
+    setup: tuple[str, ...] = ()  # after `python`: run once in the work folder before the timed runs (untimed)
 
 
 def cases(args) -> dict[str, Case]:
@@ -211,6 +238,10 @@ def cases(args) -> dict[str, Case]:
     frame = 128 if args.quick else 512
     fit = 64 if args.quick else args.fit_size
     cli = ("-m", "jaxrt.cli")
+    # the CLI fit: the bunny as `fit-bunny` (spheres' Cook-Torrance sphere without $JAXRT_DATA)
+    fit_scene, fit_object = ("bunny", "") if os.environ.get("JAXRT_DATA") else ("spheres", "cook_torrance")
+    fit_cli = (*cli, "fit", "target.exr", "--scene", "scene.toml", "--model", "cook_torrance", "--grey",
+               *(("--object", fit_object) if fit_object else ()))
     return {
         "render-dragon": Case(f"`jaxrt render dragon --width {dragon} --height {dragon}`",
                               (*cli, "render", "dragon", "--width", str(dragon), "--height", str(dragon)),
@@ -219,6 +250,9 @@ def cases(args) -> dict[str, Case]:
         "fit-demo": Case("`jaxrt fit --demo`", (*cli, "fit", "--demo")),
         "fit-bunny": Case(f"bunny {fit}² 4-parameter fit (`fitting.setup`)",
                           ("-c", FIT_BUNNY.format(size=fit)), needs_data=True, peer="mitsuba-fit"),
+        "fit-cli": Case(f"`jaxrt fit target.exr --scene {fit_scene}.toml --model cook_torrance --grey"
+                        f"{' --object ' + fit_object if fit_object else ''}`, {fit}² target (4 parameters)",
+                        fit_cli, setup=("-c", FIT_TARGET, fit_scene, str(fit), fit_object)),
         "dragon-frame": Case(f"dragon scene load + first frame ({frame}²; compile = first frame compile)",
                              ("-c", DRAGON_FRAME.format(size=frame)), needs_data=True, peer="mitsuba-frame"),
         "imports": Case("Python imports before any work (jax, jaxrt.scene/render, fitting.setup)",
@@ -417,6 +451,11 @@ def main(argv=None) -> int:
                 cdir = tmp / f"cache-{name}"
                 work = tmp / f"work-{name}"
                 work.mkdir()
+                if case.setup:  # its own cache folder: the cold run starts empty
+                    p = subprocess.run([sys.executable, *case.setup], env=_env(tmp / f"setup-cache-{name}"), cwd=work,
+                                       capture_output=True, text=True, timeout=args.timeout, check=False)
+                    if p.returncode != 0:
+                        sys.exit(f"{name}: preparation failed: {(p.stderr.strip().splitlines() or ['?'])[-1]}")
                 for phase in ("cold", "warm"):
                     runs = [_run(case.argv, cdir, work, args.preview_wiring, args.timeout)
                             for _ in range(args.warm_runs if phase == "warm" else 1)]

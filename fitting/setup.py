@@ -174,10 +174,11 @@ def prepare(
             # model: trace the scene as given (one compilation per scene, whatever model is fitted)
             # unless the object was glass, whose branches the substituted model no longer has.
             was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
-            if was_glass:
-                gb = integrators.trace(sc)
-            elif gb is None:
-                gb = integrators.trace(_scene.build(original))
+            if was_glass or gb is None:
+                m = sc.materials.index(mat_name)
+                shading = edit.set_material_row(sc, int(sc.materials.model_id[m]), int(sc.materials.row[m]),
+                                                model.params())
+                gb = _trace(sc if was_glass else _scene.build(original), shading)
             built.append(sc)
             gbs.append(gb)
             bar.update(1)
@@ -211,6 +212,32 @@ def prepare(
         object=obj_name,
         fitbuffer=fb,
     )
+
+
+def _trace(scene, shading):
+    """`integrators.trace(scene)`, with the program `compact.build` shades the trace with (for the
+    constant image, on the scene `shading`) compiled while the trace program compiles: XLA compiles
+    with the GIL released, so on a first run the two compilations overlap. The shade program is a
+    stored one (`jaxrt.programs`), compiled from the trace's output shapes and kept for the call
+    that follows; with the cache off there is none to keep, and it compiles at that call as before.
+    The trace itself is the same call either way, so its results are the same bits."""
+    import threading
+
+    import jax
+
+    from jaxrt import _config
+
+    traced = integrators.trace.trace(scene)  # the jit call below reuses this trace and the compilation
+    compiling = threading.Thread(target=lambda: traced.lower().compile(), name="fitting-trace-compile", daemon=True)
+    compiling.start()
+    try:
+        if _config.config().cache:
+            shapes = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type),
+                                  traced.out_avals)
+            integrators.shade.lower(shapes, shading)
+    finally:
+        compiling.join()
+    return integrators.trace(scene)
 
 
 @functools.lru_cache(maxsize=None)

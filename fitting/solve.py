@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import threading
 import time
 from collections.abc import Callable, Mapping
 
@@ -464,14 +465,21 @@ def fit_images(
         bar.update(len(finals))
     else:
         solve = _compiled_solver(shade, free, solver, step_cap(max_steps))
+        # the solutions committed to the device the starts are on, whether the solver is a stored program
+        # (committed outputs) or `jax.jit`'s: the programs after the solve see one argument type, which
+        # the warm-up compiles them for
+        device = next(iter(jax.tree.leaves(prob.z_starts[0])[0].devices()))
+        warm = _warm_up_after_solve(shade, free, jax.device_put(prob.z_starts[0], device), fixed, gbuffer, pixels)
         for z0 in prob.z_starts:
             z, loss, steps, ok = solve(z0, gbuffer, pixels, fixed, controls)
             total_steps += int(steps)
-            finals.append((float(loss), z, int(steps), bool(ok)))
+            finals.append((float(loss), jax.device_put(z, device), int(steps), bool(ok)))
             bar.update(1)
             bar.set_postfix(loss=f"{min(f[0] for f in finals):.3e}")
     bar.close()
     wall = time.perf_counter() - t0
+    if not devs:
+        warm.join()
 
     (_, z, steps, ok), at_best = _choose(shade, free, finals)
     params, fitted = _compiled_helpers(shade, free)[2](z, fixed, gbuffer)
@@ -509,6 +517,28 @@ def fit_images(
         warnings=warnings,
         at_bound=params_at_bound(free, params),
     )
+
+
+def _warm_up_after_solve(shade: Callable, free: tuple[FreeParam, ...], z, fixed, gbuffer, pixels) -> threading.Thread:
+    """Compile what a fit runs after its solve (comparing the starts, the final parameters and image,
+    the Jacobian for the standard errors) in a background thread, while the solver compiles and runs:
+    XLA compiles with the GIL released, so on a first run the two compilations overlap. Each program
+    runs once on a start point, which has the shapes and types of the solver's result, so the later
+    calls find it compiled (the same function objects, the same argument types); the values are
+    discarded. An exception here only loses the overlap: the later calls compile for themselves."""
+
+    def run():
+        try:
+            _, _, finish, normalised = _compiled_helpers(shade, free)
+            normalised(z)
+            params, _ = finish(z, fixed, gbuffer)
+            jax.block_until_ready(_compiled_jacobian(shade, free)(_theta(params, free), params, gbuffer, pixels))
+        except Exception:  # noqa: BLE001 -- see the docstring
+            pass
+
+    t = threading.Thread(target=run, name="fitting-warm-up", daemon=True)
+    t.start()
+    return t
 
 
 def fit_warnings(converged: bool, steps: int, max_steps: int, starts: int, meaningless: list[str],

@@ -186,3 +186,55 @@ def test_a_second_process_fits_from_stored_programs_without_importing_the_solver
     assert off["hits"] == off["misses"] == 0 and off["fallbacks"] > 0
     assert off["params"] == first["params"] and off["target"] == first["target"]
     assert abs(first["params"]["m"] - 0.25) < 1e-3  # the fit itself worked
+
+
+_CLI_FIT = """
+    import json, os, re, sys
+    from jax import monitoring
+    from jaxrt import scene
+    from jaxrt.cli import main
+    events, hits = [], [0]
+    def on_compile(event, duration, **kw):  # every XLA compilation request, a persistent-cache hit or not
+        if event == "/jax/core/compile/backend_compile_duration":
+            events.append(kw.get("fun_name"))
+    monitoring.register_event_duration_secs_listener(on_compile)
+    monitoring.register_event_listener(lambda e, **k: hits.__setitem__(0, hits[0] + (e == "/jax/compilation_cache/cache_hits")))
+    os.chdir({work!r})
+    def run(argv):
+        n, h = len(events), hits[0]
+        assert main(argv) == 0
+        new = events[n:]
+        return dict(requests=len(new), compiled=len(new) - (hits[0] - h), trace=new.count("jit(trace)"))
+    out = {{}}
+    if not os.path.exists("target.exr"):  # the target: the scene's own render (no trace program in it)
+        text = re.sub(r"(?m)^width = \\\\d+", "width = 24", scene.find_scene("spheres").read_text())
+        open("scene.toml", "w").write(re.sub(r"(?m)^height = \\\\d+", "height = 16", text))
+        out["render"] = run(["render", "scene.toml", "-o", "target.exr", "--png", "target.png", "-q"])
+    fit = ["fit", "target.exr", "--scene", "scene.toml", "--model", "cook_torrance", "--grey", "--object",
+           "cook_torrance", "-q"]
+    out["fit"] = run(fit + ["--out", "a.json", "--fix", "eta=1.5", "--starts", "2", "--max-steps", "40"])
+    # other fixed and initial values, starts and step limit (below the compiled bound, 64)
+    out["again"] = run(fit + ["--out", "b.json", "--fix", "eta=1.8", "--init", "m=0.3", "--starts", "3",
+                              "--max-steps", "60"])
+    out["a"], out["b"] = (json.load(open(f))["params"] for f in ("a.json", "b.json"))
+    print(json.dumps(out))
+"""
+
+
+@pytest.mark.slow  # two fresh processes with fits: about a minute on 2 cores
+def test_cli_fit_compiles_its_trace_once_and_a_second_process_compiles_nothing(tmp_path):
+    """`jaxrt fit TARGET.exr ...`: preparing the fit compiles the scene's trace program once; a second
+    fit in the same process with other --fix and --init values, starts and step limit compiles
+    nothing; a second process with the same cache compiles nothing (every compilation request is a
+    persistent-cache hit) and fits the same parameters bit for bit."""
+    work = tmp_path / "work"
+    work.mkdir()
+    d = tmp_path / "cache"
+    first = _py(_CLI_FIT.format(work=str(work)), d)
+    assert first["render"]["trace"] == 0 and first["fit"]["trace"] == 1, first
+    assert first["again"]["requests"] == 0, first
+    second = _py(_CLI_FIT.format(work=str(work)), d)
+    assert "render" not in second and second["fit"]["requests"] > 0, second
+    assert second["fit"]["compiled"] == 0 and second["again"]["requests"] == 0, second
+    assert second["a"] == first["a"] and second["b"] == first["b"]
+    assert first["a"]["eta"] == np.float32(1.5) and first["b"]["eta"] == np.float32(1.8)  # the fixed values were used

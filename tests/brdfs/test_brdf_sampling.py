@@ -209,9 +209,13 @@ def test_chi2_sharp_lobes_at_the_bounds(name, kw, theta, phi, width):
     expect = f[okk] * (wi[k][okk, 2] / pdf[k][okk])[:, None]
     # At the roughness bound the lobe's D term turns one float32 ulp of cos θh into a relative change
     # of ~1e-4 (D ∝ 1/(cos²θh (α² − 1) + 1)², α ≈ 1e-3): sample() and eval() are separate programs
-    # whose dot products XLA may contract into fused multiply-adds differently, so 1e-3 here.
-    np.testing.assert_allclose(weight[k][okk], expect, rtol=1e-3, atol=1e-7)
-    np.testing.assert_allclose(pdf[k], np.asarray(m.pdf(p, wo32, jnp.asarray(wi[k]))), rtol=1e-3, atol=1e-30)
+    # whose dot products XLA may contract into fused multiply-adds differently (and differently on
+    # CPUs with other vector units: up to ~10 ulps of cos θh at pdf ~1e5 on an AVX-512 machine), so
+    # all within 5e-3 and all but 0.1 % within 1e-3.
+    pdf_eval = np.asarray(m.pdf(p, wo32, jnp.asarray(wi[k])))
+    for got, want, atol in ((weight[k][okk], expect, 1e-7), (pdf[k], pdf_eval, 1e-30)):
+        np.testing.assert_allclose(got, want, rtol=5e-3, atol=atol)
+        assert np.mean(np.abs(got - want) <= 1e-3 * np.abs(want) + atol) >= 0.999
     np.testing.assert_allclose(weight.mean(0), np.asarray(brdfs.albedo(m, p, wo32)), rtol=0.02, atol=2e-3)
 
 

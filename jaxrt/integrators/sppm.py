@@ -3,7 +3,8 @@ photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of p
 
 `integrator = "sppm"`. A render is a sequence of passes; each pass has two halves:
 
-* Camera pass: one jittered camera ray per pixel follows mirror (δ lobe, chosen with probability δ)
+* Camera pass: `[render] camera_samples` = k jittered camera rays per pixel (default 1) each
+  follow mirror (δ lobe, chosen with probability δ)
   and glass (reflection with probability R, transmission otherwise) bounces as the path tracer does
   and stops at the first non-delta surface: the pixel's *visible point* for this pass (position,
   shading frame, wo, material, throughput β and its vertex count j). Emission met along the way
@@ -37,8 +38,9 @@ photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of p
   Default f = DEFAULT_PHOTON_AIM = 0.5 where the scene has glass or mirror materials, 0 (no aiming,
   the same photons bit for bit) otherwise; environment photons are not aimed.
 
-Gathering uses a hash grid built with array operations: cell size 2·r_max (the largest current
-radius), each deposit's cell hashed into a table of 2^k buckets, the
+Gathering uses a hash grid built with array operations: cell size 2·r_c (r_c a quantile of the
+radii of the visible points that receive photons, larger radii clamped to it: `_radii`), each
+deposit's cell hashed into a table of 2^k buckets, the
 deposits sorted by (bucket, a random key), bucket starts and ends by `searchsorted`. A
 visible point reads the 8 cells its radius-r ball can touch and, of each bucket, the first
 `CELL_PHOTONS` deposits; a bucket with n > CELL_PHOTONS deposits has its read deposits weighted by
@@ -51,10 +53,16 @@ radius r this pass and Φ = Σ β·f(wo, wi)·Φ_p their reflected flux:
 N' = N + α·M, r'² = r²·(N + α·M)/(N + M), τ' = (τ + Φ)·r'²/r², α = `ALPHA` = 0.7.
 The pixel's radiance after P passes of N_p photons each is direct/P + τ/(P·N_p·π·r²).
 
-Defaults: photons per pass = the pixel count, within [2^12, 2^20]; initial radius = 2 · (scene
-bounding-box diagonal) / max(width, height), a couple of pixels' footprint when the scene fills the
-view. The number of passes is `[render] spp` (one camera sample per pixel per pass), so
-`jaxrt render --passes N` and `--spp N` are the same setting.
+Several visible points per pixel (k > 1): each is a chain of its own with its own N, r and τ
+(the statistics are per chain, S = H·W·k), all gathering the same pass's photons; the pixel's
+radiance is the mean of its chains'. A pass's photons then serve k times as many camera samples,
+which pays where the error is the camera side's (one jittered point per pixel on a sharp caustic)
+rather than the photons'.
+
+Defaults: photons per pass = the pixel count, within [2^12, 2^20]; initial radius RADIUS_PIXELS = 1
+pixel footprint at each chain's first visible point (`initial_radius`); `[render] radius` sets one
+radius for every pixel instead. The number of passes is `[render] spp`, so `jaxrt render --passes
+N` and `--spp N` are the same setting.
 
 Several devices (`pass_share`, run by `jaxrt._devices.sppm_program`): the visible points are
 computed on every device from the pass's keys, the photons are split (photon count per pass padded
@@ -93,6 +101,13 @@ CELL_PHOTONS = 32
 DEFAULT_PHOTONS = (1 << 12, 1 << 20)
 #: upper bound of `[render] photons`
 MAX_PHOTONS = 1 << 24
+#: the default initial radius, in pixel footprints at the visible point (see `initial_radius`)
+RADIUS_PIXELS = 1.0
+#: the grid's cell edge is 2x this quantile of the radii of the visible points that have received
+#: photons; the larger radii are clamped to it (see `_radii`)
+CELL_QUANTILE = 0.9
+#: upper bound of `[render] camera_samples` (visible points per pixel per pass)
+MAX_CAMERA_SAMPLES = 64
 #: the default `[render] photon_aim` of scenes with glass or mirror (δ > 0) materials (0 without them)
 DEFAULT_PHOTON_AIM = 0.5
 #: objects aimed at one by one up to this many (each photon tests every cone); more share one sphere
@@ -101,9 +116,11 @@ _sg = lax.stop_gradient
 
 
 class SPPMState(eqx.Module):
-    """Progressive statistics of every pixel (row-major, S = H·W), carried across passes.
+    """Progressive statistics of every visible-point chain, carried across passes: `samples` chains
+    per pixel (S = H·W·samples, ordered (row, column, sample) as `camera.generate_rays`).
 
-    n: (S,) accumulated photon count N; r2: (S,) squared radius r²; tau: (S, 3) accumulated flux τ;
+    n: (S,) accumulated photon count N; r2: (S,) squared radius r² (0 until the chain's first visible
+    point sets it from its pixel footprint, `initial_radius`); tau: (S, 3) accumulated flux τ;
     direct: (S, 3) Σ over passes of the directly estimated radiance; passes: () passes done."""
 
     n: Float[Array, " S"]
@@ -114,6 +131,7 @@ class SPPMState(eqx.Module):
     height: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
     photons: int = eqx.field(static=True)
+    samples: int = eqx.field(static=True, default=1)
 
     @property
     def image(self) -> Float[Array, "H W 3"]:
@@ -121,7 +139,8 @@ class SPPMState(eqx.Module):
         p = jnp.maximum(self.passes, 1).astype(jnp.float32)
         r2 = jnp.where(self.r2 > 0, self.r2, 1.0)
         indirect = jnp.where((self.r2 > 0)[:, None], self.tau / (p * self.photons * math.pi * r2)[:, None], 0.0)
-        img = (self.direct / p + indirect).reshape(self.height, self.width, 3)
+        # a pixel's chains are independent estimates of its radiance: their mean
+        img = (self.direct / p + indirect).reshape(self.height, self.width, self.samples, 3).mean(2)
         return jnp.where(jnp.isfinite(img), img, 0.0)
 
 
@@ -134,13 +153,24 @@ def photons_per_pass(scene) -> int:
     return int(min(max(scene.camera.num_pixels, lo), hi))
 
 
-def initial_radius(scene) -> Float[Array, ""]:
-    """Initial gather radius: `[render] radius`, else 2 · bounding-box diagonal / max(width, height)."""
-    r = getattr(scene.settings, "radius", 0.0)
-    if r:
-        return jnp.asarray(r, jnp.float32)
-    _, half_diag = _bounds(scene)
-    return 4.0 * half_diag / max(scene.camera.width, scene.camera.height)
+def initial_radius(scene) -> float:
+    """The initial gather radius of every pixel, `[render] radius`; 0 (the default) for a radius per
+    visible-point chain set at its first visible point: RADIUS_PIXELS pixel footprints there, the
+    footprint being the camera ray's path length to the point (through mirrors and glass) times the
+    angle a pixel subtends, 2·tan(vfov/2)/height (the width across the ray; Hachisuka & Jensen 2009
+    leave r0 to the user, pbrt-v4 takes one radius for all pixels, so a scene whose depth varies
+    gets too large a radius close to the camera or too small a one far away)."""
+    return float(getattr(scene.settings, "radius", 0.0))
+
+
+def pixel_angle(cam) -> Float[Array, ""]:
+    """The angle a pixel subtends at the image centre [rad]: 2·tan(vfov/2)/height."""
+    return 2.0 * jnp.tan(jnp.deg2rad(cam.vfov) * 0.5) / cam.height
+
+
+def camera_samples(scene) -> int:
+    """Visible points per pixel per pass (static): `[render] camera_samples`, default 1."""
+    return int(getattr(scene.settings, "camera_samples", 0) or 1)
 
 
 def check(scene) -> None:
@@ -151,6 +181,10 @@ def check(scene) -> None:
     r = getattr(scene.settings, "radius", 0.0)
     if not (isinstance(r, (int, float)) and math.isfinite(r) and r >= 0):
         raise InputError(f"{scene.source}: [render] radius = {r!r}: must be a positive finite length (0: default)")
+    k = getattr(scene.settings, "camera_samples", 0)
+    if not isinstance(k, int) or k < 0 or k > MAX_CAMERA_SAMPLES:
+        raise InputError(f"{scene.source}: [render] camera_samples = {k!r}: allowed 1..{MAX_CAMERA_SAMPLES} "
+                         "(0: default)")
     f = photon_aim(scene)
     if not (isinstance(f, (int, float)) and 0.0 <= f < 1.0):
         raise InputError(f"{scene.source}: [render] photon_aim = {f!r}: allowed 0 <= photon_aim < 1")
@@ -531,8 +565,11 @@ def trace_photons(scene, key, n: int, share: tuple | None = None) -> Deposits:
         return lax.cond(jnp.any(alive), work, idle, (o, d, alive, beta))
 
     _, (p, wi, pw, ok) = lax.scan(body, (o, d, alive, power), jnp.arange(D))
+    # the first hit never deposits (its light is the next-event estimate's): its slots are dropped,
+    # which keeps them out of the grid's sort
+    p, wi, pw, ok = p[1:], wi[1:], pw[1:], ok[1:]
     steps = p.shape[0]
-    bounce = jnp.broadcast_to(jnp.arange(steps, dtype=jnp.int32)[:, None], (steps, n))
+    bounce = jnp.broadcast_to(jnp.arange(1, steps + 1, dtype=jnp.int32)[:, None], (steps, n))
     return Deposits(p.reshape(-1, 3), wi.reshape(-1, 3), pw.reshape(-1, 3), bounce.reshape(-1), ok.reshape(-1))
 
 
@@ -651,28 +688,32 @@ def gather(scene, grid: Grid, vp: dict, r2: Float[Array, " S"]):
 
 # ---------------------------------------------------------------------------------------------- camera
 
-def visible_points(scene, key):
-    """One camera ray per pixel to its visible point; returns (vp dict, direct (S, 3), first hits)."""
+def visible_points(scene, key, samples: int = 1):
+    """`samples` jittered camera rays per pixel to their visible points, S = H·W·samples ordered
+    (row, column, sample); returns (vp dict, direct (S, 3), first hits). The vp dict's `foot` is
+    the pixel footprint at the visible point (path length times `pixel_angle`)."""
     st, cam, mats = scene.settings, _sg(scene.camera), _sg(scene.materials)
     geo = _sg(scene.geometry)
     scene = _sg(scene)
     D = st.max_depth
-    S = cam.num_pixels
+    S = cam.num_pixels * samples
     models = _models(mats)
     al = scene.area_lights
     has_tri = al is not None and al.count > 0
     env = getattr(scene, "environment", None)
     kcam, kpath, knee = jax.random.split(key, 3)
-    o, d = camera.generate_rays(cam, 1, jax.random.bits(kcam, (), jnp.uint32), True)
+    o, d = camera.generate_rays(cam, samples, jax.random.bits(kcam, (), jnp.uint32), True)
     d = normalize(d)
     s0 = geo.surface(jnp.zeros(S, jnp.int32), jnp.zeros(S), jnp.zeros(S))
     vp = dict(surface=s0, p=jnp.zeros((S, 3)), ng=jnp.zeros((S, 3)), wo=jnp.zeros((S, 3)).at[:, 2].set(1.0),
               frame=(jnp.zeros((S, 3)),) * 3, beta=jnp.zeros((S, 3)), depth=jnp.zeros(S, jnp.int32),
-              found=jnp.zeros(S, bool))
+              found=jnp.zeros(S, bool), foot=jnp.zeros(S))
     first = dict(prim=jnp.full(S, -1, jnp.int32), u=jnp.zeros(S), v=jnp.zeros(S), t=jnp.zeros(S), d=d)
     alive = jnp.ones(S, bool)
     beta = jnp.ones((S, 3))
     emitted = jnp.zeros((S, 3))
+    dist = jnp.zeros(S)  # path length from the camera, through the delta bounces
+    ang = pixel_angle(cam)
     for k in range(D + 1):  # static: D is small and the camera chain usually ends at the first hit
         u = jax.random.uniform(jax.random.fold_in(kpath, k), (S, 3))
         hit = intersect_active(geo, o, d, alive)
@@ -680,6 +721,7 @@ def visible_points(scene, key):
         found = prim >= 0
         if k == 0:
             first = dict(prim=prim, u=hit.u, v=hit.v, t=jnp.where(found, hit.t, 0.0), d=d)
+        dist = dist + jnp.where(found, hit.t, 0.0)
         s = geo.surface(prim, hit.u, hit.v)
         s = eqx.tree_at(lambda x: x.material, s, jnp.where(found, s.material, 0))
         if env is not None:
@@ -694,7 +736,7 @@ def visible_points(scene, key):
         ng, ns, _ = oriented(s, d)
         frame = local_frame(ns, s.tangent)
         new = dict(surface=s, p=s.p, ng=ng, wo=to_local(-d, frame), frame=frame, beta=beta,
-                   depth=jnp.full(S, k + 1, jnp.int32), found=here)
+                   depth=jnp.full(S, k + 1, jnp.int32), found=here, foot=dist * ang)
         vp = jax.tree.map(lambda a, b: jnp.where(here.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), new, vp)
         alive = found & is_delta & ok
         beta = jnp.where(alive[:, None], beta * fac, 0.0)
@@ -771,12 +813,14 @@ def _nee(scene, vp, models, key):
 # ---------------------------------------------------------------------------------------------- passes
 
 def start(scene) -> SPPMState:
-    """The statistics before the first pass: N = 0, r = the initial radius, τ = 0."""
+    """The statistics before the first pass: N = 0, r = `[render] radius` (0: set at each chain's
+    first visible point, see `initial_radius`), τ = 0."""
     cam = scene.camera
-    S = cam.num_pixels
+    k = camera_samples(scene)
+    S = cam.num_pixels * k
     r0 = initial_radius(scene)
     return SPPMState(jnp.zeros(S), jnp.full(S, r0 * r0, jnp.float32), jnp.zeros((S, 3)), jnp.zeros((S, 3)),
-                     jnp.asarray(0, jnp.int32), cam.height, cam.width, photons_per_pass(scene))
+                     jnp.asarray(0, jnp.int32), cam.height, cam.width, photons_per_pass(scene), k)
 
 
 def pass_keys(scene, passes) -> Array:
@@ -786,10 +830,30 @@ def pass_keys(scene, passes) -> Array:
     return jax.random.split(key, 3)
 
 
-def _cell(state: SPPMState, vp) -> Array:
-    # the grid's cell edge: 2·r_max, the largest current radius of a pixel with a visible point
-    r_max = jnp.sqrt(jnp.max(jnp.where(vp["found"], state.r2, 0.0)))
-    return jnp.maximum(2.0 * r_max, 1e-6)
+def _radii(state: SPPMState, vp):
+    """The radii this pass gathers with and the grid's cell edge: (state, cell).
+
+    A chain without a radius yet (r² = 0) takes RADIUS_PIXELS pixel footprints at its visible point.
+    The cell edge is 2·r_c, r_c the CELL_QUANTILE quantile of the radii of this pass's visible points
+    that have received photons before (of all of them before any has): points that never receive
+    any (in shadow, facing away from every light) keep their initial radius and would otherwise
+    keep the cells wide, where a bright caustic's cells then hold far more deposits than the
+    CELL_PHOTONS read of each. A radius above r_c is clamped to it with N and τ scaled by the area
+    ratio, the uniform-density step of the progressive update itself (Hachisuka & Jensen 2009: the
+    density N/(πr²) and the radiance τ/(πr²) stay the same), so the estimate stays consistent."""
+    found = vp["found"]
+    r2 = jnp.where((state.r2 > 0) | ~found, state.r2, jnp.square(RADIUS_PIXELS * vp["foot"]))
+    rec = found & (state.n > 0)
+    rec = jnp.where(jnp.any(rec), rec, found)
+    cnt = jnp.sum(rec)
+    srt = jnp.sort(jnp.where(rec, r2, jnp.inf))
+    idx = jnp.clip(jnp.ceil(CELL_QUANTILE * cnt).astype(jnp.int32) - 1, 0, r2.shape[0] - 1)
+    rc2 = jnp.where(cnt > 0, srt[idx], 0.0)
+    clamp = found & (r2 > rc2) & (rc2 > 0)
+    ratio = jnp.where(clamp, rc2 / jnp.where(clamp, r2, 1.0), 1.0)
+    state = SPPMState(state.n * ratio, r2 * ratio, state.tau * ratio[:, None], state.direct, state.passes,
+                      state.height, state.width, state.photons, state.samples)
+    return state, jnp.maximum(2.0 * jnp.sqrt(rc2), 1e-6)
 
 
 def _update(state: SPPMState, m, phi, direct) -> SPPMState:
@@ -799,14 +863,15 @@ def _update(state: SPPMState, m, phi, direct) -> SPPMState:
     r2_new = state.r2 * ratio
     tau = (state.tau + phi) * ratio[:, None]
     return SPPMState(n_new, r2_new, tau, state.direct + direct, state.passes + 1, state.height, state.width,
-                     state.photons)
+                     state.photons, state.samples)
 
 
 def _pass(scene, state: SPPMState, with_first: bool = False):
     kvp, kph, kgrid = pass_keys(scene, state.passes)
-    vp, direct, first = visible_points(scene, kvp)
+    vp, direct, first = visible_points(scene, kvp, state.samples)
+    state, cell = _radii(state, vp)
     dep = trace_photons(scene, kph, state.photons)
-    grid = build_grid(dep, _cell(state, vp), kgrid)
+    grid = build_grid(dep, cell, kgrid)
     m, phi = gather(scene, grid, vp, state.r2)
     new = _update(state, m, phi, direct)
     return (new, first) if with_first else new
@@ -825,10 +890,11 @@ def pass_share(scene, state: SPPMState, axis: str, count: int) -> SPPMState:
     every deposit within a radius is read on either side. A fuller bucket is subsampled on each
     device among that device's deposits, which is another unbiased estimate of the same sum."""
     kvp, kph, kgrid = pass_keys(scene, state.passes)
-    vp, direct, _ = visible_points(scene, kvp)
+    vp, direct, _ = visible_points(scene, kvp, state.samples)
+    state, cell = _radii(state, vp)
     d = lax.axis_index(axis)
     dep = trace_photons(scene, kph, state.photons, share=(d, count))
-    grid = build_grid(dep, _cell(state, vp), jax.random.fold_in(kgrid, d))
+    grid = build_grid(dep, cell, jax.random.fold_in(kgrid, d))
     m, phi = lax.psum(gather(scene, grid, vp, state.r2), axis)
     return _update(state, m, phi, direct)
 
@@ -870,4 +936,6 @@ def render(scene, *, aovs: bool = False, window: camera.Window | None = None):
     if not aovs:
         return img
     cam = scene.camera
+    # each pixel's first camera sample (the samples of a pixel are consecutive)
+    first = {k: v[:: state.samples] for k, v in first.items()}
     return img, build_aovs(scene, *(first[k] for k in ("prim", "u", "v", "t", "d")), shape=(cam.height, cam.width))

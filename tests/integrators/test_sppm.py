@@ -121,7 +121,8 @@ def test_environment_photons_carry_its_power_into_the_bounding_sphere():
 
 @pytest.mark.parametrize("key,value", [("photons", -5), ("photons", 0), ("photons", 1.5), ("photons", 1 << 30),
                                        ("radius", -1.0), ("radius", 0.0), ("radius", "big"),
-                                       ("radius", float("inf"))])
+                                       ("radius", float("inf")), ("camera_samples", 0),
+                                       ("camera_samples", 1000), ("camera_samples", 2.5)])
 def test_bad_settings_are_one_line_errors(key, value):
     with pytest.raises(InputError) as e:
         R.load_scene(diffuse_scene(**{key: value}))
@@ -168,8 +169,70 @@ def test_settings_reach_the_integrator():
     assert float(sppm.initial_radius(scene)) == 0.125
     default = R.load_scene(diffuse_scene(width=40, height=30))
     assert sppm.photons_per_pass(default) == sppm.DEFAULT_PHOTONS[0]
-    # the scene's bounding box: x, z in [-2, 2] (floor), y in [0, 3] (wall): diagonal sqrt(41)
-    np.testing.assert_allclose(float(sppm.initial_radius(default)), 2 * math.sqrt(41.0) / 40, rtol=1e-5)
+    # 0: a radius per pixel, from its footprint (test_default_initial_radius_is_a_pixel_footprint)
+    assert sppm.initial_radius(default) == 0.0
+    assert sppm.camera_samples(default) == 1
+    assert sppm.camera_samples(R.load_scene(diffuse_scene(camera_samples=3))) == 3
+
+
+# ---------------------------------------------------------------------------------------------- radii
+
+def _wall_scene(mirror: bool, **render):
+    """A camera at (0, 1, 3) looking down −z at a wall at z = −2 (5 units away): a Lambert wall, or
+    a perfect mirror (δ = 1) that sends the camera rays back to a second wall at z = 5 (5 + 7 = 12
+    units of path). The light is behind the front wall: no photon reaches a visible point, so the
+    radii stay the initial ones."""
+    front = {"name": "front", "primitive": "plane", "size": [40.0, 40.0], "rotate": [90.0, 0.0, 0.0],
+             "translate": [0.0, 1.0, -2.0], "material": "mirror" if mirror else "white"}
+    back = {"name": "back", "primitive": "plane", "size": [40.0, 40.0], "rotate": [-90.0, 0.0, 0.0],
+            "translate": [0.0, 1.0, 5.0], "material": "white"}
+    return {
+        "camera": {"position": [0.0, 1.0, 3.0], "look_at": [0.0, 1.0, -2.0], "vfov": 30.0, "width": 16, "height": 12},
+        "lights": [{"position": [0.0, 1.0, -10.0], "intensity": 1.0}],  # behind the front wall
+        "materials": {"white": {"model": "lambert", "rho_d": 0.5},
+                      "mirror": {"model": "lambert", "rho_d": 0.0, "delta": 1.0}},
+        "objects": [front, back] if mirror else [front],
+        "render": {"integrator": "sppm", "max_depth": 3, **render},
+    }
+
+
+@pytest.mark.parametrize("mirror,length", [(False, 5.0), (True, 12.0)])
+def test_default_initial_radius_is_a_pixel_footprint(mirror, length):
+    """The default initial radius is RADIUS_PIXELS pixel footprints at the visible point: the camera
+    path's length (through the mirror) times 2·tan(vfov/2)/height. The four centre pixels' rays are
+    within 1.1 pixels of the axis, so their path is longer than `length` by under 1e-3 relative."""
+    scene = R.load_scene(_wall_scene(mirror, camera_samples=2))
+    st = sppm.accumulate(scene)
+    r = np.sqrt(np.asarray(st.r2)).reshape(12, 16, 2)
+    expect = sppm.RADIUS_PIXELS * length * 2 * math.tan(math.radians(15.0)) / 12
+    np.testing.assert_allclose(r[5:7, 7:9], expect, rtol=2e-3)
+    # a set `[render] radius` is every pixel's
+    fixed = sppm.accumulate(R.load_scene(_wall_scene(mirror, radius=0.01)))
+    np.testing.assert_allclose(np.sqrt(np.asarray(fixed.r2)), 0.01, rtol=1e-6)
+
+
+def test_clamping_radii_to_the_cell_keeps_the_image():
+    """`_radii` clamps radii above the cell's quantile with N and τ scaled by the area ratio: the
+    radiance τ/(πr²) of every chain, so the image, stays the same, every found point's radius is at
+    most half the cell edge (what the 2x2x2 cells read need), and the cell is 2x the CELL_QUANTILE
+    quantile of the receiving points' radii (numpy's 'inverted_cdf' quantile)."""
+    rng = np.random.default_rng(3)
+    S = 400
+    found = rng.uniform(size=S) < 0.9
+    n = np.where(rng.uniform(size=S) < 0.7, rng.uniform(1.0, 50.0, S), 0.0).astype(np.float32)
+    r2 = rng.uniform(0.01, 0.2, S).astype(np.float32) ** 2
+    tau = (rng.uniform(size=(S, 3)) * (n > 0)[:, None]).astype(np.float32)
+    st = sppm.SPPMState(jnp.asarray(n), jnp.asarray(r2), jnp.asarray(tau), jnp.zeros((S, 3)),
+                        jnp.asarray(3, jnp.int32), 20, 20, 1000)
+    vp = {"found": jnp.asarray(found), "foot": jnp.full(S, 0.05)}
+    new, cell = sppm._radii(st, vp)
+    np.testing.assert_allclose(np.asarray(new.image), np.asarray(st.image), rtol=1e-5)
+    rec = found & (n > 0)
+    rc = math.sqrt(np.quantile(r2[rec], sppm.CELL_QUANTILE, method="inverted_cdf"))
+    np.testing.assert_allclose(float(cell), 2 * rc, rtol=1e-6)
+    assert np.all(np.sqrt(np.asarray(new.r2))[found] <= float(cell) / 2 * (1 + 1e-6))
+    # N scales with the area too: the density N/(πr²) is kept
+    np.testing.assert_allclose(np.asarray(new.n) / np.asarray(new.r2), n / r2, rtol=1e-5)
 
 
 # ---------------------------------------------------------------------------------------------- hash grid

@@ -6,13 +6,18 @@ and compilation included: the reference stops after 100 s of rendering, the tabl
 integrator plus 3 x 4 s for the bias check); the CPU line (2 cores) about 3 minutes plus compilation,
 with the reference file made on the GPU:
 
-    # GPU: the reference, then the equal-time table and the bias check
-    python benchmarks/sppm.py --make-reference 4194304 --max-seconds 100 --out caustic_ref.npz
+    # GPU: the reference (the last 100 s only around the caustic), then the equal-time table and the bias check
+    python benchmarks/sppm.py --make-reference 1073741824 --max-seconds 100 --chunk-spp 4096 --crop 3 \
+        --crop-after 32 --out caustic_ref.npz
     python benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 --reference caustic_ref.npz
     # the same without photon aiming (the scene's default aims half the photons at the glass)
     python benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 --reference caustic_ref.npz --photon-aim 0 --bias-seeds 0
     # CPU, with the GPU's caustic_ref.npz (the scene and settings are checked on load)
     python benchmarks/sppm.py --equal-time 5,10,20,40 --reference caustic_ref.npz --bias-seeds 0
+    # CPU alone: a 64x48 reference, 3,072 spp of full frames then only the caustic's window, 30 minutes
+    python benchmarks/sppm.py --size 64 --make-reference 1073741824 --chunk-spp 256 --crop 3 --crop-after 12 \
+        --max-seconds 1800 --out caustic_ref64.npz
+    python benchmarks/sppm.py --size 64 --equal-time 5,10,20 --reference caustic_ref64.npz --bias-seeds 0
     # throughput on the shipped scene; the README's picture
     python benchmarks/sppm.py                                   # 128x96, 65536 photons, 8 passes
     python benchmarks/sppm.py --picture docs/caustics.png --seconds 40 --size 192
@@ -36,7 +41,11 @@ per-pixel standard error (the spread of the chunk means / sqrt(chunks)), the mea
 odd chunks (a second estimate of its error, `_split_noise`), a direct-light-only image
 (max_depth 1, chunks of the same size, 1/16 as many, 2..64), the fraction of each pixel's first hits on the floor,
 and the settings (the scene as JSON, spp, chunks, device, time, versions). With --max-seconds it
-stops after that much rendering and saves the chunks done (the file records their number).
+stops after that much rendering and saves the chunks done (the file records their number); so does
+Ctrl-C. With --crop PIXELS, after --crop-after full chunks only the bounding box of those chunks'
+caustic region grown by PIXELS is rendered (`camera.Window`, the same paths as the full frame's
+pixels there): all the samples go where the error is measured, 25x more a second at 64x48. The
+file records the window; the region is cut to it, and the pixels outside hold the full chunks alone.
 
 The caustic region (`caustic_region`, computed from the reference when it is loaded): pixels whose
 first hit is always the floor and whose light after at least one scattering (the reference minus its
@@ -48,7 +57,8 @@ reference has converged (its relative standard error there a few per cent), whic
 
 --equal-time T1,T2,... --reference FILE: checks that FILE was made for this very scene (resolution,
 max_depth, every scene value; one line and exit status 2 otherwise), then runs SPPM (--photons per
-pass, initial radius --radius, --photon-aim F: the fraction of photons aimed at the glass, default
+pass, --camera-samples visible points per pixel per pass, initial radius --radius (default: the
+integrator's, one pixel footprint), --photon-aim F: the fraction of photons aimed at the glass, default
 the scene's 0.5; aiming changes the estimator, not the expected image, so the reference's check
 ignores it) and the path tracer (--path-spp samples per pass) each once for
 max(T) seconds of rendering after compilation (excluded), taking their images when the time passed

@@ -688,10 +688,33 @@ def gather(scene, grid: Grid, vp: dict, r2: Float[Array, " S"]):
 
 # ---------------------------------------------------------------------------------------------- camera
 
-def visible_points(scene, key, samples: int = 1):
-    """`samples` jittered camera rays per pixel to their visible points, S = H·W·samples ordered
-    (row, column, sample); returns (vp dict, direct (S, 3), first hits). The vp dict's `foot` is
-    the pixel footprint at the visible point (path length times `pixel_angle`)."""
+def subpixel_positions(scene, pass_index, samples: int) -> Float[Array, "H W k 2"]:
+    """The positions in their pixels of pass `pass_index`'s `samples` camera samples, (H, W, k, 2):
+    points n = pass_index·k + s of the R2 sequence (frac(n·(1/g, 1/g²)), g the plastic number
+    1.3247..., M. Roberts 2018, a rank-1 lattice-like sequence whose successive points fill the
+    square evenly), shifted per pixel by a uniform offset fixed for the whole render (a
+    Cranley-Patterson rotation; R. Cranley and T. Patterson 1976). Every position is uniform in its
+    pixel, and a pixel's positions over the passes cover it evenly instead of clumping as
+    independent jitter does: the mean over passes of the visible points' estimates (each a density
+    estimate at one position in the pixel) then converges faster than P^-1/2 wherever the light
+    varies smoothly within the pixel, as a sharp caustic's smoothed by the gather radius does."""
+    cam = scene.camera
+    g = 1.32471795724474602596
+    n = jnp.asarray(pass_index).astype(jnp.uint32) * jnp.uint32(samples) + jnp.arange(samples, dtype=jnp.uint32)
+    # frac(n·a) in 32-bit fixed point: n·round(a·2^32) wraps modulo 2^32 exactly (float32 would
+    # lose the fraction once n·a is large)
+    a = jnp.array([round((1.0 / g) * 2**32), round((1.0 / (g * g)) * 2**32)], jnp.uint32)
+    seq = (n[:, None] * a[None, :] >> jnp.uint32(8)).astype(jnp.float32) * 2.0**-24  # (k, 2)
+    key = jax.random.fold_in(jax.random.key(jnp.asarray(scene.settings.seed, jnp.uint32)), jnp.uint32(0x5BD1E995))
+    shift = jax.random.uniform(key, (cam.height, cam.width, 1, 2))
+    return jnp.minimum(jnp.mod(shift + seq[None, None], 1.0), 1.0 - 2.0 ** -24)
+
+
+def visible_points(scene, key, samples: int = 1, pass_index=None):
+    """`samples` camera rays per pixel to their visible points, S = H·W·samples ordered (row,
+    column, sample); returns (vp dict, direct (S, 3), first hits). With `pass_index` the rays' positions
+    in their pixels are `subpixel_positions`', else independent uniform jitter. The vp dict's `foot`
+    is the pixel footprint at the visible point (path length times `pixel_angle`)."""
     st, cam, mats = scene.settings, _sg(scene.camera), _sg(scene.materials)
     geo = _sg(scene.geometry)
     scene = _sg(scene)
@@ -702,7 +725,8 @@ def visible_points(scene, key, samples: int = 1):
     has_tri = al is not None and al.count > 0
     env = getattr(scene, "environment", None)
     kcam, kpath, knee = jax.random.split(key, 3)
-    o, d = camera.generate_rays(cam, samples, jax.random.bits(kcam, (), jnp.uint32), True)
+    sub = None if pass_index is None else subpixel_positions(scene, pass_index, samples)
+    o, d = camera.generate_rays(cam, samples, jax.random.bits(kcam, (), jnp.uint32), True, subpixel=sub)
     d = normalize(d)
     s0 = geo.surface(jnp.zeros(S, jnp.int32), jnp.zeros(S), jnp.zeros(S))
     vp = dict(surface=s0, p=jnp.zeros((S, 3)), ng=jnp.zeros((S, 3)), wo=jnp.zeros((S, 3)).at[:, 2].set(1.0),
@@ -868,7 +892,7 @@ def _update(state: SPPMState, m, phi, direct) -> SPPMState:
 
 def _pass(scene, state: SPPMState, with_first: bool = False):
     kvp, kph, kgrid = pass_keys(scene, state.passes)
-    vp, direct, first = visible_points(scene, kvp, state.samples)
+    vp, direct, first = visible_points(scene, kvp, state.samples, state.passes)
     state, cell = _radii(state, vp)
     dep = trace_photons(scene, kph, state.photons)
     grid = build_grid(dep, cell, kgrid)
@@ -890,7 +914,7 @@ def pass_share(scene, state: SPPMState, axis: str, count: int) -> SPPMState:
     every deposit within a radius is read on either side. A fuller bucket is subsampled on each
     device among that device's deposits, which is another unbiased estimate of the same sum."""
     kvp, kph, kgrid = pass_keys(scene, state.passes)
-    vp, direct, _ = visible_points(scene, kvp, state.samples)
+    vp, direct, _ = visible_points(scene, kvp, state.samples, state.passes)
     state, cell = _radii(state, vp)
     d = lax.axis_index(axis)
     dep = trace_photons(scene, kph, state.photons, share=(d, count))
@@ -906,7 +930,7 @@ step = jax.jit(_pass)
 
 def _first_aovs(scene):
     key = jax.random.fold_in(jax.random.key(jnp.asarray(scene.settings.seed, jnp.uint32)), jnp.uint32(0))
-    _, _, first = visible_points(scene, jax.random.split(key, 3)[0])
+    _, _, first = visible_points(scene, jax.random.split(key, 3)[0], 1, 0)
     cam = scene.camera
     return build_aovs(scene, *(first[k] for k in ("prim", "u", "v", "t", "d")), shape=(cam.height, cam.width))
 

@@ -235,6 +235,31 @@ def test_clamping_radii_to_the_cell_keeps_the_image():
     np.testing.assert_allclose(np.asarray(new.n) / np.asarray(new.r2), n / r2, rtol=1e-5)
 
 
+def test_subpixel_positions_cover_each_pixel_evenly():
+    """The camera samples' positions in a pixel over 256 passes (`subpixel_positions`): every one
+    of the pixel's 4x4 sub-squares holds 16 ± 4 of them (independent uniform jitter: a standard
+    deviation of 3.9 a square, all 16 within ±4 with probability ~1 %), pass 0's positions over
+    the pixels are uniform (the per-pixel shift; mean 1/2 within 4 standard errors), k samples a
+    pass are the sequence's next k points, and `subpixel` positions of 1/2 are the pixel centres."""
+    from jaxrt import camera
+
+    scene = R.load_scene(diffuse_scene(width=20, height=15))
+    pos = np.stack([np.asarray(sppm.subpixel_positions(scene, p, 1))[:, :, 0] for p in range(256)])  # (P, H, W, 2)
+    assert pos.min() >= 0.0 and pos.max() < 1.0
+    for y, x in ((0, 0), (7, 11), (14, 19)):
+        cells = np.floor(pos[:, y, x] * 4).astype(int)
+        counts = np.bincount(cells[:, 0] * 4 + cells[:, 1], minlength=16)
+        assert np.all(np.abs(counts - 16) <= 4), counts
+    first = pos[0].reshape(-1, 2)
+    assert np.all(np.abs(first.mean(0) - 0.5) < 4 * math.sqrt(1 / 12 / len(first)))
+    four = np.asarray(sppm.subpixel_positions(scene, 3, 4))  # passes of 4 samples: points 12..15
+    np.testing.assert_allclose(four[:, :, 1], np.asarray(sppm.subpixel_positions(scene, 13, 1))[:, :, 0], atol=1e-6)
+    cam = scene.camera
+    o, d = camera.generate_rays(cam, 1, 5, True, subpixel=jnp.full((cam.height, cam.width, 1, 2), 0.5))
+    o0, d0 = camera.generate_rays(cam, 1, 5, False)
+    np.testing.assert_allclose(np.asarray(d), np.asarray(d0), atol=1e-6)
+
+
 # ---------------------------------------------------------------------------------------------- hash grid
 
 def test_gather_finds_every_photon_in_radius():

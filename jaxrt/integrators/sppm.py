@@ -38,9 +38,11 @@ photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of p
   Default f = DEFAULT_PHOTON_AIM = 0.5 where the scene has glass or mirror materials, 0 (no aiming,
   the same photons bit for bit) otherwise; environment photons are not aimed.
 
-Gathering uses a hash grid built with array operations: cell size 2·r_c (r_c a quantile of the
-radii of the visible points that receive photons, larger radii clamped to it: `_radii`), each
-deposit's cell hashed into a table of 2^k buckets, the
+Gathering uses a hash grid built with array operations, of GRID_LEVELS levels of cells (edges
+c·2^l, c twice a low quantile of the radii of the visible points that receive photons, radii above
+a high quantile clamped to it: `_radii`; every deposit is in every level and a visible point reads
+the finest level whose cells are at least 2r wide), each deposit's cell hashed into a table of 2^k
+buckets, the
 deposits sorted by (bucket, a random key), bucket starts and ends by `searchsorted`. A
 visible point reads the 8 cells its radius-r ball can touch and, of each bucket, the first
 `CELL_PHOTONS` deposits; a bucket with n > CELL_PHOTONS deposits has its read deposits weighted by
@@ -108,6 +110,10 @@ RADIUS_PIXELS = 1.0
 CELL_QUANTILE = 0.9
 #: upper bound of `[render] camera_samples` (visible points per pixel per pass)
 MAX_CAMERA_SAMPLES = 64
+#: levels of the hash grid (cell edges c·2^l, c from the FINE_QUANTILE of the radii; `build_grid`)
+GRID_LEVELS = 4
+#: the finest cells are 2x this quantile of the radii of the visible points that receive photons
+FINE_QUANTILE = 0.1
 #: the default `[render] photon_aim` of scenes with glass or mirror (δ > 0) materials (0 without them)
 DEFAULT_PHOTON_AIM = 0.5
 #: objects aimed at one by one up to this many (each photon tests every cone); more share one sphere
@@ -595,19 +601,20 @@ def _hash(c, size: int):
     cell's coordinates land in unrelated buckets (a masked XOR of coordinate multiples, Teschner et
     al. 2003's hash for prime table sizes, maps (i, j, k) and (i, -j, -k) together for many cells)."""
     u = (c + _CELL_RANGE).astype(jnp.uint32)
-    h = _fmix(u[..., 2] + jnp.uint32(0x9E3779B9))
-    h = _fmix(h ^ u[..., 1])
-    h = _fmix(h ^ u[..., 0])
+    h = _fmix(u[..., -1] + jnp.uint32(0x9E3779B9))
+    for i in reversed(range(c.shape[-1] - 1)):  # (x, y, z, level): the level first, then z, y, x
+        h = _fmix(h ^ u[..., i])
     return (h & jnp.uint32(size - 1)).astype(jnp.int32)
 
 
 class Grid(eqx.Module):
-    """The valid deposits sorted by hash bucket (random order within a bucket): bucket (N,) sorted
-    (`size` for invalid deposits, last), and each sorted entry's cell, position, wi, power and
-    scattering count; the cell edge () and the table size (static)."""
+    """The valid deposits at every level, sorted by hash bucket (random order within a bucket):
+    bucket (N,) sorted (`size` for invalid deposits, last), and each sorted entry's cell (x, y, z,
+    level), position, wi, power and scattering count; the finest level's cell edge () and the table
+    size (static). N = GRID_LEVELS x the deposits."""
 
     bucket: Int[Array, " N"]
-    cells: Int[Array, "N 3"]
+    cells: Int[Array, "N 4"]
     p: Float[Array, "N 3"]
     wi: Float[Array, "N 3"]
     power: Float[Array, "N 3"]
@@ -617,15 +624,24 @@ class Grid(eqx.Module):
 
 
 def build_grid(dep: Deposits, cell, key) -> Grid:
-    """The hash grid of the valid deposits with cells of edge `cell`: one sort by (bucket, a random
-    32-bit key), so that a bucket's first entries are a uniform random subset of it."""
-    N = dep.p.shape[0]
+    """The hash grid of the valid deposits, every deposit in each of the GRID_LEVELS levels of cells
+    of edge cell·2^l: one sort by (bucket, a random 32-bit key), so that a bucket's first entries
+    are a uniform random subset of it. A visible point reads the finest level whose cells are at
+    least twice its radius (`_candidates`): where the radii span a wide range (a focused caustic's
+    shrink fast, dim surfaces' slowly) the small ones read small cells, whose CELL_PHOTONS first
+    entries are mostly within their radius, instead of a few among a large cell's many."""
+    n, L = dep.p.shape[0], GRID_LEVELS
+    N = n * L
     size = 1 << max(int(2 * N - 1).bit_length(), 4)
-    cells = _cells(dep.p, cell)
-    b = jnp.where(dep.valid, _hash(cells, size), size)
+    src = jnp.tile(jnp.arange(n, dtype=jnp.int32), L)
+    level = jnp.repeat(jnp.arange(L, dtype=jnp.int32), n)
+    edge = cell * jnp.exp2(level.astype(jnp.float32))  # exact: a power of two times the cell
+    cells = jnp.concatenate([_cells(dep.p[src], edge[:, None]), level[:, None]], axis=1)
+    b = jnp.where(dep.valid[src], _hash(cells, size), size)
     rand = jax.random.bits(key, (N,), jnp.uint32)
     b, _, order = lax.sort((b, rand, jnp.arange(N, dtype=jnp.int32)), num_keys=2)
-    return Grid(b, cells[order], dep.p[order], dep.wi[order], dep.power[order], dep.bounce[order], cell, size)
+    k = src[order]
+    return Grid(b, cells[order], dep.p[k], dep.wi[k], dep.power[k], dep.bounce[k], cell, size)
 
 
 def _candidates(grid: Grid, p, r2):
@@ -633,11 +649,17 @@ def _candidates(grid: Grid, p, r2):
     in its cell and within radius r, and the bucket subsampling weight n / K of each cell (S, 8)."""
     K = CELL_PHOTONS
     N = grid.bucket.shape[0]
-    x = p / grid.cell
+    # the finest level l with cell·2^l >= 2r (the coarsest for larger radii, which `_radii` clamps)
+    ratio = 2.0 * jnp.sqrt(r2) / grid.cell
+    level = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(ratio, 1e-30))), 0, GRID_LEVELS - 1)
+    edge = grid.cell * jnp.exp2(level)
+    x = p / edge[:, None]
     base = jnp.floor(x)
     lo = base - jnp.where(x - base < 0.5, 1.0, 0.0)  # the 2x2x2 cells the ball of radius cell/2 touches
     offs = jnp.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], jnp.float32)
     cells = jnp.clip(lo[:, None, :] + offs[None], -_CELL_RANGE, _CELL_RANGE).astype(jnp.int32)  # (S, 8, 3)
+    cells = jnp.concatenate([cells, jnp.broadcast_to(level.astype(jnp.int32)[:, None, None], cells.shape[:2] + (1,))],
+                            axis=-1)  # (S, 8, 4)
     hq = _hash(cells, grid.size)
     start = jnp.searchsorted(grid.bucket, hq, side="left")
     end = jnp.searchsorted(grid.bucket, hq, side="right")
@@ -871,13 +893,19 @@ def _radii(state: SPPMState, vp):
     rec = jnp.where(jnp.any(rec), rec, found)
     cnt = jnp.sum(rec)
     srt = jnp.sort(jnp.where(rec, r2, jnp.inf))
-    idx = jnp.clip(jnp.ceil(CELL_QUANTILE * cnt).astype(jnp.int32) - 1, 0, r2.shape[0] - 1)
-    rc2 = jnp.where(cnt > 0, srt[idx], 0.0)
+
+    def quantile(q):
+        return jnp.where(cnt > 0, srt[jnp.clip(jnp.ceil(q * cnt).astype(jnp.int32) - 1, 0, r2.shape[0] - 1)], 0.0)
+
+    rc2 = quantile(CELL_QUANTILE)
     clamp = found & (r2 > rc2) & (rc2 > 0)
     ratio = jnp.where(clamp, rc2 / jnp.where(clamp, r2, 1.0), 1.0)
     state = SPPMState(state.n * ratio, r2 * ratio, state.tau * ratio[:, None], state.direct, state.passes,
                       state.height, state.width, state.photons, state.samples)
-    return state, jnp.maximum(2.0 * jnp.sqrt(rc2), 1e-6)
+    # the finest level's cells: 2x the FINE_QUANTILE radius, unless the coarsest would then be
+    # smaller than 2·r_c
+    fine = jnp.maximum(jnp.sqrt(quantile(FINE_QUANTILE)), jnp.sqrt(rc2) * 2.0 ** (1 - GRID_LEVELS))
+    return state, jnp.maximum(2.0 * fine, 1e-6)
 
 
 def _update(state: SPPMState, m, phi, direct) -> SPPMState:

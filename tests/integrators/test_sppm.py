@@ -214,8 +214,9 @@ def test_default_initial_radius_is_a_pixel_footprint(mirror, length):
 def test_clamping_radii_to_the_cell_keeps_the_image():
     """`_radii` clamps radii above the cell's quantile with N and τ scaled by the area ratio: the
     radiance τ/(πr²) of every chain, so the image, stays the same, every found point's radius is at
-    most half the cell edge (what the 2x2x2 cells read need), and the cell is 2x the CELL_QUANTILE
-    quantile of the receiving points' radii (numpy's 'inverted_cdf' quantile)."""
+    most the CELL_QUANTILE quantile r_c of the receiving points' radii and half the coarsest level's
+    cell edge (what the 2x2x2 cells read need), and the finest cells are 2x the FINE_QUANTILE
+    quantile (numpy's 'inverted_cdf' quantiles) or 2·r_c / 2^(levels − 1) if larger."""
     rng = np.random.default_rng(3)
     S = 400
     found = rng.uniform(size=S) < 0.9
@@ -229,8 +230,10 @@ def test_clamping_radii_to_the_cell_keeps_the_image():
     np.testing.assert_allclose(np.asarray(new.image), np.asarray(st.image), rtol=1e-5)
     rec = found & (n > 0)
     rc = math.sqrt(np.quantile(r2[rec], sppm.CELL_QUANTILE, method="inverted_cdf"))
-    np.testing.assert_allclose(float(cell), 2 * rc, rtol=1e-6)
-    assert np.all(np.sqrt(np.asarray(new.r2))[found] <= float(cell) / 2 * (1 + 1e-6))
+    r_fine = math.sqrt(np.quantile(r2[rec], sppm.FINE_QUANTILE, method="inverted_cdf"))
+    np.testing.assert_allclose(float(cell), 2 * max(r_fine, rc * 2.0 ** (1 - sppm.GRID_LEVELS)), rtol=1e-6)
+    top = float(cell) * 2 ** (sppm.GRID_LEVELS - 1)  # the coarsest level's cells
+    assert np.all(np.sqrt(np.asarray(new.r2))[found] <= min(rc, top / 2) * (1 + 1e-6))
     # N scales with the area too: the density N/(πr²) is kept
     np.testing.assert_allclose(np.asarray(new.n) / np.asarray(new.r2), n / r2, rtol=1e-5)
 
@@ -278,6 +281,26 @@ def test_gather_finds_every_photon_in_radius():
     brute = (((pts[None] - vp_p[:, None]) ** 2).sum(-1) < r2[:, None]) & valid[None]
     np.testing.assert_array_equal(counts, brute.sum(1))
     assert brute.sum() > 150
+
+def test_gather_reads_each_radius_at_its_level():
+    """Radii spanning 8x (0.005 to 0.04) against a grid of finest cell 0.01 and GRID_LEVELS = 4
+    levels (cells 0.01 to 0.08): each point reads the level of cells at least 2r wide, and finds
+    exactly the deposits within its radius (brute force), no bucket being subsampled."""
+    assert sppm.GRID_LEVELS == 4
+    rng = np.random.default_rng(5)
+    n, S = 1000, 300
+    pts = np.concatenate([rng.uniform(-0.3, 0.3, (n, 2)), rng.uniform(-0.002, 0.002, (n, 1))], 1).astype(np.float32)
+    vp_p = np.concatenate([rng.uniform(-0.3, 0.3, (S, 2)), np.zeros((S, 1))], 1).astype(np.float32)
+    r2 = np.exp(rng.uniform(math.log(0.005), math.log(0.04), S)).astype(np.float32) ** 2
+    dep = sppm.Deposits(jnp.asarray(pts), jnp.zeros((n, 3)).at[:, 2].set(1.0), jnp.ones((n, 3)),
+                        jnp.zeros(n, jnp.int32), jnp.ones(n, bool))
+    grid = sppm.build_grid(dep, 0.01, jax.random.key(0))
+    assert np.bincount(np.asarray(grid.bucket)).max() <= sppm.CELL_PHOTONS  # nothing subsampled
+    counts = np.asarray(sppm.count_near(grid, jnp.asarray(vp_p), jnp.asarray(r2)))
+    brute = (((pts[None] - vp_p[:, None]) ** 2).sum(-1) < r2[:, None]).sum(1)
+    np.testing.assert_array_equal(counts, brute)
+    assert brute[r2 < 0.01**2].sum() > 10 and brute[r2 > 0.03**2].sum() > 200
+
 
 
 def test_gather_subsampling_of_full_cells_is_unbiased():

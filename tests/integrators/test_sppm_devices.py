@@ -83,12 +83,14 @@ s = R.load_scene(make(width=16, height=12, photons=photons, radius=radius, spp=3
 
 @jax.jit
 def fullest(scene, state):
-    # the most deposits in one bucket of the one-device pass's hash grid
+    # the most deposits in one bucket that a visible point of the one-device pass reads (at least
+    # CELL_PHOTONS: the subsampling weight n / CELL_PHOTONS is 1 below it)
     kvp, kph, kgrid = sppm.pass_keys(scene, state.passes)
-    vp, _, _ = sppm.visible_points(scene, kvp, state.samples)
-    _, cell = sppm._radii(state, vp)
+    vp, _, _ = sppm.visible_points(scene, kvp, state.samples, state.passes)
+    state, cell = sppm._radii(state, vp)
     g = sppm.build_grid(sppm.trace_photons(scene, kph, state.photons), cell, kgrid)
-    return jnp.max(jnp.bincount(g.bucket, length=g.size + 1)[:g.size])
+    _, _, scale = sppm._candidates(g, vp["p"], state.r2)
+    return jnp.round(jnp.max(jnp.where(vp["found"][:, None], scale, 1.0)) * sppm.CELL_PHOTONS).astype(jnp.int32)
 
 st, full = sppm.start(s), []
 for _ in range(3):

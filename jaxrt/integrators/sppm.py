@@ -105,8 +105,8 @@ DEFAULT_PHOTONS = (1 << 12, 1 << 20)
 MAX_PHOTONS = 1 << 24
 #: the default initial radius, in pixel footprints at the visible point (see `initial_radius`)
 RADIUS_PIXELS = 1.0
-#: the grid's cell edge is 2x this quantile of the radii of the visible points that have received
-#: photons; the larger radii are clamped to it (see `_radii`)
+#: radii above this quantile of the radii of the visible points that have received photons are
+#: clamped to it (see `_radii`)
 CELL_QUANTILE = 0.9
 #: upper bound of `[render] camera_samples` (visible points per pixel per pass)
 MAX_CAMERA_SAMPLES = 64
@@ -163,9 +163,9 @@ def initial_radius(scene) -> float:
     """The initial gather radius of every pixel, `[render] radius`; 0 (the default) for a radius per
     visible-point chain set at its first visible point: RADIUS_PIXELS pixel footprints there, the
     footprint being the camera ray's path length to the point (through mirrors and glass) times the
-    angle a pixel subtends, 2·tan(vfov/2)/height (the width across the ray; Hachisuka & Jensen 2009
-    leave r0 to the user, pbrt-v4 takes one radius for all pixels, so a scene whose depth varies
-    gets too large a radius close to the camera or too small a one far away)."""
+    angle a pixel subtends, 2·tan(vfov/2)/height (the width across the ray). One radius in scene
+    units for every pixel is too large close to the camera or too small far away in a scene whose
+    depth varies; Hachisuka & Jensen 2009 leave r0 to the user."""
     return float(getattr(scene.settings, "radius", 0.0))
 
 
@@ -877,16 +877,18 @@ def pass_keys(scene, passes) -> Array:
 
 
 def _radii(state: SPPMState, vp):
-    """The radii this pass gathers with and the grid's cell edge: (state, cell).
+    """The radii this pass gathers with and the grid's finest cell edge: (state, cell).
 
     A chain without a radius yet (r² = 0) takes RADIUS_PIXELS pixel footprints at its visible point.
-    The cell edge is 2·r_c, r_c the CELL_QUANTILE quantile of the radii of this pass's visible points
-    that have received photons before (of all of them before any has): points that never receive
-    any (in shadow, facing away from every light) keep their initial radius and would otherwise
-    keep the cells wide, where a bright caustic's cells then hold far more deposits than the
-    CELL_PHOTONS read of each. A radius above r_c is clamped to it with N and τ scaled by the area
-    ratio, the uniform-density step of the progressive update itself (Hachisuka & Jensen 2009: the
-    density N/(πr²) and the radiance τ/(πr²) stay the same), so the estimate stays consistent."""
+    The radii that matter are those of this pass's visible points that have received photons before
+    (all of them before any has): points that never receive any (in shadow, facing away from every
+    light) keep their initial radius, and cells sized by them would be wide, where a bright
+    caustic's cells then hold far more deposits than the CELL_PHOTONS read of each. A radius above
+    r_c, the CELL_QUANTILE quantile of those, is clamped to it with N and τ scaled by the area ratio,
+    the uniform-density step of the progressive update itself (Hachisuka & Jensen 2009: the density
+    N/(πr²) and the radiance τ/(πr²) stay the same), so the estimate stays consistent. The finest
+    cells are twice the FINE_QUANTILE quantile, or 2·r_c / 2^(GRID_LEVELS − 1) where that is larger,
+    so that the coarsest level's cells are at least 2·r_c."""
     found = vp["found"]
     r2 = jnp.where((state.r2 > 0) | ~found, state.r2, jnp.square(RADIUS_PIXELS * vp["foot"]))
     rec = found & (state.n > 0)

@@ -111,7 +111,7 @@ CELL_QUANTILE = 0.9
 #: upper bound of `[render] camera_samples` (visible points per pixel per pass)
 MAX_CAMERA_SAMPLES = 64
 #: levels of the hash grid (cell edges c·2^l, c from the FINE_QUANTILE of the radii; `build_grid`)
-GRID_LEVELS = 4
+GRID_LEVELS = 2
 #: the finest cells are 2x this quantile of the radii of the visible points that receive photons
 FINE_QUANTILE = 0.1
 #: the default `[render] photon_aim` of scenes with glass or mirror (δ > 0) materials (0 without them)

@@ -69,8 +69,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="whitted (point lights, mirrors, glass), path (path tracing with area and "
                              "environment lights) or sppm (photon mapping: caustics); overrides [render] integrator")
     parser.add_argument("--passes", type=int, metavar="N",
-                        help="SPPM passes (integrator sppm: --camera-samples visible points per pixel and one photon pass "
-                             "each; the same setting as --spp, which it overrides)")
+                        help="SPPM passes (integrator sppm: --camera-samples visible points per pixel and one "
+                             "photon pass each; the same setting as --spp, which it overrides)")
     parser.add_argument("--photons", type=int, metavar="N",
                         help="SPPM photons per pass (overrides [render] photons; default: the pixel count)")
     parser.add_argument("--radius", type=float, metavar="R",

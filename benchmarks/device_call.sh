@@ -49,10 +49,17 @@ for s in "$@"; do
         latency)  stage latency 420 python3 benchmarks/latency.py --no-mitsuba --worker --warm-runs 3 --json "$OUT/latency.json" \
                       --cases render-dragon render-spheres fit-demo fit-bunny fit-cli sweep-frame import-jaxrt import-brdfs import-fitting ;;
         caustic)  # a converged path-traced reference of the area-light caustic, then SPPM vs path at equal time
-                  stage caustic-ref 170 python3 benchmarks/sppm.py --make-reference 4194304 --max-seconds 100 \
-                      --out "$OUT/caustic_ref.npz"
+                  # (131k spp of full frames, then only the caustic's window, 3 pixels around it)
+                  stage caustic-ref 170 python3 benchmarks/sppm.py --make-reference 1073741824 --max-seconds 100 \
+                      --chunk-spp 4096 --crop 3 --crop-after 32 --out "$OUT/caustic_ref.npz"
                   stage caustic-equal-time 110 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
                       --reference "$OUT/caustic_ref.npz" ;;
+        caustic-sweep)  # after `caustic` (its reference): SPPM's visible points per pixel and photons per pass
+                  for cfg in "1 262144" "4 65536" "16 65536" "16 262144" "64 65536"; do
+                      read -r k p <<< "$cfg"
+                      stage "caustic-sweep-k$k-p$p" 75 python3 benchmarks/sppm.py --equal-time 0.25,1,4 \
+                          --reference "$OUT/caustic_ref.npz" --camera-samples "$k" --photons "$p" --bias-seeds 0
+                  done ;;
         caustic-small)  # the same with a 0.1 m lamp of the same power (9x smaller solid angle)
                   stage caustic-small-ref 150 python3 benchmarks/sppm.py --lamp 0.1 --make-reference 4194304 \
                       --max-seconds 90 --out "$OUT/caustic_ref_small.npz"

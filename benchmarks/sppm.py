@@ -6,13 +6,18 @@ and compilation included: the reference stops after 100 s of rendering, the tabl
 integrator plus 3 x 4 s for the bias check); the CPU line (2 cores) about 3 minutes plus compilation,
 with the reference file made on the GPU:
 
-    # GPU: the reference, then the equal-time table and the bias check
-    python benchmarks/sppm.py --make-reference 4194304 --max-seconds 100 --out caustic_ref.npz
+    # GPU: the reference (the last 100 s only around the caustic), then the equal-time table and the bias check
+    python benchmarks/sppm.py --make-reference 1073741824 --max-seconds 100 --chunk-spp 4096 --crop 3 \
+        --crop-after 32 --out caustic_ref.npz
     python benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 --reference caustic_ref.npz
     # the same without photon aiming (the scene's default aims half the photons at the glass)
     python benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 --reference caustic_ref.npz --photon-aim 0 --bias-seeds 0
     # CPU, with the GPU's caustic_ref.npz (the scene and settings are checked on load)
     python benchmarks/sppm.py --equal-time 5,10,20,40 --reference caustic_ref.npz --bias-seeds 0
+    # CPU alone: a 64x48 reference, 3,072 spp of full frames then only the caustic's window, 30 minutes
+    python benchmarks/sppm.py --size 64 --make-reference 1073741824 --chunk-spp 256 --crop 3 --crop-after 12 \
+        --max-seconds 1800 --out caustic_ref64.npz
+    python benchmarks/sppm.py --size 64 --equal-time 5,10,20 --reference caustic_ref64.npz --bias-seeds 0
     # throughput on the shipped scene; the README's picture
     python benchmarks/sppm.py                                   # 128x96, 65536 photons, 8 passes
     python benchmarks/sppm.py --picture docs/caustics.png --seconds 40 --size 192
@@ -36,7 +41,11 @@ per-pixel standard error (the spread of the chunk means / sqrt(chunks)), the mea
 odd chunks (a second estimate of its error, `_split_noise`), a direct-light-only image
 (max_depth 1, chunks of the same size, 1/16 as many, 2..64), the fraction of each pixel's first hits on the floor,
 and the settings (the scene as JSON, spp, chunks, device, time, versions). With --max-seconds it
-stops after that much rendering and saves the chunks done (the file records their number).
+stops after that much rendering and saves the chunks done (the file records their number); so does
+Ctrl-C. With --crop PIXELS, after --crop-after full chunks only the bounding box of those chunks'
+caustic region grown by PIXELS is rendered (`camera.Window`, the same paths as the full frame's
+pixels there): all the samples go where the error is measured, 25x more a second at 64x48. The
+file records the window; the region is cut to it, and the pixels outside hold the full chunks alone.
 
 The caustic region (`caustic_region`, computed from the reference when it is loaded): pixels whose
 first hit is always the floor and whose light after at least one scattering (the reference minus its
@@ -48,7 +57,8 @@ reference has converged (its relative standard error there a few per cent), whic
 
 --equal-time T1,T2,... --reference FILE: checks that FILE was made for this very scene (resolution,
 max_depth, every scene value; one line and exit status 2 otherwise), then runs SPPM (--photons per
-pass, initial radius --radius, --photon-aim F: the fraction of photons aimed at the glass, default
+pass, --camera-samples visible points per pixel per pass, initial radius --radius (default: the
+integrator's, one pixel footprint), --photon-aim F: the fraction of photons aimed at the glass, default
 the scene's 0.5; aiming changes the estimator, not the expected image, so the reference's check
 ignores it) and the path tracer (--path-spp samples per pass) each once for
 max(T) seconds of rendering after compilation (excluded), taking their images when the time passed
@@ -76,10 +86,12 @@ import tomllib
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from jaxrt import camera  # noqa: E402
 from jaxrt import scene as S  # noqa: E402
 from jaxrt.integrators import path as P  # noqa: E402
 from jaxrt.integrators import sppm  # noqa: E402
@@ -88,6 +100,12 @@ from jaxrt.integrators import sppm  # noqa: E402
 LAMP = [0.0, 3.0, -3.0]
 CAMERA = {"position": [0.0, 3.0, 5.0], "look_at": [0.0, 0.4, 0.7], "vfov": 30.0}
 MAX_DEPTH = 6
+#: --equal-time's SPPM visible points per pixel per pass and photons per pass on a GPU and on a CPU
+#: (the CPU's measured: its error hardly depends on the photons a pass, 2,048 to 16,384, at a given
+#: number of passes, so the fewest that keep a pass's fixed costs small; the GPU's a guess for
+#: `device_call.sh caustic-sweep` to settle)
+GPU_CAMERA_SAMPLES, CPU_CAMERA_SAMPLES = 4, 1
+GPU_PHOTONS, CPU_PHOTONS = 1 << 16, 1 << 12
 #: pass indices of the reference's chunks start here (the equal-time runs use 0, 1, ...)
 REF_PASS0 = 1 << 20
 #: the caustic region's threshold, in median floor radiances (see the module docstring)
@@ -256,8 +274,11 @@ class _Welford:
 
 
 def make_reference(spp: int, out: str, size: int, chunk_spp: int | None, max_seconds: float | None,
-                   lamp: float | None = None) -> None:
-    """The path-traced reference of the equal-time scene (see the module docstring), saved to `out`."""
+                   lamp: float | None = None, crop: int | None = None, crop_after: int = 32) -> None:
+    """The path-traced reference of the equal-time scene (see the module docstring), saved to `out`.
+    With `crop` (pixels) the chunks after the first `crop_after` render only the window around the
+    caustic region of those (its bounding box grown by `crop` pixels on every side): all the samples
+    go where the error is measured; the file records the window, and the region is cut to it."""
     try:
         from tqdm import tqdm
     except ImportError:  # a bare machine: a line every 10% instead of a bar
@@ -283,10 +304,29 @@ def make_reference(spp: int, out: str, size: int, chunk_spp: int | None, max_sec
     ref, halves = _Welford(), (_Welford(), _Welford())
     bar = tqdm(total=chunks * chunk_spp, unit="spp", unit_scale=True, desc="reference", dynamic_ncols=True,
                file=sys.stderr)
+    full, win, box = [], None, None  # the full chunks (until the crop), the window and its (r0, c0, h, w)
     t0 = time.perf_counter()
     try:
         for i in range(chunks):
-            img = np.asarray(P.render_jit(scn, REF_PASS0 + i, jitter=True))
+            if crop is not None and win is None and i == crop_after:
+                box = _crop_box(caustic_region(ref.mean, direct.mean, on_floor.mean), crop)
+                if box is not None:
+                    r0, c0, h, w = box
+                    win = camera.Window(jnp.int32(r0), jnp.int32(c0), jnp.int32(0), jnp.int32(chunk_spp), h, w,
+                                        chunk_spp)
+                    # the window's statistics restart from the full chunks' pixels in it
+                    ref, halves = _Welford(), (_Welford(), _Welford())
+                    for j, f in enumerate(full):
+                        ref.add(f[r0:r0 + h, c0:c0 + w])
+                        halves[j % 2].add(f[r0:r0 + h, c0:c0 + w])
+                    print(f"\ncropped to rows {r0}..{r0 + h - 1}, columns {c0}..{c0 + w - 1} after {i} chunks",
+                          file=sys.stderr)
+            if win is None:
+                img = np.asarray(P.render_jit(scn, REF_PASS0 + i, jitter=True))
+                if crop is not None:
+                    full.append(img)
+            else:
+                img = np.asarray(P.render_jit(scn, REF_PASS0 + i, jitter=True, window=win))
             ref.add(img)
             halves[i % 2].add(img)
             bar.update(chunk_spp)
@@ -298,34 +338,69 @@ def make_reference(spp: int, out: str, size: int, chunk_spp: int | None, max_sec
     seconds = time.perf_counter() - t0
     if ref.n < 2:
         _fail("fewer than 2 chunks rendered: no standard error; nothing saved")
+    mean, se, even, odd = ref.mean, ref.se, halves[0].mean, halves[1].mean
+    if box is not None:  # the window's statistics over the full chunks' (the pixels outside: those alone)
+        r0, c0, h, w = box
+        outside = _Welford(), (_Welford(), _Welford())
+        for j, f in enumerate(full):
+            outside[0].add(f)
+            outside[1][j % 2].add(f)
+        parts = []
+        for whole, part in ((outside[0].mean, mean), (outside[0].se, se), (outside[1][0].mean, even),
+                            (outside[1][1].mean, odd)):
+            whole = whole.copy()
+            whole[r0:r0 + h, c0:c0 + w] = part
+            parts.append(whole)
+        mean, se, even, odd = parts
     meta = {"format": REF_FORMAT, "scene": _canonical(doc), "width": doc["camera"]["width"],
             "height": doc["camera"]["height"], "max_depth": doc["render"]["max_depth"], "spp": ref.n * chunk_spp,
             "chunk_spp": chunk_spp, "chunks": ref.n, "direct_chunks": direct.n, "seconds": seconds,
             "compile_s": compile_s, "device": _device(), "jax": jax.__version__, "commit": _git_commit(),
             "made": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    if box is not None:
+        meta.update(window=list(box), full_chunks=len(full))
     tmp = Path(out).with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, mean=ref.mean, se=ref.se, direct=direct.mean, floor=on_floor.mean,
-                        even=halves[0].mean, odd=halves[1].mean, meta=np.array(json.dumps(meta)))
+    np.savez_compressed(tmp, mean=mean, se=se, direct=direct.mean, floor=on_floor.mean,
+                        even=even, odd=odd, meta=np.array(json.dumps(meta)))
     tmp.replace(out)
-    region = caustic_region(ref.mean, direct.mean, on_floor.mean)
-    m = ref.mean[region].mean()
+    region = caustic_region(mean, direct.mean, on_floor.mean, meta.get("window"))
+    m = mean[region].mean()
     rate = ref.n * chunk_spp * ref.mean.shape[0] * ref.mean.shape[1] / seconds / 1e6
     print(f"wrote {out}: {meta['width']}x{meta['height']}, {meta['spp']} spp in {ref.n} chunks of {chunk_spp}, "
           f"{seconds:.1f} s ({rate:.2f} Msamples/s) after {compile_s:.1f} s compiling, on {meta['device']}")
     print(f"  caustic region {int(region.sum())} px, mean radiance {m:.4g}; reference relative RMS standard error "
-          f"there {_ref_noise(ref.mean, ref.se, region):.4f} from the chunks' spread, "
-          f"{_split_noise(ref.mean, halves[0].mean, halves[1].mean, region):.4f} from its even and odd chunks' "
-          f"difference (its region mean's: {_region_mean_se(ref.se, region) / m:.2e})")
+          f"there {_ref_noise(mean, se, region):.4f} from the chunks' spread, "
+          f"{_split_noise(mean, even, odd, region):.4f} from its even and odd chunks' "
+          f"difference (its region mean's: {_region_mean_se(se, region) / m:.2e})"
+          + (f"; window {box} ({len(full)} full chunks before it)" if box is not None else ""))
 
 
-def caustic_region(mean, direct, on_floor):
+def _crop_box(region, margin: int):
+    """(row0, col0, height, width) of the region's bounding box grown by `margin` pixels, in the image."""
+    if not region.any():
+        return None
+    rows, cols = np.nonzero(region)
+    h, w = region.shape
+    r0, c0 = max(int(rows.min()) - margin, 0), max(int(cols.min()) - margin, 0)
+    r1, c1 = min(int(rows.max()) + margin, h - 1), min(int(cols.max()) + margin, w - 1)
+    return r0, c0, r1 - r0 + 1, c1 - c0 + 1
+
+
+def caustic_region(mean, direct, on_floor, window=None):
     """Pixels whose first hit is always the floor and whose light after at least one scattering
-    (mean − direct, luminance) exceeds REGION_FACTOR times the median luminance of the floor's pixels."""
+    (mean − direct, luminance) exceeds REGION_FACTOR times the median luminance of the floor's pixels;
+    inside `window` (row0, col0, height, width) where the reference was cropped to one."""
     floor = on_floor >= 1.0
     if not floor.any():
         return floor
     threshold = REGION_FACTOR * np.median(_lum(mean)[floor])
-    return floor & (_lum(mean - direct) > threshold)
+    region = floor & (_lum(mean - direct) > threshold)
+    if window is not None:
+        r0, c0, h, w = window
+        inside = np.zeros_like(region)
+        inside[r0:r0 + h, c0:c0 + w] = True
+        region &= inside
+    return region
 
 
 def _region_mean_se(se, region):
@@ -396,13 +471,14 @@ def _run_until(marks, step):
 
 
 def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: float, path_spp: int | None,
-               bias_seeds: int, lamp: float | None = None, aim: float | None = None) -> None:
+               bias_seeds: int, lamp: float | None = None, aim: float | None = None,
+               samples: int | None = None) -> None:
     ref = load_reference(ref_path, size, lamp)
     meta, doc = ref["meta"], ref["doc"]
-    photons = photons or _default(1 << 18, 1 << 16)
+    photons = photons or _default(GPU_PHOTONS, CPU_PHOTONS)
     path_spp = path_spp or _default(256, 16)
     mean, se = ref["mean"], ref["se"]
-    region = caustic_region(mean, ref["direct"], ref["floor"])
+    region = caustic_region(mean, ref["direct"], ref["floor"], meta.get("window"))
     if region.sum() == 0:
         _fail(f"{ref_path}: empty caustic region")
     m = mean[region].mean()
@@ -416,14 +492,18 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
     # photon aiming changes the estimator, not the expected image: it is passed beside the scene
     # document that the reference was checked against
     extra = {} if aim is None else {"photon_aim": aim}
-    sp = _build(doc, photons=photons, radius=radius, **extra)
+    if radius:
+        extra["radius"] = radius
+    samples = samples or _default(GPU_CAMERA_SAMPLES, CPU_CAMERA_SAMPLES)
+    extra["camera_samples"] = samples
+    sp = _build(doc, photons=photons, **extra)
     pt = _build(doc, integrator="path", spp=path_spp)
     runs_s = _run_until(marks, lambda s: sppm.accumulate(sp, s))
     runs_p = _run_until(marks, lambda a: P.accumulate(pt, a))
     print(f"device {_device()}; equal time on the caustic scene (area light only) {meta['width']}x{meta['height']}, "
-          f"max_depth {meta['max_depth']}; SPPM {photons} photons/pass, initial radius {radius}, photon_aim "
-          f"{sp.settings.photon_aim:g}; path {path_spp} "
-          f"spp/pass")
+          f"max_depth {meta['max_depth']}; SPPM {photons} photons/pass, {samples} visible points/pixel/pass, "
+          f"initial radius {radius or f'{sppm.RADIUS_PIXELS:g} pixel footprint'}, photon_aim "
+          f"{sp.settings.photon_aim:g}; path {path_spp} spp/pass")
     print(f"reference {ref_path}: {meta['spp']} spp ({meta['chunks']} chunks) on {meta['device']}, commit "
           f"{meta['commit']}; caustic region {int(region.sum())} px, mean {m:.4g}; its relative RMS error "
           f"s = {s_ref:.4f} (the larger of {s_chunks:.4f} from its chunks' spread and "
@@ -443,7 +523,7 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
     T = max(marks)
     means = [float(np.asarray(runs_s[-1][0].image, np.float64)[region].mean())]
     for seed in range(1, bias_seeds):
-        sp_k = _build(doc, photons=photons, radius=radius, seed=seed, **extra)
+        sp_k = _build(doc, photons=photons, seed=seed, **extra)
         means.append(float(np.asarray(_run_until([T], lambda s: sppm.accumulate(sp_k, s))[0][0].image,
                                       np.float64)[region].mean()))
     mu = statistics.fmean(means)
@@ -460,16 +540,25 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=None,
                     help="image width (height = 3/4 of it); throughput and picture 128, reference and equal time 96")
     ap.add_argument("--photons", type=int, default=None,
-                    help="photons per SPPM pass (throughput 65536; equal time: 2^18 on a GPU, 2^16 on a CPU)")
+                    help="photons per SPPM pass (throughput 65536; equal time: %d on a GPU, %d on a CPU)"
+                    % (GPU_PHOTONS, CPU_PHOTONS))
     ap.add_argument("--passes", type=int, default=8)
     ap.add_argument("--make-reference", type=int, default=0, metavar="SPP",
                     help="render the path-traced reference with SPP samples per pixel into --out")
     ap.add_argument("--out", default="caustic_ref.npz")
     ap.add_argument("--chunk-spp", type=int, default=None, help="reference samples per chunk (GPU 1024, CPU 16)")
     ap.add_argument("--max-seconds", type=float, default=None, help="stop the reference after this much rendering")
+    ap.add_argument("--crop", type=int, default=None, metavar="PIXELS",
+                    help="after --crop-after chunks, render the reference only in the caustic region's bounding "
+                         "box grown by PIXELS (all the samples where the error is measured)")
+    ap.add_argument("--crop-after", type=int, default=32, metavar="CHUNKS", help="full chunks before --crop")
     ap.add_argument("--equal-time", default="", metavar="T1,T2,...", help="wall budgets in seconds")
     ap.add_argument("--reference", metavar="FILE", help="the --make-reference file for --equal-time")
-    ap.add_argument("--radius", type=float, default=0.03, help="SPPM initial radius for --equal-time [m]")
+    ap.add_argument("--radius", type=float, default=0.0,
+                    help="SPPM initial radius for --equal-time [m] (default 0: the integrator's, per pixel)")
+    ap.add_argument("--camera-samples", type=int, default=None, metavar="K",
+                    help="SPPM visible points per pixel per pass for --equal-time (GPU %d, CPU %d)"
+                    % (GPU_CAMERA_SAMPLES, CPU_CAMERA_SAMPLES))
     ap.add_argument("--photon-aim", type=float, default=None, metavar="F",
                     help="SPPM [render] photon_aim for --equal-time (default: the scene's, 0.5 with its glass)")
     ap.add_argument("--path-spp", type=int, default=None, help="path samples per pass (GPU 256, CPU 16)")
@@ -483,7 +572,8 @@ def main() -> None:
     if a.picture:
         picture(a.picture, a.seconds, a.size or 128, a.scene)
     elif a.make_reference:
-        make_reference(a.make_reference, a.out, a.size or 96, a.chunk_spp, a.max_seconds, a.lamp)
+        make_reference(a.make_reference, a.out, a.size or 96, a.chunk_spp, a.max_seconds, a.lamp, a.crop,
+                       a.crop_after)
     elif a.equal_time:
         try:
             marks = [float(t) for t in a.equal_time.split(",")]
@@ -494,7 +584,7 @@ def main() -> None:
         if not a.reference:
             _fail("--equal-time needs --reference FILE (made with --make-reference)")
         equal_time(marks, a.reference, a.size or 96, a.photons, a.radius, a.path_spp, a.bias_seeds, a.lamp,
-                   a.photon_aim)
+                   a.photon_aim, a.camera_samples)
     else:
         throughput(a.size or 128, a.photons or 65536, a.passes)
 

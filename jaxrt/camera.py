@@ -109,7 +109,7 @@ def uniform_at(key, index: Int[Array, "..."], size: int) -> Float[Array, "..."]:
 
 def generate_rays(
     camera: Camera, spp: int = 1, seed: Int[Array, ""] | int = 0, jitter: bool | None = None,
-    window: Window | None = None,
+    window: Window | None = None, subpixel: Float[Array, "h w spp 2"] | None = None,
 ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
     """Primary rays for every pixel sample, N = height·width·spp, ordered (row, column, sample).
 
@@ -122,6 +122,9 @@ def generate_rays(
     ordered (row, column, sample) inside the window; each is bit for bit the ray of the same pixel
     and sample of the whole image (its random numbers come from the same counters, `uniform_at`).
     Window pixels outside the image and samples ≥ spp are made as well (they are never used).
+
+    `subpixel` (no window): each sample's position in its pixel, in [0, 1)², instead of the
+    jitter's uniforms (a low-discrepancy sequence over progressive passes, say).
 
     Returns:
         origins (N, 3) and unit directions (N, 3), float32.
@@ -157,6 +160,8 @@ def generate_rays(
         u = lax.cond(camera.aperture > 0, uniforms, lambda: jnp.zeros((shape[2],) + shape[:2] + (4,), jnp.float32))
     u = jnp.moveaxis(u, 0, 2)  # (h, w, spp, 4)
     sub = u[..., :2] if jitter else jnp.full(shape + (2,), 0.5, jnp.float32)
+    if subpixel is not None:
+        sub = subpixel
     tan_half = jnp.tan(jnp.deg2rad(camera.vfov) * 0.5)
     aspect = w / h
     x = (2.0 * (cols + sub[..., 0]) / w - 1.0) * tan_half * aspect

@@ -69,13 +69,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="whitted (point lights, mirrors, glass), path (path tracing with area and "
                              "environment lights) or sppm (photon mapping: caustics); overrides [render] integrator")
     parser.add_argument("--passes", type=int, metavar="N",
-                        help="SPPM passes (integrator sppm: one camera sample per pixel and one photon pass "
-                             "each; the same setting as --spp, which it overrides)")
+                        help="SPPM passes (integrator sppm: --camera-samples visible points per pixel and one "
+                             "photon pass each; the same setting as --spp, which it overrides)")
     parser.add_argument("--photons", type=int, metavar="N",
                         help="SPPM photons per pass (overrides [render] photons; default: the pixel count)")
     parser.add_argument("--radius", type=float, metavar="R",
                         help="SPPM initial gather radius in scene units (overrides [render] radius; default: "
-                             "2 x scene diagonal / max(width, height))")
+                             "one pixel footprint at each pixel's visible point)")
+    parser.add_argument("--camera-samples", type=int, metavar="K",
+                        help="SPPM visible points per pixel per pass, sharing the pass's photons (overrides "
+                             "[render] camera_samples; default 1)")
     parser.add_argument("--photon-aim", type=float, metavar="F",
                         help="SPPM fraction of photons aimed at glass and mirror objects, 0 <= F < 1 (overrides "
                              "[render] photon_aim; default 0.5 with glass or mirrors, else 0)")
@@ -207,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
         "camera.width": args.width, "camera.height": args.height, "render.spp": args.spp,
         "render.max_depth": args.max_depth, "render.seed": args.seed,
         "render.integrator": args.integrator, "render.photons": args.photons, "render.radius": args.radius,
-        "render.photon_aim": args.photon_aim,
+        "render.photon_aim": args.photon_aim, "render.camera_samples": args.camera_samples,
     }
     if args.passes is not None:
         overrides["render.spp"] = args.passes

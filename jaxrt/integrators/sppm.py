@@ -3,7 +3,8 @@ photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of p
 
 `integrator = "sppm"`. A render is a sequence of passes; each pass has two halves:
 
-* Camera pass: one jittered camera ray per pixel follows mirror (δ lobe, chosen with probability δ)
+* Camera pass: `[render] camera_samples` = k jittered camera rays per pixel (default 1) each
+  follow mirror (δ lobe, chosen with probability δ)
   and glass (reflection with probability R, transmission otherwise) bounces as the path tracer does
   and stops at the first non-delta surface: the pixel's *visible point* for this pass (position,
   shading frame, wo, material, throughput β and its vertex count j). Emission met along the way
@@ -37,8 +38,11 @@ photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of p
   Default f = DEFAULT_PHOTON_AIM = 0.5 where the scene has glass or mirror materials, 0 (no aiming,
   the same photons bit for bit) otherwise; environment photons are not aimed.
 
-Gathering uses a hash grid built with array operations: cell size 2·r_max (the largest current
-radius), each deposit's cell hashed into a table of 2^k buckets, the
+Gathering uses a hash grid built with array operations, of GRID_LEVELS levels of cells (edges
+c·2^l, c twice a low quantile of the radii of the visible points that receive photons, radii above
+a high quantile clamped to it: `_radii`; every deposit is in every level and a visible point reads
+the finest level whose cells are at least 2r wide), each deposit's cell hashed into a table of 2^k
+buckets, the
 deposits sorted by (bucket, a random key), bucket starts and ends by `searchsorted`. A
 visible point reads the 8 cells its radius-r ball can touch and, of each bucket, the first
 `CELL_PHOTONS` deposits; a bucket with n > CELL_PHOTONS deposits has its read deposits weighted by
@@ -51,10 +55,16 @@ radius r this pass and Φ = Σ β·f(wo, wi)·Φ_p their reflected flux:
 N' = N + α·M, r'² = r²·(N + α·M)/(N + M), τ' = (τ + Φ)·r'²/r², α = `ALPHA` = 0.7.
 The pixel's radiance after P passes of N_p photons each is direct/P + τ/(P·N_p·π·r²).
 
-Defaults: photons per pass = the pixel count, within [2^12, 2^20]; initial radius = 2 · (scene
-bounding-box diagonal) / max(width, height), a couple of pixels' footprint when the scene fills the
-view. The number of passes is `[render] spp` (one camera sample per pixel per pass), so
-`jaxrt render --passes N` and `--spp N` are the same setting.
+Several visible points per pixel (k > 1): each is a chain of its own with its own N, r and τ
+(the statistics are per chain, S = H·W·k), all gathering the same pass's photons; the pixel's
+radiance is the mean of its chains'. A pass's photons then serve k times as many camera samples,
+which pays where the error is the camera side's (one jittered point per pixel on a sharp caustic)
+rather than the photons'.
+
+Defaults: photons per pass = the pixel count, within [2^12, 2^20]; initial radius RADIUS_PIXELS = 1
+pixel footprint at each chain's first visible point (`initial_radius`); `[render] radius` sets one
+radius for every pixel instead. The number of passes is `[render] spp`, so `jaxrt render --passes
+N` and `--spp N` are the same setting.
 
 Several devices (`pass_share`, run by `jaxrt._devices.sppm_program`): the visible points are
 computed on every device from the pass's keys, the photons are split (photon count per pass padded
@@ -93,6 +103,17 @@ CELL_PHOTONS = 32
 DEFAULT_PHOTONS = (1 << 12, 1 << 20)
 #: upper bound of `[render] photons`
 MAX_PHOTONS = 1 << 24
+#: the default initial radius, in pixel footprints at the visible point (see `initial_radius`)
+RADIUS_PIXELS = 1.0
+#: radii above this quantile of the radii of the visible points that have received photons are
+#: clamped to it (see `_radii`)
+CELL_QUANTILE = 0.9
+#: upper bound of `[render] camera_samples` (visible points per pixel per pass)
+MAX_CAMERA_SAMPLES = 64
+#: levels of the hash grid (cell edges c·2^l, c from the FINE_QUANTILE of the radii; `build_grid`)
+GRID_LEVELS = 2
+#: the finest cells are 2x this quantile of the radii of the visible points that receive photons
+FINE_QUANTILE = 0.1
 #: the default `[render] photon_aim` of scenes with glass or mirror (δ > 0) materials (0 without them)
 DEFAULT_PHOTON_AIM = 0.5
 #: objects aimed at one by one up to this many (each photon tests every cone); more share one sphere
@@ -101,9 +122,11 @@ _sg = lax.stop_gradient
 
 
 class SPPMState(eqx.Module):
-    """Progressive statistics of every pixel (row-major, S = H·W), carried across passes.
+    """Progressive statistics of every visible-point chain, carried across passes: `samples` chains
+    per pixel (S = H·W·samples, ordered (row, column, sample) as `camera.generate_rays`).
 
-    n: (S,) accumulated photon count N; r2: (S,) squared radius r²; tau: (S, 3) accumulated flux τ;
+    n: (S,) accumulated photon count N; r2: (S,) squared radius r² (0 until the chain's first visible
+    point sets it from its pixel footprint, `initial_radius`); tau: (S, 3) accumulated flux τ;
     direct: (S, 3) Σ over passes of the directly estimated radiance; passes: () passes done."""
 
     n: Float[Array, " S"]
@@ -114,6 +137,7 @@ class SPPMState(eqx.Module):
     height: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
     photons: int = eqx.field(static=True)
+    samples: int = eqx.field(static=True, default=1)
 
     @property
     def image(self) -> Float[Array, "H W 3"]:
@@ -121,7 +145,8 @@ class SPPMState(eqx.Module):
         p = jnp.maximum(self.passes, 1).astype(jnp.float32)
         r2 = jnp.where(self.r2 > 0, self.r2, 1.0)
         indirect = jnp.where((self.r2 > 0)[:, None], self.tau / (p * self.photons * math.pi * r2)[:, None], 0.0)
-        img = (self.direct / p + indirect).reshape(self.height, self.width, 3)
+        # a pixel's chains are independent estimates of its radiance: their mean
+        img = (self.direct / p + indirect).reshape(self.height, self.width, self.samples, 3).mean(2)
         return jnp.where(jnp.isfinite(img), img, 0.0)
 
 
@@ -134,13 +159,24 @@ def photons_per_pass(scene) -> int:
     return int(min(max(scene.camera.num_pixels, lo), hi))
 
 
-def initial_radius(scene) -> Float[Array, ""]:
-    """Initial gather radius: `[render] radius`, else 2 · bounding-box diagonal / max(width, height)."""
-    r = getattr(scene.settings, "radius", 0.0)
-    if r:
-        return jnp.asarray(r, jnp.float32)
-    _, half_diag = _bounds(scene)
-    return 4.0 * half_diag / max(scene.camera.width, scene.camera.height)
+def initial_radius(scene) -> float:
+    """The initial gather radius of every pixel, `[render] radius`; 0 (the default) for a radius per
+    visible-point chain set at its first visible point: RADIUS_PIXELS pixel footprints there, the
+    footprint being the camera ray's path length to the point (through mirrors and glass) times the
+    angle a pixel subtends, 2·tan(vfov/2)/height (the width across the ray). One radius in scene
+    units for every pixel is too large close to the camera or too small far away in a scene whose
+    depth varies; Hachisuka & Jensen 2009 leave r0 to the user."""
+    return float(getattr(scene.settings, "radius", 0.0))
+
+
+def pixel_angle(cam) -> Float[Array, ""]:
+    """The angle a pixel subtends at the image centre [rad]: 2·tan(vfov/2)/height."""
+    return 2.0 * jnp.tan(jnp.deg2rad(cam.vfov) * 0.5) / cam.height
+
+
+def camera_samples(scene) -> int:
+    """Visible points per pixel per pass (static): `[render] camera_samples`, default 1."""
+    return int(getattr(scene.settings, "camera_samples", 0) or 1)
 
 
 def check(scene) -> None:
@@ -151,6 +187,10 @@ def check(scene) -> None:
     r = getattr(scene.settings, "radius", 0.0)
     if not (isinstance(r, (int, float)) and math.isfinite(r) and r >= 0):
         raise InputError(f"{scene.source}: [render] radius = {r!r}: must be a positive finite length (0: default)")
+    k = getattr(scene.settings, "camera_samples", 0)
+    if not isinstance(k, int) or k < 0 or k > MAX_CAMERA_SAMPLES:
+        raise InputError(f"{scene.source}: [render] camera_samples = {k!r}: allowed 1..{MAX_CAMERA_SAMPLES} "
+                         "(0: default)")
     f = photon_aim(scene)
     if not (isinstance(f, (int, float)) and 0.0 <= f < 1.0):
         raise InputError(f"{scene.source}: [render] photon_aim = {f!r}: allowed 0 <= photon_aim < 1")
@@ -531,8 +571,11 @@ def trace_photons(scene, key, n: int, share: tuple | None = None) -> Deposits:
         return lax.cond(jnp.any(alive), work, idle, (o, d, alive, beta))
 
     _, (p, wi, pw, ok) = lax.scan(body, (o, d, alive, power), jnp.arange(D))
+    # the first hit never deposits (its light is the next-event estimate's): its slots are dropped,
+    # which keeps them out of the grid's sort
+    p, wi, pw, ok = p[1:], wi[1:], pw[1:], ok[1:]
     steps = p.shape[0]
-    bounce = jnp.broadcast_to(jnp.arange(steps, dtype=jnp.int32)[:, None], (steps, n))
+    bounce = jnp.broadcast_to(jnp.arange(1, steps + 1, dtype=jnp.int32)[:, None], (steps, n))
     return Deposits(p.reshape(-1, 3), wi.reshape(-1, 3), pw.reshape(-1, 3), bounce.reshape(-1), ok.reshape(-1))
 
 
@@ -558,19 +601,20 @@ def _hash(c, size: int):
     cell's coordinates land in unrelated buckets (a masked XOR of coordinate multiples, Teschner et
     al. 2003's hash for prime table sizes, maps (i, j, k) and (i, -j, -k) together for many cells)."""
     u = (c + _CELL_RANGE).astype(jnp.uint32)
-    h = _fmix(u[..., 2] + jnp.uint32(0x9E3779B9))
-    h = _fmix(h ^ u[..., 1])
-    h = _fmix(h ^ u[..., 0])
+    h = _fmix(u[..., -1] + jnp.uint32(0x9E3779B9))
+    for i in reversed(range(c.shape[-1] - 1)):  # (x, y, z, level): the level first, then z, y, x
+        h = _fmix(h ^ u[..., i])
     return (h & jnp.uint32(size - 1)).astype(jnp.int32)
 
 
 class Grid(eqx.Module):
-    """The valid deposits sorted by hash bucket (random order within a bucket): bucket (N,) sorted
-    (`size` for invalid deposits, last), and each sorted entry's cell, position, wi, power and
-    scattering count; the cell edge () and the table size (static)."""
+    """The valid deposits at every level, sorted by hash bucket (random order within a bucket):
+    bucket (N,) sorted (`size` for invalid deposits, last), and each sorted entry's cell (x, y, z,
+    level), position, wi, power and scattering count; the finest level's cell edge () and the table
+    size (static). N = GRID_LEVELS x the deposits."""
 
     bucket: Int[Array, " N"]
-    cells: Int[Array, "N 3"]
+    cells: Int[Array, "N 4"]
     p: Float[Array, "N 3"]
     wi: Float[Array, "N 3"]
     power: Float[Array, "N 3"]
@@ -580,15 +624,24 @@ class Grid(eqx.Module):
 
 
 def build_grid(dep: Deposits, cell, key) -> Grid:
-    """The hash grid of the valid deposits with cells of edge `cell`: one sort by (bucket, a random
-    32-bit key), so that a bucket's first entries are a uniform random subset of it."""
-    N = dep.p.shape[0]
+    """The hash grid of the valid deposits, every deposit in each of the GRID_LEVELS levels of cells
+    of edge cell·2^l: one sort by (bucket, a random 32-bit key), so that a bucket's first entries
+    are a uniform random subset of it. A visible point reads the finest level whose cells are at
+    least twice its radius (`_candidates`): where the radii span a wide range (a focused caustic's
+    shrink fast, dim surfaces' slowly) the small ones read small cells, whose CELL_PHOTONS first
+    entries are mostly within their radius, instead of a few among a large cell's many."""
+    n, L = dep.p.shape[0], GRID_LEVELS
+    N = n * L
     size = 1 << max(int(2 * N - 1).bit_length(), 4)
-    cells = _cells(dep.p, cell)
-    b = jnp.where(dep.valid, _hash(cells, size), size)
+    src = jnp.tile(jnp.arange(n, dtype=jnp.int32), L)
+    level = jnp.repeat(jnp.arange(L, dtype=jnp.int32), n)
+    edge = cell * jnp.exp2(level.astype(jnp.float32))  # exact: a power of two times the cell
+    cells = jnp.concatenate([_cells(dep.p[src], edge[:, None]), level[:, None]], axis=1)
+    b = jnp.where(dep.valid[src], _hash(cells, size), size)
     rand = jax.random.bits(key, (N,), jnp.uint32)
     b, _, order = lax.sort((b, rand, jnp.arange(N, dtype=jnp.int32)), num_keys=2)
-    return Grid(b, cells[order], dep.p[order], dep.wi[order], dep.power[order], dep.bounce[order], cell, size)
+    k = src[order]
+    return Grid(b, cells[order], dep.p[k], dep.wi[k], dep.power[k], dep.bounce[k], cell, size)
 
 
 def _candidates(grid: Grid, p, r2):
@@ -596,11 +649,17 @@ def _candidates(grid: Grid, p, r2):
     in its cell and within radius r, and the bucket subsampling weight n / K of each cell (S, 8)."""
     K = CELL_PHOTONS
     N = grid.bucket.shape[0]
-    x = p / grid.cell
+    # the finest level l with cell·2^l >= 2r (the coarsest for larger radii, which `_radii` clamps)
+    ratio = 2.0 * jnp.sqrt(r2) / grid.cell
+    level = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(ratio, 1e-30))), 0, GRID_LEVELS - 1)
+    edge = grid.cell * jnp.exp2(level)
+    x = p / edge[:, None]
     base = jnp.floor(x)
     lo = base - jnp.where(x - base < 0.5, 1.0, 0.0)  # the 2x2x2 cells the ball of radius cell/2 touches
     offs = jnp.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], jnp.float32)
     cells = jnp.clip(lo[:, None, :] + offs[None], -_CELL_RANGE, _CELL_RANGE).astype(jnp.int32)  # (S, 8, 3)
+    cells = jnp.concatenate([cells, jnp.broadcast_to(level.astype(jnp.int32)[:, None, None], cells.shape[:2] + (1,))],
+                            axis=-1)  # (S, 8, 4)
     hq = _hash(cells, grid.size)
     start = jnp.searchsorted(grid.bucket, hq, side="left")
     end = jnp.searchsorted(grid.bucket, hq, side="right")
@@ -651,28 +710,56 @@ def gather(scene, grid: Grid, vp: dict, r2: Float[Array, " S"]):
 
 # ---------------------------------------------------------------------------------------------- camera
 
-def visible_points(scene, key):
-    """One camera ray per pixel to its visible point; returns (vp dict, direct (S, 3), first hits)."""
+def subpixel_positions(scene, pass_index, samples: int) -> Float[Array, "H W k 2"]:
+    """The positions in their pixels of pass `pass_index`'s `samples` camera samples, (H, W, k, 2):
+    points n = pass_index·k + s of the R2 sequence (frac(n·(1/g, 1/g²)), g the plastic number
+    1.3247..., M. Roberts 2018, a rank-1 lattice-like sequence whose successive points fill the
+    square evenly), shifted per pixel by a uniform offset fixed for the whole render (a
+    Cranley-Patterson rotation; R. Cranley and T. Patterson 1976). Every position is uniform in its
+    pixel, and a pixel's positions over the passes cover it evenly instead of clumping as
+    independent jitter does: the mean over passes of the visible points' estimates (each a density
+    estimate at one position in the pixel) then converges faster than P^-1/2 wherever the light
+    varies smoothly within the pixel, as a sharp caustic's smoothed by the gather radius does."""
+    cam = scene.camera
+    g = 1.32471795724474602596
+    n = jnp.asarray(pass_index).astype(jnp.uint32) * jnp.uint32(samples) + jnp.arange(samples, dtype=jnp.uint32)
+    # frac(n·a) in 32-bit fixed point: n·round(a·2^32) wraps modulo 2^32 exactly (float32 would
+    # lose the fraction once n·a is large)
+    a = jnp.array([round((1.0 / g) * 2**32), round((1.0 / (g * g)) * 2**32)], jnp.uint32)
+    seq = (n[:, None] * a[None, :] >> jnp.uint32(8)).astype(jnp.float32) * 2.0**-24  # (k, 2)
+    key = jax.random.fold_in(jax.random.key(jnp.asarray(scene.settings.seed, jnp.uint32)), jnp.uint32(0x5BD1E995))
+    shift = jax.random.uniform(key, (cam.height, cam.width, 1, 2))
+    return jnp.minimum(jnp.mod(shift + seq[None, None], 1.0), 1.0 - 2.0 ** -24)
+
+
+def visible_points(scene, key, samples: int = 1, pass_index=None):
+    """`samples` camera rays per pixel to their visible points, S = H·W·samples ordered (row,
+    column, sample); returns (vp dict, direct (S, 3), first hits). With `pass_index` the rays' positions
+    in their pixels are `subpixel_positions`', else independent uniform jitter. The vp dict's `foot`
+    is the pixel footprint at the visible point (path length times `pixel_angle`)."""
     st, cam, mats = scene.settings, _sg(scene.camera), _sg(scene.materials)
     geo = _sg(scene.geometry)
     scene = _sg(scene)
     D = st.max_depth
-    S = cam.num_pixels
+    S = cam.num_pixels * samples
     models = _models(mats)
     al = scene.area_lights
     has_tri = al is not None and al.count > 0
     env = getattr(scene, "environment", None)
     kcam, kpath, knee = jax.random.split(key, 3)
-    o, d = camera.generate_rays(cam, 1, jax.random.bits(kcam, (), jnp.uint32), True)
+    sub = None if pass_index is None else subpixel_positions(scene, pass_index, samples)
+    o, d = camera.generate_rays(cam, samples, jax.random.bits(kcam, (), jnp.uint32), True, subpixel=sub)
     d = normalize(d)
     s0 = geo.surface(jnp.zeros(S, jnp.int32), jnp.zeros(S), jnp.zeros(S))
     vp = dict(surface=s0, p=jnp.zeros((S, 3)), ng=jnp.zeros((S, 3)), wo=jnp.zeros((S, 3)).at[:, 2].set(1.0),
               frame=(jnp.zeros((S, 3)),) * 3, beta=jnp.zeros((S, 3)), depth=jnp.zeros(S, jnp.int32),
-              found=jnp.zeros(S, bool))
+              found=jnp.zeros(S, bool), foot=jnp.zeros(S))
     first = dict(prim=jnp.full(S, -1, jnp.int32), u=jnp.zeros(S), v=jnp.zeros(S), t=jnp.zeros(S), d=d)
     alive = jnp.ones(S, bool)
     beta = jnp.ones((S, 3))
     emitted = jnp.zeros((S, 3))
+    dist = jnp.zeros(S)  # path length from the camera, through the delta bounces
+    ang = pixel_angle(cam)
     for k in range(D + 1):  # static: D is small and the camera chain usually ends at the first hit
         u = jax.random.uniform(jax.random.fold_in(kpath, k), (S, 3))
         hit = intersect_active(geo, o, d, alive)
@@ -680,6 +767,7 @@ def visible_points(scene, key):
         found = prim >= 0
         if k == 0:
             first = dict(prim=prim, u=hit.u, v=hit.v, t=jnp.where(found, hit.t, 0.0), d=d)
+        dist = dist + jnp.where(found, hit.t, 0.0)
         s = geo.surface(prim, hit.u, hit.v)
         s = eqx.tree_at(lambda x: x.material, s, jnp.where(found, s.material, 0))
         if env is not None:
@@ -694,7 +782,7 @@ def visible_points(scene, key):
         ng, ns, _ = oriented(s, d)
         frame = local_frame(ns, s.tangent)
         new = dict(surface=s, p=s.p, ng=ng, wo=to_local(-d, frame), frame=frame, beta=beta,
-                   depth=jnp.full(S, k + 1, jnp.int32), found=here)
+                   depth=jnp.full(S, k + 1, jnp.int32), found=here, foot=dist * ang)
         vp = jax.tree.map(lambda a, b: jnp.where(here.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), new, vp)
         alive = found & is_delta & ok
         beta = jnp.where(alive[:, None], beta * fac, 0.0)
@@ -771,12 +859,14 @@ def _nee(scene, vp, models, key):
 # ---------------------------------------------------------------------------------------------- passes
 
 def start(scene) -> SPPMState:
-    """The statistics before the first pass: N = 0, r = the initial radius, τ = 0."""
+    """The statistics before the first pass: N = 0, r = `[render] radius` (0: set at each chain's
+    first visible point, see `initial_radius`), τ = 0."""
     cam = scene.camera
-    S = cam.num_pixels
+    k = camera_samples(scene)
+    S = cam.num_pixels * k
     r0 = initial_radius(scene)
     return SPPMState(jnp.zeros(S), jnp.full(S, r0 * r0, jnp.float32), jnp.zeros((S, 3)), jnp.zeros((S, 3)),
-                     jnp.asarray(0, jnp.int32), cam.height, cam.width, photons_per_pass(scene))
+                     jnp.asarray(0, jnp.int32), cam.height, cam.width, photons_per_pass(scene), k)
 
 
 def pass_keys(scene, passes) -> Array:
@@ -786,10 +876,38 @@ def pass_keys(scene, passes) -> Array:
     return jax.random.split(key, 3)
 
 
-def _cell(state: SPPMState, vp) -> Array:
-    # the grid's cell edge: 2·r_max, the largest current radius of a pixel with a visible point
-    r_max = jnp.sqrt(jnp.max(jnp.where(vp["found"], state.r2, 0.0)))
-    return jnp.maximum(2.0 * r_max, 1e-6)
+def _radii(state: SPPMState, vp):
+    """The radii this pass gathers with and the grid's finest cell edge: (state, cell).
+
+    A chain without a radius yet (r² = 0) takes RADIUS_PIXELS pixel footprints at its visible point.
+    The radii that matter are those of this pass's visible points that have received photons before
+    (all of them before any has): points that never receive any (in shadow, facing away from every
+    light) keep their initial radius, and cells sized by them would be wide, where a bright
+    caustic's cells then hold far more deposits than the CELL_PHOTONS read of each. A radius above
+    r_c, the CELL_QUANTILE quantile of those, is clamped to it with N and τ scaled by the area ratio,
+    the uniform-density step of the progressive update itself (Hachisuka & Jensen 2009: the density
+    N/(πr²) and the radiance τ/(πr²) stay the same), so the estimate stays consistent. The finest
+    cells are twice the FINE_QUANTILE quantile, or 2·r_c / 2^(GRID_LEVELS − 1) where that is larger,
+    so that the coarsest level's cells are at least 2·r_c."""
+    found = vp["found"]
+    r2 = jnp.where((state.r2 > 0) | ~found, state.r2, jnp.square(RADIUS_PIXELS * vp["foot"]))
+    rec = found & (state.n > 0)
+    rec = jnp.where(jnp.any(rec), rec, found)
+    cnt = jnp.sum(rec)
+    srt = jnp.sort(jnp.where(rec, r2, jnp.inf))
+
+    def quantile(q):
+        return jnp.where(cnt > 0, srt[jnp.clip(jnp.ceil(q * cnt).astype(jnp.int32) - 1, 0, r2.shape[0] - 1)], 0.0)
+
+    rc2 = quantile(CELL_QUANTILE)
+    clamp = found & (r2 > rc2) & (rc2 > 0)
+    ratio = jnp.where(clamp, rc2 / jnp.where(clamp, r2, 1.0), 1.0)
+    state = SPPMState(state.n * ratio, r2 * ratio, state.tau * ratio[:, None], state.direct, state.passes,
+                      state.height, state.width, state.photons, state.samples)
+    # the finest level's cells: 2x the FINE_QUANTILE radius, unless the coarsest would then be
+    # smaller than 2·r_c
+    fine = jnp.maximum(jnp.sqrt(quantile(FINE_QUANTILE)), jnp.sqrt(rc2) * 2.0 ** (1 - GRID_LEVELS))
+    return state, jnp.maximum(2.0 * fine, 1e-6)
 
 
 def _update(state: SPPMState, m, phi, direct) -> SPPMState:
@@ -799,14 +917,15 @@ def _update(state: SPPMState, m, phi, direct) -> SPPMState:
     r2_new = state.r2 * ratio
     tau = (state.tau + phi) * ratio[:, None]
     return SPPMState(n_new, r2_new, tau, state.direct + direct, state.passes + 1, state.height, state.width,
-                     state.photons)
+                     state.photons, state.samples)
 
 
 def _pass(scene, state: SPPMState, with_first: bool = False):
     kvp, kph, kgrid = pass_keys(scene, state.passes)
-    vp, direct, first = visible_points(scene, kvp)
+    vp, direct, first = visible_points(scene, kvp, state.samples, state.passes)
+    state, cell = _radii(state, vp)
     dep = trace_photons(scene, kph, state.photons)
-    grid = build_grid(dep, _cell(state, vp), kgrid)
+    grid = build_grid(dep, cell, kgrid)
     m, phi = gather(scene, grid, vp, state.r2)
     new = _update(state, m, phi, direct)
     return (new, first) if with_first else new
@@ -825,10 +944,11 @@ def pass_share(scene, state: SPPMState, axis: str, count: int) -> SPPMState:
     every deposit within a radius is read on either side. A fuller bucket is subsampled on each
     device among that device's deposits, which is another unbiased estimate of the same sum."""
     kvp, kph, kgrid = pass_keys(scene, state.passes)
-    vp, direct, _ = visible_points(scene, kvp)
+    vp, direct, _ = visible_points(scene, kvp, state.samples, state.passes)
+    state, cell = _radii(state, vp)
     d = lax.axis_index(axis)
     dep = trace_photons(scene, kph, state.photons, share=(d, count))
-    grid = build_grid(dep, _cell(state, vp), jax.random.fold_in(kgrid, d))
+    grid = build_grid(dep, cell, jax.random.fold_in(kgrid, d))
     m, phi = lax.psum(gather(scene, grid, vp, state.r2), axis)
     return _update(state, m, phi, direct)
 
@@ -840,7 +960,7 @@ step = jax.jit(_pass)
 
 def _first_aovs(scene):
     key = jax.random.fold_in(jax.random.key(jnp.asarray(scene.settings.seed, jnp.uint32)), jnp.uint32(0))
-    _, _, first = visible_points(scene, jax.random.split(key, 3)[0])
+    _, _, first = visible_points(scene, jax.random.split(key, 3)[0], 1, 0)
     cam = scene.camera
     return build_aovs(scene, *(first[k] for k in ("prim", "u", "v", "t", "d")), shape=(cam.height, cam.width))
 
@@ -870,4 +990,6 @@ def render(scene, *, aovs: bool = False, window: camera.Window | None = None):
     if not aovs:
         return img
     cam = scene.camera
+    # each pixel's first camera sample (the samples of a pixel are consecutive)
+    first = {k: v[:: state.samples] for k, v in first.items()}
     return img, build_aovs(scene, *(first[k] for k in ("prim", "u", "v", "t", "d")), shape=(cam.height, cam.width))

@@ -240,6 +240,7 @@ def build(spec: SceneSpec) -> Scene:
         glass_shadows=r.glass_shadows,
         photons=r.photons,
         radius=r.radius,
+        camera_samples=r.camera_samples,
         photon_aim=r.photon_aim if r.photon_aim is not None else integrators.sppm.default_photon_aim(
             any(brdfs.get(spec.materials[n].model).delta or spec.materials[n].delta > 0 for n in mat_names)),
     )

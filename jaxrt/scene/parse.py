@@ -296,6 +296,8 @@ def parse(
         # SPPM (`integrator = "sppm"`): photons per pass and initial gather radius [scene units]
         photons=rc.integer("photons", 0, lo=1, hi=integrators.sppm.MAX_PHOTONS) if "photons" in rc.data else 0,
         radius=rc.number("radius", 0.0, lo=0.0, lo_open=True) if "radius" in rc.data else 0.0,
+        camera_samples=(rc.integer("camera_samples", 0, lo=1, hi=integrators.sppm.MAX_CAMERA_SAMPLES)
+                        if "camera_samples" in rc.data else 0),
         # SPPM photon aiming: the fraction of photons sent towards the glass and mirror objects
         # (None: the integrator's default, see `jaxrt.integrators.sppm`)
         photon_aim=rc.number("photon_aim", 0.0, lo=0.0, hi=1.0, hi_open=True) if "photon_aim" in rc.data else None,
@@ -303,6 +305,7 @@ def parse(
     rc.raw("ray_budget", None)
     rc.raw("photons", None)
     rc.raw("radius", None)
+    rc.raw("camera_samples", None)
     rc.raw("photon_aim", None)
     rc.done()
     glare = parse_glare(Table(file, "glare", doc["glare"])) if "glare" in doc else None

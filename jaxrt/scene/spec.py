@@ -96,6 +96,7 @@ class RenderSpec:
     glass_shadows: str = "transmit"  # GLASS_SHADOWS
     photons: int = 0  # SPPM photons per pass (0: the integrator's default)
     radius: float = 0.0  # SPPM initial gather radius (0: the integrator's default)
+    camera_samples: int = 0  # SPPM visible points per pixel per pass (0: the integrator's default)
     photon_aim: float | None = None  # SPPM fraction of photons aimed at delta objects (None: default)
 
 

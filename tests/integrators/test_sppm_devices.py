@@ -50,7 +50,7 @@ def test_photon_shares_are_the_whole_pass_photons():
     whole = jax.jit(sppm.trace_photons, static_argnums=2)(scene, key, 2001)
     part = jax.jit(lambda s, k, d: sppm.trace_photons(s, k, 2001, share=(d, 4)))
     shares = [part(scene, key, jnp.int32(d)) for d in range(4)]  # 501 photons each: 3 padded
-    steps = scene.settings.max_depth
+    steps = scene.settings.max_depth - 1  # deposits after 1 .. max_depth - 1 scatterings
 
     def joined(name):
         return np.concatenate([np.asarray(getattr(x, name)).reshape(steps, 501, -1) for x in shares], axis=1)
@@ -83,12 +83,14 @@ s = R.load_scene(make(width=16, height=12, photons=photons, radius=radius, spp=3
 
 @jax.jit
 def fullest(scene, state):
-    # the most deposits in one bucket of the one-device pass's hash grid
+    # the most deposits in one bucket that a visible point of the one-device pass reads (at least
+    # CELL_PHOTONS: the subsampling weight n / CELL_PHOTONS is 1 below it)
     kvp, kph, kgrid = sppm.pass_keys(scene, state.passes)
-    vp, _, _ = sppm.visible_points(scene, kvp)
-    cell = jnp.maximum(2.0 * jnp.sqrt(jnp.max(jnp.where(vp["found"], state.r2, 0.0))), 1e-6)
+    vp, _, _ = sppm.visible_points(scene, kvp, state.samples, state.passes)
+    state, cell = sppm._radii(state, vp)
     g = sppm.build_grid(sppm.trace_photons(scene, kph, state.photons), cell, kgrid)
-    return jnp.max(jnp.bincount(g.bucket, length=g.size + 1)[:g.size])
+    _, _, scale = sppm._candidates(g, vp["p"], state.r2)
+    return jnp.round(jnp.max(jnp.where(vp["found"][:, None], scale, 1.0)) * sppm.CELL_PHOTONS).astype(jnp.int32)
 
 st, full = sppm.start(s), []
 for _ in range(3):

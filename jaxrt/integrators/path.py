@@ -62,7 +62,8 @@ from jaxtyping import Array, Float, Int
 import brdfs
 from jaxrt import camera, envmap
 from jaxrt import lights as _lights
-from jaxrt.integrators.common import emitter_table, intersect_active, power_heuristic, sample_area_light
+from jaxrt.integrators.common import (emitter_table, fold_in_uniforms, intersect_active, power_heuristic,
+                                      sample_area_light)
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, hit_params, glass_split, is_glass
 from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented, to_local
@@ -154,12 +155,14 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         path_keys = _path_keys(kpath, window, spp, cam.width)
         alive0 = jnp.broadcast_to(jnp.arange(nsamp) < window.count, (npix, nsamp)).reshape(-1)
 
+    path_key_data = jax.random.key_data(path_keys)
+
     def uniforms(k):
-        return jax.vmap(lambda pk: jax.random.uniform(jax.random.fold_in(pk, k), (_NU,)))(path_keys)
+        # jax.random.uniform(fold_in(path key, k), (_NU,)) of every path, bit for bit
+        return fold_in_uniforms(path_key_data, k, _NU)
 
     def work(k, carry):
-        o, d, alive, tput, specular, pdf_prev, L, first = carry
-        u = uniforms(k)
+        o, d, alive, tput, specular, pdf_prev, L, first, u = carry
         hit = intersect_active(geo, o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0
@@ -295,7 +298,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         tput = jnp.where(rr, tput / q_rr[:, None], tput)
         good = alive & jnp.all(jnp.isfinite(tput), axis=-1)
         tput = jnp.where(good[:, None], tput, 0.0)
-        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first)
+        # the next bounce's numbers, made here so that they are stored in the loop state
+        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first, uniforms(k + 1))
 
     def body(k, carry):
         return lax.cond(jnp.any(carry[2]), lambda c: work(k, c), lambda c: c, carry)
@@ -303,7 +307,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     first = dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
     # the throughput's dtype follows the material values so float64 tests stay float64
     one = jnp.ones((B, 3), jnp.result_type(float))
-    carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first)
+    carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, uniforms(0))
     carry = lax.fori_loop(0, D + 1, body, carry)
     L = carry[6]
     L = jnp.where(jnp.isfinite(L), L, 0.0).reshape(npix, nsamp, 3)

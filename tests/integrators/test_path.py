@@ -570,3 +570,16 @@ def test_radiance_hdr_environment_matches_the_exr_one(tmp_path):
     (tmp_path / "bad.hdr").write_bytes(b"not an image")
     with pytest.raises(InputError, match="bad.hdr"):
         envmap.load(tmp_path / "bad.hdr")
+
+
+@pytest.mark.parametrize("k", [0, 1, 7, 2**31 - 1])
+def test_fold_in_uniforms_are_jax_random_bit_for_bit(k):
+    # the path tracer's per-bounce numbers come from an unrolled Threefry; they must be exactly
+    # jax.random.uniform(fold_in(path key, bounce), (8,)), so the images keep their random streams
+    from jaxrt.integrators.common import fold_in_uniforms
+
+    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(12345), i))(jnp.arange(4099, dtype=jnp.uint32))
+    ref = jax.vmap(lambda pk: jax.random.uniform(jax.random.fold_in(pk, k), (8,)))(keys)
+    got = jax.jit(fold_in_uniforms, static_argnums=2)(jax.random.key_data(keys), jnp.int32(k), 8)
+    assert got.shape == (4099, 8) and got.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(ref))

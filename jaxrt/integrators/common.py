@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Bool, Float, UInt32
+from jaxtyping import Array, Bool, Float, Key
 
 from jaxrt import envmap
 from jaxrt.accel import Hit
@@ -48,9 +48,9 @@ def _threefry2x32(k1, k2, x1, x2):
     return x1, x2
 
 
-def fold_in_uniforms(key_data: UInt32[Array, "B 2"], k: int | Array, n: int) -> Float[Array, "B n"]:
-    """``jax.random.uniform(jax.random.fold_in(key, k), (n,))`` for each of B Threefry keys (given
-    as `jax.random.key_data`), bit for bit, from an unrolled hash (see `_threefry2x32`).
+def fold_in_uniforms(keys: Key[Array, " B"], k: int | Array, n: int) -> Float[Array, "B n"]:
+    """``jax.random.uniform(jax.random.fold_in(key, k), (n,))`` for each of B typed keys, bit for
+    bit; for Threefry keys and float32 (JAX's defaults) from an unrolled hash (see `_threefry2x32`).
 
     fold_in hashes the counter (0, k) with the key; element j of the uniform draw hashes (0, j) with
     the folded key and takes the XOR of the two output words (JAX's default
@@ -60,9 +60,10 @@ def fold_in_uniforms(key_data: UInt32[Array, "B 2"], k: int | Array, n: int) -> 
     XLA fuses the hash into every consumer of the result (each column's use recomputes the
     row's hashes; XLA:CPU drops optimisation barriers before fusing), so callers that use the
     numbers more than once should store them first, e.g. as a loop-carried value."""
-    if not jax.config.jax_threefry_partitionable:  # pragma: no cover - the non-default layout
-        keys = jax.random.wrap_key_data(key_data)
+    if (str(jax.random.key_impl(keys)) != "threefry2x32" or not jax.config.jax_threefry_partitionable
+            or jnp.result_type(float) != jnp.float32):  # another PRNG, layout or float width: JAX's own
         return jax.vmap(lambda pk: jax.random.uniform(jax.random.fold_in(pk, k), (n,)))(keys)
+    key_data = jax.random.key_data(keys)
     k1, k2 = key_data[:, 0:1], key_data[:, 1:2]
     zero = jnp.zeros((), jnp.uint32)
     f1, f2 = _threefry2x32(k1, k2, zero, jnp.asarray(k, jnp.uint32))

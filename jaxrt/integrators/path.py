@@ -155,11 +155,9 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         path_keys = _path_keys(kpath, window, spp, cam.width)
         alive0 = jnp.broadcast_to(jnp.arange(nsamp) < window.count, (npix, nsamp)).reshape(-1)
 
-    path_key_data = jax.random.key_data(path_keys)
-
     def uniforms(k):
         # jax.random.uniform(fold_in(path key, k), (_NU,)) of every path, bit for bit
-        return fold_in_uniforms(path_key_data, k, _NU)
+        return fold_in_uniforms(path_keys, k, _NU)
 
     def work(k, carry):
         o, d, alive, tput, specular, pdf_prev, L, first, u = carry

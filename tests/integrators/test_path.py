@@ -580,7 +580,7 @@ def test_fold_in_uniforms_are_jax_random_bit_for_bit(k):
 
     keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(12345), i))(jnp.arange(4099, dtype=jnp.uint32))
     ref = jax.vmap(lambda pk: jax.random.uniform(jax.random.fold_in(pk, k), (8,)))(keys)
-    got = jax.jit(fold_in_uniforms, static_argnums=2)(jax.random.key_data(keys), jnp.int32(k), 8)
+    got = jax.jit(fold_in_uniforms, static_argnums=2)(keys, jnp.int32(k), 8)
     assert got.shape == (4099, 8) and got.dtype == jnp.float32
     np.testing.assert_array_equal(np.asarray(got), np.asarray(ref))
 

@@ -30,7 +30,20 @@ def _ps(p: Params) -> Float[Array, "..."]:
     return jnp.zeros_like(p["rho_d"][..., 0])
 
 
-sample, pdf, _components = C.mixture(_ps, C.diffuse_component, lambda p, wo, wi: C.cosine_pdf(wi), eval)
+_mixture_sample, pdf, _components = C.mixture(_ps, C.diffuse_component, lambda p, wo, wi: C.cosine_pdf(wi), eval)
+
+
+def sample(p: Params, wo: Float[Array, "... 3"], u: Float[Array, "... 2"]):
+    """(wi, weight, pdf): the mixture's sampler with its specular probability 0 written out, so that
+    the never-chosen branch's direction (trigonometry per sample) is not computed. Same numbers as
+    the mixture's: its lobe choice rescales u0 by (u0 - 0) / (1 - 0) = u0 exactly."""
+    ud = jnp.clip(u[..., 0], 0.0, 1.0 - 1e-7)
+    ud, u1 = jnp.broadcast_arrays(ud, u[..., 1], jnp.zeros_like(p["rho_d"][..., 0]))[:2]
+    wi = C.diffuse_component(p, wo, jnp.stack([ud, u1], axis=-1))
+    pd = jnp.where(C.upper(wi, wo), C.cosine_pdf(wi), 0.0)
+    f = eval(p, wi, wo)
+    weight = jnp.where((pd > 0)[..., None], f * C.safe_div(jnp.maximum(wi[..., 2], 0.0), pd)[..., None], 0.0)
+    return wi, weight, pd
 
 MODEL = Model(
     name="lambert",

@@ -190,11 +190,34 @@ def pdf(env: EnvMap, wi: Float[Array, "*B 3"]) -> Float[Array, "*B"]:
     return jnp.where(ok, p_uv / (2.0 * math.pi**2 * jnp.where(ok, st, 1.0)), 0.0)
 
 
-def _sample_cdf(cdf, u):
-    """Index i with cdf[i] <= u < cdf[i+1] and the offset of u within that bin in [0, 1)."""
+def _count_le(cdf, row, u):
+    """Number of entries <= u in row `row` of the nondecreasing rows of cdf (R, m), per sample:
+    ``jnp.searchsorted(cdf[row], u, side="right")``, by a binary search that gathers one entry per
+    step instead of each sample's whole row (on the CPU the row gathers of a vmapped searchsorted
+    moved m floats per sample)."""
+    m = cdf.shape[-1]
+
+    def step(_, lohi):
+        lo, hi = lohi
+        mid = (lo + hi) // 2
+        right = cdf[row, jnp.minimum(mid, m - 1)] <= u
+        open_ = lo < hi
+        return jnp.where(open_ & right, mid + 1, lo), jnp.where(open_ & ~right, mid, hi)
+
+    # a loop, not unrolled: unrolled, XLA fuses the chain of dependent gathers into each consumer
+    lo = jnp.zeros(jnp.shape(u), jnp.int32)
+    lo, _ = jax.lax.fori_loop(0, m.bit_length(), step, (lo, jnp.full(jnp.shape(u), m, jnp.int32)))
+    return lo  # each step halves [lo, hi): m + 1 candidate counts
+
+
+def _sample_cdf(cdf, u, row=None):
+    """Index i with cdf[i] <= u < cdf[i+1] and the offset of u within that bin in [0, 1); with
+    `row`, in row `row` of a 2-D cdf."""
     n = cdf.shape[-1] - 1
-    i = jnp.clip(jnp.searchsorted(cdf, u, side="right") - 1, 0, n - 1)
-    lo, hi = cdf[i], cdf[i + 1]
+    if row is None:
+        cdf, row = cdf[None], jnp.zeros(jnp.shape(u), jnp.int32)
+    i = jnp.clip(_count_le(cdf, row, u) - 1, 0, n - 1)
+    lo, hi = cdf[row, i], cdf[row, i + 1]
     width = hi - lo
     t = jnp.where(width > 0, (u - lo) / jnp.where(width > 0, width, 1.0), 0.5)
     return i, jnp.clip(t, 0.0, 1.0 - 1e-7)
@@ -218,8 +241,7 @@ def sample(env: EnvMap, u: Float[Array, "*B 2"]):
     row_cdf = jax.lax.stop_gradient(env.row_cdf)
     col_cdf = jax.lax.stop_gradient(env.col_cdf)
     r, tv = _sample_cdf(row_cdf, u[..., 0])
-    c, tu = jax.vmap(_sample_cdf)(col_cdf[r.reshape(-1)], u[..., 1].reshape(-1))
-    c, tu = c.reshape(r.shape), tu.reshape(r.shape)
+    c, tu = _sample_cdf(col_cdf, u[..., 1], r)
     uu = (c + tu) / w
     vv = (r + tv) / h
     wi, st = _from_uv(env, uu, vv)

@@ -1,15 +1,16 @@
 """What every integrator shares and no integrator owns: camera-ray order, ray queries with inactive
-slots, the multiple-importance-sampling heuristic, and the sampling table of the emissive triangles. Integrators import this module, never
-each other.
+slots, the multiple-importance-sampling heuristic, the sampling table of the emissive triangles, and
+per-path uniforms drawn with an unrolled Threefry. Integrators import this module, never each other.
 """
 
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Key
 
 from jaxrt import envmap
 from jaxrt.accel import Hit
@@ -21,6 +22,54 @@ def intersect_active(geometry, origins: Float[Array, "B 3"], directions: Float[A
     """Closest hits of a batch of ray slots of which only `active` ones exist: inactive slots get an
     empty interval, so traversal rejects them at the root."""
     return geometry.intersect(origins, directions, 0.0, jnp.where(active, jnp.inf, -1.0))
+
+
+def _rotl(x, r: int):
+    return (x << np.uint32(r)) | (x >> np.uint32(32 - r))
+
+
+def _threefry2x32(k1, k2, x1, x2):
+    """Threefry-2x32 with 20 rounds (Salmon et al., "Parallel random numbers: as easy as 1, 2, 3",
+    SC 2011), the block function of JAX's default PRNG, written out round by round.
+
+    JAX lowers its `threefry2x32` primitive on the CPU as a rolled loop of 5 iterations (a `while`
+    whose every iteration writes its state to memory) to keep compile times short; written out, the
+    hash and whatever consumes it fuse into one loop over the batch. Same uint32 arithmetic, so the
+    same bits as `jax.random`."""
+    ks = (k1, k2, k1 ^ k2 ^ np.uint32(0x1BD11BDA))
+    rot = ((13, 15, 26, 6), (17, 29, 16, 24))
+    x1, x2 = x1 + ks[0], x2 + ks[1]
+    for i in range(5):
+        for r in rot[i % 2]:
+            x1 = x1 + x2
+            x2 = _rotl(x2, r) ^ x1
+        x1 = x1 + ks[(i + 1) % 3]
+        x2 = x2 + ks[(i + 2) % 3] + np.uint32(i + 1)
+    return x1, x2
+
+
+def fold_in_uniforms(keys: Key[Array, " B"], k: int | Array, n: int) -> Float[Array, "B n"]:
+    """``jax.random.uniform(jax.random.fold_in(key, k), (n,))`` for each of B typed keys, bit for
+    bit; for Threefry keys and float32 (JAX's defaults) from an unrolled hash (see `_threefry2x32`).
+
+    fold_in hashes the counter (0, k) with the key; element j of the uniform draw hashes (0, j) with
+    the folded key and takes the XOR of the two output words (JAX's default
+    ``jax_threefry_partitionable`` layout), whose top 23 bits become the mantissa of a float in
+    [1, 2), minus 1.
+
+    XLA fuses the hash into every consumer of the result (each column's use recomputes the
+    row's hashes; XLA:CPU drops optimisation barriers before fusing), so callers that use the
+    numbers more than once should store them first, e.g. as a loop-carried value."""
+    if (str(jax.random.key_impl(keys)) != "threefry2x32" or not jax.config.jax_threefry_partitionable
+            or jnp.result_type(float) != jnp.float32):  # another PRNG, layout or float width: JAX's own
+        return jax.vmap(lambda pk: jax.random.uniform(jax.random.fold_in(pk, k), (n,)))(keys)
+    key_data = jax.random.key_data(keys)
+    k1, k2 = key_data[:, 0:1], key_data[:, 1:2]
+    zero = jnp.zeros((), jnp.uint32)
+    f1, f2 = _threefry2x32(k1, k2, zero, jnp.asarray(k, jnp.uint32))
+    b1, b2 = _threefry2x32(f1, f2, zero, jnp.arange(n, dtype=jnp.uint32)[None, :])
+    mant = ((b1 ^ b2) >> np.uint32(9)) | np.uint32(0x3F800000)
+    return lax.bitcast_convert_type(mant, jnp.float32) - 1.0
 
 
 BLOCK = (8, 4)  # pixels (wide, high) per block of level-0 slots: one GPU warp's 32 rays

@@ -2,8 +2,10 @@
 
 `integrator = "path"`. Every pixel sample is one path; the B = H·W·spp paths advance together
 (wavefront style), one bounce per iteration of a `lax.fori_loop` (a scan: BVH traversal is compiled
-once, not once per bounce, and the loop is reverse-differentiable). An iteration whose paths are all
-dead skips its work (`lax.cond`), so short paths cost little whatever max_depth is.
+once, not once per bounce, and the loop is reverse-differentiable), then one last ray query that only
+collects the emission found after max_depth vertices (no light sample or next direction there). An
+iteration whose paths are all dead skips its work (`lax.cond`), so short paths cost little whatever
+max_depth is.
 
 Estimator (pbrt-v4's PathIntegrator, power heuristic with β = 2). At each path vertex:
 
@@ -62,7 +64,8 @@ from jaxtyping import Array, Float, Int
 import brdfs
 from jaxrt import camera, envmap
 from jaxrt import lights as _lights
-from jaxrt.integrators.common import emitter_table, intersect_active, power_heuristic, sample_area_light
+from jaxrt.integrators.common import (emitter_table, fold_in_uniforms, intersect_active, power_heuristic,
+                                      sample_area_light)
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, hit_params, glass_split, is_glass
 from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented, to_local
@@ -155,11 +158,11 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         alive0 = jnp.broadcast_to(jnp.arange(nsamp) < window.count, (npix, nsamp)).reshape(-1)
 
     def uniforms(k):
-        return jax.vmap(lambda pk: jax.random.uniform(jax.random.fold_in(pk, k), (_NU,)))(path_keys)
+        # jax.random.uniform(fold_in(path key, k), (_NU,)) of every path, bit for bit
+        return fold_in_uniforms(path_keys, k, _NU)
 
-    def work(k, carry):
-        o, d, alive, tput, specular, pdf_prev, L, first = carry
-        u = uniforms(k)
+    def work(k, carry, last: bool = False):
+        o, d, alive, tput, specular, pdf_prev, L, first, u = carry
         hit = intersect_active(geo, o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0
@@ -181,6 +184,10 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_l))
             L = L + jnp.where((found & (cos_l > 0))[:, None], tput * w[:, None] * le, 0.0)
 
+        if last:
+            # vertex max_depth + 1 only collects the emission its ray found: no light sample, no
+            # next direction (in the loop they would all be masked off by k < D)
+            return (o, d, jnp.zeros_like(alive), tput, specular, pdf_prev, L, first, u)
         cont = found & (k < D)
         ng, ns, _ = oriented(s, d)
         frame = local_frame(ns, s.tangent)
@@ -295,7 +302,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         tput = jnp.where(rr, tput / q_rr[:, None], tput)
         good = alive & jnp.all(jnp.isfinite(tput), axis=-1)
         tput = jnp.where(good[:, None], tput, 0.0)
-        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first)
+        # the next bounce's numbers, made here so that they are stored in the loop state
+        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first, uniforms(k + 1))
 
     def body(k, carry):
         return lax.cond(jnp.any(carry[2]), lambda c: work(k, c), lambda c: c, carry)
@@ -303,8 +311,9 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     first = dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
     # the throughput's dtype follows the material values so float64 tests stay float64
     one = jnp.ones((B, 3), jnp.result_type(float))
-    carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first)
-    carry = lax.fori_loop(0, D + 1, body, carry)
+    carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, uniforms(0))
+    carry = lax.fori_loop(0, D, body, carry)
+    carry = lax.cond(jnp.any(carry[2]), lambda c: work(D, c, last=True), lambda c: c, carry)
     L = carry[6]
     L = jnp.where(jnp.isfinite(L), L, 0.0).reshape(npix, nsamp, 3)
     if aovs:

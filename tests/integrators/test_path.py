@@ -570,3 +570,33 @@ def test_radiance_hdr_environment_matches_the_exr_one(tmp_path):
     (tmp_path / "bad.hdr").write_bytes(b"not an image")
     with pytest.raises(InputError, match="bad.hdr"):
         envmap.load(tmp_path / "bad.hdr")
+
+
+@pytest.mark.parametrize("k", [0, 1, 7, 2**31 - 1])
+def test_fold_in_uniforms_are_jax_random_bit_for_bit(k):
+    # the path tracer's per-bounce numbers come from an unrolled Threefry; they must be exactly
+    # jax.random.uniform(fold_in(path key, bounce), (8,)), so the images keep their random streams
+    from jaxrt.integrators.common import fold_in_uniforms
+
+    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(12345), i))(jnp.arange(4099, dtype=jnp.uint32))
+    ref = jax.vmap(lambda pk: jax.random.uniform(jax.random.fold_in(pk, k), (8,)))(keys)
+    got = jax.jit(fold_in_uniforms, static_argnums=2)(keys, jnp.int32(k), 8)
+    assert got.shape == (4099, 8) and got.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(ref))
+
+
+def test_envmap_row_search_matches_numpy_searchsorted():
+    # the environment sampler's per-sample binary search in a row of the 2-D cdf table must count
+    # exactly what numpy's searchsorted(side="right") counts, ties and empty bins included
+    rng = np.random.default_rng(5)
+    for m in (2, 3, 64, 129, 130):
+        w = rng.random((17, m - 1)) * (rng.random((17, m - 1)) < 0.6)  # zero-width bins (plateaus)
+        cdf = np.concatenate([np.zeros((17, 1)), np.cumsum(w, 1)], 1).astype(np.float32)
+        cdf /= np.maximum(cdf[:, -1:], 1e-30)
+        row = rng.integers(0, 17, 5000)
+        u = rng.random(5000).astype(np.float32)
+        u[:200] = cdf[row[:200], rng.integers(0, m, 200)]  # exactly on entries (ties)
+        u[200:210] = 0.0
+        got = np.asarray(jax.jit(envmap._count_le)(jnp.asarray(cdf), jnp.asarray(row, jnp.int32), jnp.asarray(u)))
+        ref = np.array([np.searchsorted(cdf[r], x, side="right") for r, x in zip(row, u)])
+        np.testing.assert_array_equal(got, ref)

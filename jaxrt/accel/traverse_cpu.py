@@ -96,13 +96,21 @@ def compile_library(stem: str, src: bytes, compiler: str, libs: tuple[str, ...] 
     return out
 
 
+def load_library(stem: str, src: bytes, compiler: str, target: str, symbol: str, state: dict,
+                 libs: tuple[str, ...] = ()) -> None:
+    """Compile (unless cached, `compile_library`) and load the FFI library, registering its `symbol` as
+    the CPU FFI target `target` once per process: `state["lib"]` keeps the registered library loaded,
+    and a later load (after a test reset) reuses that registration. Raises on any failure."""
+    lib = ctypes.CDLL(str(compile_library(stem, src, compiler, libs)))
+    if "lib" not in state:
+        jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
+        state["lib"] = lib
+
+
 def _load() -> bool:
     compiler = _compiler or os.environ.get("CXX") or "c++"
     try:
-        lib = ctypes.CDLL(str(_compile(_source(), compiler)))
-        if "lib" not in _state:  # once per process (a later load after _reset_for_tests reuses it)
-            jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(getattr(lib, _SYMBOL)), platform="cpu")
-            _state["lib"] = lib  # keep the registered library loaded
+        load_library("traverse", _source(), compiler, TARGET, _SYMBOL, _state)
     except Exception as e:  # noqa: BLE001 -- any failure means: use the XLA loop
         detail = getattr(e, "stderr", None) or str(e)
         warnings.warn(f"jaxrt: the native CPU traversal kernel is unavailable (compiler {compiler!r}: "

@@ -26,7 +26,6 @@ Embree warns once too.
 
 from __future__ import annotations
 
-import ctypes
 import ctypes.util
 import os
 import threading
@@ -64,10 +63,7 @@ def _load() -> bool:
         return False  # Embree is not installed: the native kernel, silently (unless asked for by name)
     compiler = _compiler or os.environ.get("CXX") or "c++"
     try:
-        lib = ctypes.CDLL(str(traverse_cpu.compile_library("embree", _source(), compiler, LIBS)))
-        if "lib" not in _state:  # once per process
-            jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(getattr(lib, _SYMBOL)), platform="cpu")
-            _state["lib"] = lib
+        traverse_cpu.load_library("embree", _source(), compiler, TARGET, _SYMBOL, _state, LIBS)
     except Exception as e:  # noqa: BLE001 -- any failure means: use the native kernel
         detail = getattr(e, "stderr", None) or str(e)
         warnings.warn(f"jaxrt: Embree is installed but the Embree traversal could not be built (compiler "

@@ -21,20 +21,11 @@ from test_bvh import RTOL, brute_force, check_against_reference, ray_mix
 from jaxrt.accel import bvh
 from jaxrt.accel import traverse_cpu as bvh_cpu
 from jaxrt.accel import traverse_xla as bvh_traverse
-from jaxrt.geometry import data
-from jaxrt.geometry import mesh
 
 
 def test_kernel_builds_here():
     # CI and this machine have a C++ compiler: the fast path must be what the suite exercises.
     assert bvh_cpu.available()
-
-
-@pytest.fixture(scope="module")
-def bunny(data_dir):
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("JAXRT_DATA", str(data_dir))
-        return mesh.load(data.find("bunny"))
 
 
 def _arrays(tree):

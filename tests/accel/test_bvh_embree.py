@@ -23,8 +23,6 @@ from test_bvh import RTOL, check_against_reference, ray_mix
 from jaxrt.accel import bvh
 from jaxrt.accel import traverse_cpu
 from jaxrt.accel import traverse_embree
-from jaxrt.geometry import data
-from jaxrt.geometry import mesh
 
 
 # Embree is an optional system library (Debian: libembree-dev). CI installs it (.ci/run), so there
@@ -38,13 +36,6 @@ if not os.environ.get("CI") and not traverse_embree.available():
 def test_embree_builds_here():
     # CI installs Embree (.ci/run): the CPU default must be what the suite exercises, not a fallback.
     assert traverse_embree.available()
-
-
-@pytest.fixture(scope="module")
-def bunny(data_dir):
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("JAXRT_DATA", str(data_dir))
-        return mesh.load(data.find("bunny"))
 
 
 def _arrays(tree):

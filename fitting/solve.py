@@ -457,6 +457,7 @@ def fit_images(
     devs = fit_devices(devices)
     total_steps = 0
     finals = []
+    warm = None
     t0 = time.perf_counter()
     bar = _progress(len(prob.z_starts), f"fit {model.name}", progress)
     if devs:  # every start at once, split over the devices
@@ -465,20 +466,22 @@ def fit_images(
         bar.update(len(finals))
     else:
         solve = _compiled_solver(shade, free, solver, step_cap(max_steps))
-        # the solutions committed to the device the starts are on, whether the solver is a stored program
+        # the solve's result committed to the device the starts are on, whether the solver is a stored program
         # (committed outputs) or `jax.jit`'s: the programs after the solve see one argument type, which
-        # the warm-up compiles them for
-        device = next(iter(jax.tree.leaves(prob.z_starts[0])[0].devices()))
-        warm = _warm_up_after_solve(shade, free, jax.device_put(prob.z_starts[0], device), fixed, gbuffer, pixels)
+        # the warm-up compiles them for. A fit buffer split over several devices (`fitting.compact.split`)
+        # leaves the result where the solver put it (replicated over those devices) and has no warm-up.
+        device = _single_device(gbuffer, prob.z_starts[0])
+        warm = (_warm_up_after_solve(shade, free, jax.device_put(prob.z_starts[0], device), fixed, gbuffer, pixels)
+                if device is not None else None)
         for z0 in prob.z_starts:
             z, loss, steps, ok = solve(z0, gbuffer, pixels, fixed, controls)
             total_steps += int(steps)
-            finals.append((float(loss), jax.device_put(z, device), int(steps), bool(ok)))
+            finals.append((float(loss), z if device is None else jax.device_put(z, device), int(steps), bool(ok)))
             bar.update(1)
             bar.set_postfix(loss=f"{min(f[0] for f in finals):.3e}")
     bar.close()
     wall = time.perf_counter() - t0
-    if not devs:
+    if warm is not None:
         warm.join()
 
     (_, z, steps, ok), at_best = _choose(shade, free, finals)
@@ -517,6 +520,18 @@ def fit_images(
         warnings=warnings,
         at_bound=params_at_bound(free, params),
     )
+
+
+def _single_device(gbuffer: PyTree, z0) -> jax.Device | None:
+    """The one device a fit's arrays are on (the start's when none is committed), or None when the fit
+    buffer is spread over several devices."""
+    devices = set()
+    for leaf in jax.tree.leaves(gbuffer):
+        if isinstance(leaf, jax.Array):
+            devices |= set(leaf.devices())
+    if len(devices) > 1:
+        return None
+    return next(iter(devices)) if devices else next(iter(jax.tree.leaves(z0)[0].devices()))
 
 
 def _warm_up_after_solve(shade: Callable, free: tuple[FreeParam, ...], z, fixed, gbuffer, pixels) -> threading.Thread:

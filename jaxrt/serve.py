@@ -70,8 +70,8 @@ from pathlib import Path
 
 from jaxrt import _config
 
-__all__ = ["AUTO_IDLE_TIMEOUT", "DEFAULT_IDLE_TIMEOUT", "LOCAL_COMMANDS", "MAX_JOBS", "forward", "request", "serve",
-           "socket_path", "start", "wants_worker", "worker_key"]
+__all__ = ["AUTO_IDLE_TIMEOUT", "DEFAULT_IDLE_TIMEOUT", "LOCAL_COMMANDS", "MAX_JOBS", "forward", "remove_stale", "request",
+           "serve", "socket_path", "start", "wants_worker", "worker_key"]
 
 #: Seconds a worker waits for a job before it exits.
 DEFAULT_IDLE_TIMEOUT = 900.0
@@ -197,6 +197,35 @@ def _connect(path: Path, timeout: float | None = None) -> socket.socket | None:
         return None
     s.settimeout(None)
     return s
+
+
+def remove_stale(folder: Path) -> int:
+    """Delete the files (socket, lock, log) of workers in `folder` that no longer listen; returns how
+    many workers' files went. A listening worker's files stay. The socket goes under its lock, as a
+    starting worker removes a dead one's, so a worker starting at the same moment keeps its own."""
+    import fcntl
+
+    removed = 0
+    try:
+        locks = sorted(folder.glob("worker-*.lock"))
+    except OSError:
+        return 0
+    for lock in locks:
+        sock = lock.with_suffix(".sock")
+        try:
+            with open(lock, "a") as lock_file:
+                fcntl.flock(lock_file, fcntl.LOCK_EX)
+                probe = _connect(sock, timeout=2.0)
+                if probe is not None:
+                    probe.close()
+                    continue
+                for p in (sock, lock.with_suffix(".log"), lock):
+                    with contextlib.suppress(FileNotFoundError):
+                        p.unlink()
+        except OSError:
+            continue
+        removed += 1
+    return removed
 
 
 def request(kind: bytes, path: Path | None = None, timeout: float = 10.0) -> dict | None:

@@ -720,3 +720,30 @@ def test_scene_objects_come_from_the_cache_bit_identical(cdir, tmp_path):
     before = cache.stats()
     S.load(doc)
     assert _delta(before)["misses"] >= 2  # the changed file's object (and its mesh) and the BVH
+
+
+def test_cli_cache_clear_removes_ended_workers_files_and_keeps_a_listening_one(cdir, capsys):
+    import argparse
+    import socket
+
+    from jaxrt.cli import cache as cli_cache
+
+    cdir.mkdir(parents=True, exist_ok=True)
+    dead = [cdir / f"worker-gone.{s}" for s in ("sock", "lock", "log")]
+    for p in dead:
+        p.write_bytes(b"")  # a socket file nobody listens on, as a killed worker leaves it
+    live = cdir / "worker-up.sock"
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    server.bind(str(live))
+    server.listen(1)
+    (cdir / "worker-up.lock").write_bytes(b"")
+    (cdir / "worker-up.log").write_bytes(b"serving")
+    try:
+        p = argparse.ArgumentParser()
+        cli_cache.configure(p)
+        assert cli_cache.run(p.parse_args(["clear"])) == 0
+        assert "files of 1 ended worker(s) removed" in capsys.readouterr().out
+        assert not any(p.exists() for p in dead)
+        assert live.exists() and (cdir / "worker-up.lock").exists() and (cdir / "worker-up.log").exists()
+    finally:
+        server.close()

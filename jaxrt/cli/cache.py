@@ -1,7 +1,7 @@
 """`jaxrt cache info` / `jaxrt cache clear`: where the on-disk caches are, how big, and emptying them.
 
     jaxrt cache info     # folder, on/off, entries and bytes (meshes and BVHs; compiled programs), bound
-    jaxrt cache clear    # delete every entry; prints the bytes freed
+    jaxrt cache clear    # delete every entry, and the files of workers that no longer run; prints the bytes freed
 
 See `jaxrt.cache` for what is cached and the JAXRT_CACHE_DIR / JAXRT_CACHE / JAXRT_CACHE_SIZE variables.
 This command imports neither JAX nor the renderer.
@@ -24,8 +24,14 @@ def run(args: argparse.Namespace) -> int:
     from jaxrt import cache
 
     if args.action == "clear":
+        from jaxrt import serve
+
         freed = cache.clear()
-        print(f"cleared {cache.cache_dir()}: {_mb(freed)} freed")
+        # a worker that ended (idle timeout, retirement, killed) can leave its lock and log beside the
+        # cache; a running worker's files stay, it keeps serving
+        stale = serve.remove_stale(cache.cache_dir())
+        print(f"cleared {cache.cache_dir()}: {_mb(freed)} freed"
+              + (f", files of {stale} ended worker(s) removed" if stale else ""))
         return 0
     i = cache.info()
     print(f"folder:            {i.dir}{'' if i.dir.is_dir() else ' (not created yet)'}")

@@ -5,7 +5,8 @@
 #   bash benchmarks/device_call.sh STAGE [STAGE ...]
 #
 # Expects, beside the checkout: .whl/ (trimesh, openexr, colour-science wheels for Python 3.12)
-# and .gpudata/ (a copy of the data folder: meshes/, brdfs/), both carried with the tree.
+# and .gpudata/ (a copy of the data folder: meshes/, brdfs/), both carried with the tree; optionally
+# .mitsuba/mitsuba.tar.xz (`benchmarks/mitsuba_carry.py`) for the stages that run Mitsuba beside jaxrt.
 # Writes $OUT/log.txt and the stages' JSON/NPZ/PNG files under $OUT (at most 8 files come back).
 set -u
 OUT=${OUT:-/tmp/out}
@@ -21,6 +22,12 @@ if [ -d .whl ]; then
     python3 -m compileall -q -j 0 /tmp/site "$PWD/jaxrt" "$PWD/brdfs" "$PWD/fitting" >>"$LOG" 2>&1
 else
     export PYTHONPATH="$PWD"
+fi
+if [ -f .mitsuba/mitsuba.tar.xz ]; then
+    # Mitsuba 3 and Dr.Jit, trimmed to the benchmarks' variant and plugins (`benchmarks/mitsuba_carry.py`):
+    # the whole wheel is too large to carry
+    mkdir -p /tmp/site && tar xJf .mitsuba/mitsuba.tar.xz -C /tmp/site >>"$LOG" 2>&1 \
+        && export PYTHONPATH="/tmp/site:${PYTHONPATH}" || echo "mitsuba unpack failed" | tee -a "$LOG"
 fi
 { date -u; nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader; nproc;
   python3 -c "import jax, sys; print('python', sys.version.split()[0], 'jax', jax.__version__, jax.devices())";
@@ -71,6 +78,8 @@ for s in "$@"; do
                   stage caustic-aim-65k 60 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
                       --reference .gpudata/caustic_ref.npz --photons 65536 --bias-seeds 0 ;;
         peers)    stage peers 110 python3 benchmarks/peers.py --size 1024 --no-mitsuba ;;
+        peers-mitsuba)  # the same rows with Mitsuba's cuda_ad_rgb in the same run (needs .mitsuba/ carried)
+                  stage peers-mitsuba 170 python3 benchmarks/peers.py --size 1024 --repeats 5 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

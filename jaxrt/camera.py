@@ -151,30 +151,38 @@ def generate_rays(
         rows = ri.astype(jnp.float32)[:, None, None]
         cols = ci.astype(jnp.float32)[None, :, None]
         shape = (window.height, window.width, window.spp)
-    if jitter:
-        u = uniforms()
-    else:
-        # Pixel centres use no random numbers and a pinhole (aperture 0) neither: its lens point is
-        # 0 whatever they are. Skipping them (one threefry hash per number: ~4 % of a 512² direct
-        # frame on the CPU) leaves every ray bit for bit the same.
-        u = lax.cond(camera.aperture > 0, uniforms, lambda: jnp.zeros((shape[2],) + shape[:2] + (4,), jnp.float32))
-    u = jnp.moveaxis(u, 0, 2)  # (h, w, spp, 4)
-    sub = u[..., :2] if jitter else jnp.full(shape + (2,), 0.5, jnp.float32)
-    if subpixel is not None:
-        sub = subpixel
     tan_half = jnp.tan(jnp.deg2rad(camera.vfov) * 0.5)
     aspect = w / h
-    x = (2.0 * (cols + sub[..., 0]) / w - 1.0) * tan_half * aspect
-    y = (1.0 - 2.0 * (rows + sub[..., 1]) / h) * tan_half
     r, up, f = basis(camera)
-    d = x[..., None] * r + y[..., None] * up + f  # (h, w, spp, 3), unnormalised: f-component is 1
-    # thin lens: every ray through the lens point reaches the same point on the focus plane,
-    # position + d·focus_distance; its direction is taken relative to the lens point, so it keeps
-    # its precision far from the origin and at small focus distances
-    lens_r = 0.5 * camera.aperture * jnp.sqrt(u[..., 2])
-    phi = 2.0 * jnp.pi * u[..., 3]
-    lens = (lens_r * jnp.cos(phi))[..., None] * r + (lens_r * jnp.sin(phi))[..., None] * up
-    o = camera.position + lens
-    d = d * camera.focus_distance - lens
-    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-    return o.reshape(-1, 3), d.reshape(-1, 3)
+
+    def rays(u):
+        sub = u[..., :2] if jitter else jnp.full(shape + (2,), 0.5, jnp.float32)
+        if subpixel is not None:
+            sub = subpixel
+        x = (2.0 * (cols + sub[..., 0]) / w - 1.0) * tan_half * aspect
+        y = (1.0 - 2.0 * (rows + sub[..., 1]) / h) * tan_half
+        d = x[..., None] * r + y[..., None] * up + f  # (h, w, spp, 3), unnormalised: f-component is 1
+        if u is None:
+            # a pinhole: the lens point below with radius 0, the same for every ray, made once
+            lens = jnp.float32(0.0) * r + jnp.float32(0.0) * up
+        else:
+            # thin lens: every ray through the lens point reaches the same point on the focus plane,
+            # position + d·focus_distance; its direction is taken relative to the lens point, so it
+            # keeps its precision far from the origin and at small focus distances
+            lens_r = 0.5 * camera.aperture * jnp.sqrt(u[..., 2])
+            phi = 2.0 * jnp.pi * u[..., 3]
+            lens = (lens_r * jnp.cos(phi))[..., None] * r + (lens_r * jnp.sin(phi))[..., None] * up
+        o = jnp.broadcast_to(camera.position + lens, shape + (3,))
+        d = d * camera.focus_distance - lens
+        # |d| written out: jnp.linalg.norm's reduction over an axis of 3 is a library (YNNPACK) fusion
+        # on XLA:CPU that took a quarter of a 512² direct frame (BENCHMARKS.md, "jaxrt beside Mitsuba 3")
+        d = d / jnp.sqrt(d[..., 0:1] * d[..., 0:1] + d[..., 1:2] * d[..., 1:2] + d[..., 2:3] * d[..., 2:3])
+        return o.reshape(-1, 3), d.reshape(-1, 3)
+
+    if jitter:
+        return rays(jnp.moveaxis(uniforms(), 0, 2))  # (h, w, spp, 4)
+    # Pixel centres use no random numbers and a pinhole (aperture 0) neither: its lens point is 0
+    # whatever they are. Skipping them and the per-ray lens (one threefry hash per number, a sqrt,
+    # cos and sin per ray: ~4 % and more of a 512² direct frame on the CPU) leaves every ray bit for
+    # bit the same.
+    return lax.cond(camera.aperture > 0, lambda: rays(jnp.moveaxis(uniforms(), 0, 2)), lambda: rays(None))

@@ -110,6 +110,7 @@ def uniform_at(key, index: Int[Array, "..."], size: int) -> Float[Array, "..."]:
 def generate_rays(
     camera: Camera, spp: int = 1, seed: Int[Array, ""] | int = 0, jitter: bool | None = None,
     window: Window | None = None, subpixel: Float[Array, "h w spp 2"] | None = None,
+    order: np.ndarray | None = None,
 ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
     """Primary rays for every pixel sample, N = height·width·spp, ordered (row, column, sample).
 
@@ -126,6 +127,12 @@ def generate_rays(
     `subpixel` (no window): each sample's position in its pixel, in [0, 1)², instead of the
     jitter's uniforms (a low-discrepancy sequence over progressive passes, say).
 
+    `order` (static numpy ints, with or without a window): the indices, in the order above, of the
+    rays to make, in the order to make them (an integrator's slot order: `integrators.sample_order`);
+    each ray is the one made without `order` at that index, bit for bit where the compiler rounds
+    both programs alike. Pixel-centre rays of a pinhole are made in that order directly; otherwise
+    the random numbers are permuted, not the rays.
+
     Returns:
         origins (N, 3) and unit directions (N, 3), float32.
     """
@@ -139,6 +146,9 @@ def generate_rays(
         rows = jnp.arange(h, dtype=jnp.float32)[:, None, None]
         cols = jnp.arange(w, dtype=jnp.float32)[None, :, None]
         shape = (h, w, spp)
+        if order is not None:
+            pix = np.asarray(order) // spp
+            rows, cols, shape = (pix // w).astype(np.float32), (pix % w).astype(np.float32), (len(pix),)
     else:
         ri = window.row0 + jnp.arange(window.height)
         ci = window.col0 + jnp.arange(window.width)
@@ -151,14 +161,24 @@ def generate_rays(
         rows = ri.astype(jnp.float32)[:, None, None]
         cols = ci.astype(jnp.float32)[None, :, None]
         shape = (window.height, window.width, window.spp)
+        if order is not None:
+            pix = np.asarray(order) // window.spp
+            rows = (window.row0 + pix // window.width).astype(jnp.float32)
+            cols = (window.col0 + pix % window.width).astype(jnp.float32)
+            shape = (len(pix),)
     tan_half = jnp.tan(jnp.deg2rad(camera.vfov) * 0.5)
     aspect = w / h
     r, up, f = basis(camera)
 
+    def random(u):
+        # (spp, h, w, 4) -> (h, w, spp, 4), or their rows at `order`
+        u = jnp.moveaxis(u, 0, 2)
+        return u if order is None else u.reshape(-1, 4)[order]
+
     def rays(u):
         sub = u[..., :2] if jitter else jnp.full(shape + (2,), 0.5, jnp.float32)
         if subpixel is not None:
-            sub = subpixel
+            sub = subpixel if order is None else subpixel.reshape(-1, 2)[order]
         x = (2.0 * (cols + sub[..., 0]) / w - 1.0) * tan_half * aspect
         y = (1.0 - 2.0 * (rows + sub[..., 1]) / h) * tan_half
         d = x[..., None] * r + y[..., None] * up + f  # (h, w, spp, 3), unnormalised: f-component is 1
@@ -180,9 +200,9 @@ def generate_rays(
         return o.reshape(-1, 3), d.reshape(-1, 3)
 
     if jitter:
-        return rays(jnp.moveaxis(uniforms(), 0, 2))  # (h, w, spp, 4)
+        return rays(random(uniforms()))
     # Pixel centres use no random numbers and a pinhole (aperture 0) neither: its lens point is 0
     # whatever they are. Skipping them and the per-ray lens (one threefry hash per number, a sqrt,
     # cos and sin per ray: ~4 % and more of a 512² direct frame on the CPU) leaves every ray bit for
     # bit the same.
-    return lax.cond(camera.aperture > 0, lambda: rays(jnp.moveaxis(uniforms(), 0, 2)), lambda: rays(None))
+    return lax.cond(camera.aperture > 0, lambda: rays(random(uniforms())), lambda: rays(None))

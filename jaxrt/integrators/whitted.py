@@ -143,12 +143,11 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
     glass_shadows = transmits(scene)
 
     order, first = sample_order(th, tw, spp)
-    o0, d0 = camera.generate_rays(cam, st.spp, st.seed, window=window)
-    o0, d0 = o0[order], d0[order]
+    # made in slot order (no gather of the rays), unit directions
+    o0, d0 = camera.generate_rays(cam, st.spp, st.seed, window=window, order=order)
     pad = B - n
     o0 = jnp.pad(o0, ((0, pad), (0, 0)))
-    d0 = jnp.pad(d0, ((0, pad), (0, 0)), constant_values=1.0)
-    d0 = normalize(d0)
+    d0 = jnp.concatenate([d0, jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], d0.dtype), (pad, 3))])
     act0 = jnp.arange(B) < n
     if window is not None:
         act0 = act0 & (jnp.pad(jnp.asarray(order % spp), (0, pad)) < window.count)

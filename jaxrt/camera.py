@@ -181,7 +181,7 @@ def generate_rays(
             sub = subpixel if order is None else subpixel.reshape(-1, 2)[order]
         x = (2.0 * (cols + sub[..., 0]) / w - 1.0) * tan_half * aspect
         y = (1.0 - 2.0 * (rows + sub[..., 1]) / h) * tan_half
-        d = x[..., None] * r + y[..., None] * up + f  # (h, w, spp, 3), unnormalised: f-component is 1
+        d = x[..., None] * r + y[..., None] * up + f  # (h, w, spp, 3) or (N, 3), unnormalised: f-component 1
         if u is None:
             # a pinhole: the lens point below with radius 0, the same for every ray, made once
             lens = jnp.float32(0.0) * r + jnp.float32(0.0) * up

@@ -91,6 +91,7 @@ def test_rays_made_in_a_given_order_are_those_rays(aperture, spp):
     win = C.Window(jnp.int32(2), jnp.int32(3), jnp.int32(0), jnp.int32(spp), 4, 6, spp)
     wperm = np.random.default_rng(7).permutation(4 * 6 * spp)
     ow, dw = (np.asarray(x) for x in jax.jit(lambda c, w: C.generate_rays(c, spp, 4, window=w))(cam, win))
-    owo, dwo = (np.asarray(x) for x in jax.jit(lambda c, w: C.generate_rays(c, spp, 4, window=w, order=wperm))(cam, win))
+    gen = jax.jit(lambda c, w: C.generate_rays(c, spp, 4, window=w, order=wperm))
+    owo, dwo = (np.asarray(x) for x in gen(cam, win))
     np.testing.assert_array_max_ulp(owo, ow[wperm], maxulp=4)
     close(dwo, dw[wperm])

@@ -140,7 +140,8 @@ def test_window_rays_are_the_image_rays():
         close(dw, di)
         if i == 0:  # the tolerance tells neighbours apart: one sample or one column off fails it
             r0, c0, s0, th, tw, sb = _WINDOWS[0]
-            for shifted in (d[r0:r0 + th, c0:c0 + tw, s0 + 1:s0 + sb + 1], d[r0:r0 + th, c0 + 1:c0 + tw + 1, s0:s0 + sb]):
+            for shifted in (d[r0:r0 + th, c0:c0 + tw, s0 + 1:s0 + sb + 1],
+                            d[r0:r0 + th, c0 + 1:c0 + tw + 1, s0:s0 + sb]):
                 with pytest.raises(AssertionError):
                     close(dw, shifted)
 

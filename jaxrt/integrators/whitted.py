@@ -40,7 +40,8 @@ smallest path throughput are dropped first (every ray's dominant branch fits, si
 at most B parents); the GBuffer counts dropped branches. Scenes without glass never branch, so
 ray_budget = 1 loses nothing; the default is 2 for scenes with glass. The levels are a
 `lax.while_loop` that stops as soon as no ray is alive, so a scene without mirrors traces one
-level whatever max_depth is (max_depth 1, direct light only, runs its one level without a loop). A child whose weight is zero at trace time (δ = 0) is not traced.
+level whatever max_depth is (max_depth 1, direct light only, runs its one level without a loop).
+A child whose weight is zero at trace time (δ = 0) is not traced.
 
 Surfaces
 --------

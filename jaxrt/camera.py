@@ -110,6 +110,7 @@ def uniform_at(key, index: Int[Array, "..."], size: int) -> Float[Array, "..."]:
 def generate_rays(
     camera: Camera, spp: int = 1, seed: Int[Array, ""] | int = 0, jitter: bool | None = None,
     window: Window | None = None, subpixel: Float[Array, "h w spp 2"] | None = None,
+    order: np.ndarray | None = None,
 ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
     """Primary rays for every pixel sample, N = height·width·spp, ordered (row, column, sample).
 
@@ -126,6 +127,12 @@ def generate_rays(
     `subpixel` (no window): each sample's position in its pixel, in [0, 1)², instead of the
     jitter's uniforms (a low-discrepancy sequence over progressive passes, say).
 
+    `order` (static numpy ints, with or without a window): the indices, in the order above, of the
+    rays to make, in the order to make them (an integrator's slot order: `integrators.sample_order`);
+    each ray is the one made without `order` at that index, bit for bit where the compiler rounds
+    both programs alike. Pixel-centre rays of a pinhole are made in that order directly; otherwise
+    the random numbers are permuted, not the rays.
+
     Returns:
         origins (N, 3) and unit directions (N, 3), float32.
     """
@@ -139,6 +146,9 @@ def generate_rays(
         rows = jnp.arange(h, dtype=jnp.float32)[:, None, None]
         cols = jnp.arange(w, dtype=jnp.float32)[None, :, None]
         shape = (h, w, spp)
+        if order is not None:
+            pix = np.asarray(order) // spp
+            rows, cols, shape = (pix // w).astype(np.float32), (pix % w).astype(np.float32), (len(pix),)
     else:
         ri = window.row0 + jnp.arange(window.height)
         ci = window.col0 + jnp.arange(window.width)
@@ -151,30 +161,48 @@ def generate_rays(
         rows = ri.astype(jnp.float32)[:, None, None]
         cols = ci.astype(jnp.float32)[None, :, None]
         shape = (window.height, window.width, window.spp)
-    if jitter:
-        u = uniforms()
-    else:
-        # Pixel centres use no random numbers and a pinhole (aperture 0) neither: its lens point is
-        # 0 whatever they are. Skipping them (one threefry hash per number: ~4 % of a 512² direct
-        # frame on the CPU) leaves every ray bit for bit the same.
-        u = lax.cond(camera.aperture > 0, uniforms, lambda: jnp.zeros((shape[2],) + shape[:2] + (4,), jnp.float32))
-    u = jnp.moveaxis(u, 0, 2)  # (h, w, spp, 4)
-    sub = u[..., :2] if jitter else jnp.full(shape + (2,), 0.5, jnp.float32)
-    if subpixel is not None:
-        sub = subpixel
+        if order is not None:
+            pix = np.asarray(order) // window.spp
+            rows = (window.row0 + pix // window.width).astype(jnp.float32)
+            cols = (window.col0 + pix % window.width).astype(jnp.float32)
+            shape = (len(pix),)
     tan_half = jnp.tan(jnp.deg2rad(camera.vfov) * 0.5)
     aspect = w / h
-    x = (2.0 * (cols + sub[..., 0]) / w - 1.0) * tan_half * aspect
-    y = (1.0 - 2.0 * (rows + sub[..., 1]) / h) * tan_half
     r, up, f = basis(camera)
-    d = x[..., None] * r + y[..., None] * up + f  # (h, w, spp, 3), unnormalised: f-component is 1
-    # thin lens: every ray through the lens point reaches the same point on the focus plane,
-    # position + d·focus_distance; its direction is taken relative to the lens point, so it keeps
-    # its precision far from the origin and at small focus distances
-    lens_r = 0.5 * camera.aperture * jnp.sqrt(u[..., 2])
-    phi = 2.0 * jnp.pi * u[..., 3]
-    lens = (lens_r * jnp.cos(phi))[..., None] * r + (lens_r * jnp.sin(phi))[..., None] * up
-    o = camera.position + lens
-    d = d * camera.focus_distance - lens
-    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-    return o.reshape(-1, 3), d.reshape(-1, 3)
+
+    def random(u):
+        # (spp, h, w, 4) -> (h, w, spp, 4), or their rows at `order`
+        u = jnp.moveaxis(u, 0, 2)
+        return u if order is None else u.reshape(-1, 4)[order]
+
+    def rays(u):
+        sub = u[..., :2] if jitter else jnp.full(shape + (2,), 0.5, jnp.float32)
+        if subpixel is not None:
+            sub = subpixel if order is None else subpixel.reshape(-1, 2)[order]
+        x = (2.0 * (cols + sub[..., 0]) / w - 1.0) * tan_half * aspect
+        y = (1.0 - 2.0 * (rows + sub[..., 1]) / h) * tan_half
+        d = x[..., None] * r + y[..., None] * up + f  # (h, w, spp, 3) or (N, 3), unnormalised: f-component 1
+        if u is None:
+            # a pinhole: the lens point below with radius 0, the same for every ray, made once
+            lens = jnp.float32(0.0) * r + jnp.float32(0.0) * up
+        else:
+            # thin lens: every ray through the lens point reaches the same point on the focus plane,
+            # position + d·focus_distance; its direction is taken relative to the lens point, so it
+            # keeps its precision far from the origin and at small focus distances
+            lens_r = 0.5 * camera.aperture * jnp.sqrt(u[..., 2])
+            phi = 2.0 * jnp.pi * u[..., 3]
+            lens = (lens_r * jnp.cos(phi))[..., None] * r + (lens_r * jnp.sin(phi))[..., None] * up
+        o = jnp.broadcast_to(camera.position + lens, shape + (3,))
+        d = d * camera.focus_distance - lens
+        # |d| written out: jnp.linalg.norm's reduction over an axis of 3 is a library (YNNPACK) fusion
+        # on XLA:CPU that took a quarter of a 512² direct frame (BENCHMARKS.md, "jaxrt beside Mitsuba 3")
+        d = d / jnp.sqrt(d[..., 0:1] * d[..., 0:1] + d[..., 1:2] * d[..., 1:2] + d[..., 2:3] * d[..., 2:3])
+        return o.reshape(-1, 3), d.reshape(-1, 3)
+
+    if jitter:
+        return rays(random(uniforms()))
+    # Pixel centres use no random numbers and a pinhole (aperture 0) neither: its lens point is 0
+    # whatever they are. Skipping them and the per-ray lens (one threefry hash per number, a sqrt,
+    # cos and sin per ray: ~4 % and more of a 512² direct frame on the CPU) leaves every ray bit for
+    # bit the same.
+    return lax.cond(camera.aperture > 0, lambda: rays(random(uniforms())), lambda: rays(None))

@@ -72,3 +72,26 @@ def test_jitter_is_reproducible_from_the_seed_and_stays_in_the_pixel(spp):
     c = np.asarray(corners, np.float64).reshape(4, 4, 3)
     ang_pix = np.degrees(np.arccos(np.clip(np.sum(d * c[:, :, None], -1), -1, 1)))
     assert ang_pix.max() < 35.0 / 4 * 0.75  # within ~half a pixel diagonal of the centre
+
+
+@pytest.mark.parametrize("aperture, spp", [(0.0, 1), (0.0, 3), (0.3, 2)])
+def test_rays_made_in_a_given_order_are_those_rays(aperture, spp):
+    """`order` makes the rays at those indices (pinhole centres directly, jittered or lens rays
+    from permuted random numbers), with and without a window: the rays made without it, permuted,
+    within rounding (the two programs may contract a·b + c into FMAs differently: a few ulps of the
+    terms, so of 1 for a unit direction's components, which cancel to ~0 in some)."""
+    close = lambda a, b: np.testing.assert_allclose(a, b, rtol=0, atol=4 * 2.0**-24)  # noqa: E731
+    cam = _cam(aperture, w=13, h=7)
+    perm = np.random.default_rng(spp).permutation(13 * 7 * spp)
+    o, d = (np.asarray(x) for x in jax.jit(lambda c: C.generate_rays(c, spp, 4))(cam))
+    oo, do = (np.asarray(x) for x in jax.jit(lambda c: C.generate_rays(c, spp, 4, order=perm))(cam))
+    assert not np.array_equal(d, d[perm])  # the permutation moves rays
+    np.testing.assert_array_max_ulp(oo, o[perm], maxulp=4)
+    close(do, d[perm])
+    win = C.Window(jnp.int32(2), jnp.int32(3), jnp.int32(0), jnp.int32(spp), 4, 6, spp)
+    wperm = np.random.default_rng(7).permutation(4 * 6 * spp)
+    ow, dw = (np.asarray(x) for x in jax.jit(lambda c, w: C.generate_rays(c, spp, 4, window=w))(cam, win))
+    gen = jax.jit(lambda c, w: C.generate_rays(c, spp, 4, window=w, order=wperm))
+    owo, dwo = (np.asarray(x) for x in gen(cam, win))
+    np.testing.assert_array_max_ulp(owo, ow[wperm], maxulp=4)
+    close(dwo, dw[wperm])

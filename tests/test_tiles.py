@@ -109,17 +109,41 @@ def test_uniform_at_is_jax_random_uniform(partitionable):
             np.testing.assert_array_equal(got.view(np.uint32), ref[idx].view(np.uint32))
 
 
-def test_window_rays_are_the_image_rays():
-    cam = C.Camera(position=jnp.array([1.0, 2.0, 3.0]), look_at=jnp.array([0.0, 0.5, -1.0]),
-                   up=jnp.array([0.0, 1.0, 0.0]), vfov=jnp.asarray(35.0), aperture=jnp.asarray(0.2),
-                   focus_distance=jnp.asarray(5.0), width=13, height=7)
+_CAMERA = dict(position=[1.0, 2.0, 3.0], look_at=[0.0, 0.5, -1.0], up=[0.0, 1.0, 0.0], vfov=35.0, aperture=0.2,
+               focus_distance=5.0, width=13, height=7)
+# (row0, col0, sample0, height, width, samples) of windows of the 7x13 image's 5 samples per pixel
+_WINDOWS = [(2, 3, 1, 4, 6, 3), (5, 9, 4, 2, 4, 1)]
+
+
+def window_ray_pairs():
+    """(window's rays, the image's rays of the same pixels and samples) for each of `_WINDOWS`, as
+    (origins, directions) pairs of numpy arrays (th, tw, sb, 3)."""
+    cam = C.Camera(**{k: v if isinstance(v, int) else jnp.asarray(v) for k, v in _CAMERA.items()})
     gen = jax.jit(C.generate_rays, static_argnames=("spp", "jitter"))
     o, d = (np.asarray(x).reshape(7, 13, 5, 3) for x in gen(cam, 5, 9))
-    for r0, c0, s0, th, tw, sb in [(2, 3, 1, 4, 6, 3), (5, 9, 4, 2, 4, 1)]:
+    for r0, c0, s0, th, tw, sb in _WINDOWS:
         win = C.Window(jnp.int32(r0), jnp.int32(c0), jnp.int32(s0), jnp.int32(sb), th, tw, sb)
         ow, dw = (np.asarray(x).reshape(th, tw, sb, 3) for x in gen(cam, 5, 9, window=win))
-        np.testing.assert_array_equal(ow, o[r0:r0 + th, c0:c0 + tw, s0:s0 + sb])
-        np.testing.assert_array_equal(dw, d[r0:r0 + th, c0:c0 + tw, s0:s0 + sb])
+        yield (ow, dw), (o[r0:r0 + th, c0:c0 + tw, s0:s0 + sb], d[r0:r0 + th, c0:c0 + tw, s0:s0 + sb]), (o, d)
+
+
+def test_window_rays_are_the_image_rays():
+    """A window's rays are the image's rays of its pixels and samples (same pixel, same random
+    counters): bit for bit where XLA evaluates both programs' arithmetic alike (the exact flags:
+    `test_tiles_are_bit_identical_where_the_arithmetic_is_shape_independent`), within rounding here,
+    where XLA:CPU may contract a·b + c into an FMA in one program and not in the other. Rounding is
+    far below what the wrong pixel, sample or random number would change (checked below)."""
+    # a few ulps of the terms: of 1 for a unit direction's components (some cancel to ~0)
+    close = lambda a, b: np.testing.assert_allclose(a, b, rtol=0, atol=4 * 2.0**-24)  # noqa: E731
+    for i, ((ow, dw), (oi, di), (o, d)) in enumerate(window_ray_pairs()):
+        np.testing.assert_array_max_ulp(ow, oi, maxulp=4)
+        close(dw, di)
+        if i == 0:  # the tolerance tells neighbours apart: one sample or one column off fails it
+            r0, c0, s0, th, tw, sb = _WINDOWS[0]
+            for shifted in (d[r0:r0 + th, c0:c0 + tw, s0 + 1:s0 + sb + 1],
+                            d[r0:r0 + th, c0 + 1:c0 + tw + 1, s0:s0 + sb]):
+                with pytest.raises(AssertionError):
+                    close(dw, shifted)
 
 
 # ---- plans ------------------------------------------------------------------------------------------
@@ -201,7 +225,7 @@ import numpy as np
 sys.path.insert(0, sys.argv[1])
 import test_tiles as T
 from jaxrt import integrators, render_tiles, scene as S
-out = {}
+out = {"window_rays": all(np.array_equal(a, b) for w, i, _ in T.window_ray_pairs() for a, b in zip(w, i))}
 for name, doc, rays in (("whitted", T.whitted_doc(), 400), ("path", T.path_doc(), 240), ("batches", T.path_doc(), 100)):
     sc = S.load(doc)
     ref, ref_aovs = integrators.frame(sc, aovs=True)
@@ -230,6 +254,7 @@ def test_tiles_are_bit_identical_where_the_arithmetic_is_shape_independent(tmp_p
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["window_rays"]  # a window's rays are the image's bit for bit (`test_window_rays_are_the_image_rays`)
     for name in ("whitted", "path"):
         o = out[name]
         assert o["shape"][2] == o["spp"] and o["batches"] == 1 and o["max"] > 0.1

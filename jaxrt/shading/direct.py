@@ -58,8 +58,13 @@ def direct_terms(scene, s: Surface, d: Float[Array, "B 3"], visible: Bool[Array,
     ng, ns, _ = oriented(s, d)
     frame = local_frame(ns, s.tangent)
     wi, _, scale = _lights.incident(scene.lights, s.p)  # (B, L, 3), (B, L, 3)
-    wo_l = to_local(-d, frame)[:, None, :]
-    wi_l = to_local(wi, tuple(x[:, None, :] for x in frame))
+    frame = tuple(x[:, None, :] for x in frame)
+    # wo made (B, 1, 3) before its local components are stacked, not after: a model that reads only
+    # cosines (wo_l[..., 2]: Lambert) then slices the stack itself, which XLA simplifies, so the
+    # tangent, bitangent and the dot products with them are never computed (a reshape between the
+    # stack and the slice kept all of them on the CPU: gathers and a cross product per hit)
+    wo_l = to_local(-d[:, None, :], frame)
+    wi_l = to_local(wi, frame)
     cos = jnp.maximum(wi_l[..., 2], 0.0)
     above = dot(wi, ng[:, None, :]) > 0
     if visible.dtype == bool:

@@ -110,7 +110,7 @@ def uniform_at(key, index: Int[Array, "..."], size: int) -> Float[Array, "..."]:
 def generate_rays(
     camera: Camera, spp: int = 1, seed: Int[Array, ""] | int = 0, jitter: bool | None = None,
     window: Window | None = None, subpixel: Float[Array, "h w spp 2"] | None = None,
-    order: np.ndarray | None = None,
+    order: Int[Array, " n"] | np.ndarray | None = None,
 ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
     """Primary rays for every pixel sample, N = height·width·spp, ordered (row, column, sample).
 
@@ -127,7 +127,7 @@ def generate_rays(
     `subpixel` (no window): each sample's position in its pixel, in [0, 1)², instead of the
     jitter's uniforms (a low-discrepancy sequence over progressive passes, say).
 
-    `order` (static numpy ints, with or without a window): the indices, in the order above, of the
+    `order` (ints, with or without a window; `integrators.sample_order_arrays`): the indices, in the order above, of the
     rays to make, in the order to make them (an integrator's slot order: `integrators.sample_order`);
     each ray is the one made without `order` at that index, bit for bit where the compiler rounds
     both programs alike. Pixel-centre rays of a pinhole are made in that order directly; otherwise
@@ -147,7 +147,7 @@ def generate_rays(
         cols = jnp.arange(w, dtype=jnp.float32)[None, :, None]
         shape = (h, w, spp)
         if order is not None:
-            pix = np.asarray(order) // spp
+            pix = jnp.asarray(order) // spp
             rows, cols, shape = (pix // w).astype(np.float32), (pix % w).astype(np.float32), (len(pix),)
     else:
         ri = window.row0 + jnp.arange(window.height)
@@ -162,7 +162,7 @@ def generate_rays(
         cols = ci.astype(jnp.float32)[None, :, None]
         shape = (window.height, window.width, window.spp)
         if order is not None:
-            pix = np.asarray(order) // window.spp
+            pix = jnp.asarray(order) // window.spp
             rows = (window.row0 + pix // window.width).astype(jnp.float32)
             cols = (window.col0 + pix % window.width).astype(jnp.float32)
             shape = (len(pix),)

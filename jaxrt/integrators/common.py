@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Bool, Float, Key
+from jaxtyping import Array, Bool, Float, Int, Key
 
 from jaxrt import envmap
 from jaxrt.accel import Hit
@@ -93,6 +93,27 @@ def sample_order(height: int, width: int, spp: int) -> tuple[np.ndarray, np.ndar
     first = np.empty(height * width, np.int64)
     first[pixels] = np.arange(height * width) * spp
     return samples.astype(np.int32), first.astype(np.int32)
+
+
+def sample_order_arrays(height: int, width: int, spp: int) -> tuple[Int[Array, " n"], Int[Array, " npix"]]:
+    """`sample_order` as int32 arrays of a program, made there from indices when the image is whole
+    8x4 blocks (then a slot's pixel follows from its block and place in the block), else
+    `sample_order`'s tables as constants. Why: a 1024² frame's two tables are 8 MB of constants,
+    and every constant a program holds is stored with it and read again by each process that loads
+    it (`jaxrt.programs`); the arithmetic costs a few integer operations per ray."""
+    bw, bh = BLOCK
+    if width % bw or height % bh:
+        order, first = sample_order(height, width, spp)
+        return jnp.asarray(order), jnp.asarray(first)
+    nbx = width // bw
+    s = jnp.arange(height * width * spp, dtype=jnp.int32)
+    p, j = s // spp, s % spp  # pixel rank, sample
+    b, q = p // (bw * bh), p % (bw * bh)  # block, place in the block
+    order = (((b // nbx) * bh + q // bw) * width + (b % nbx) * bw + q % bw) * spp + j
+    i = jnp.arange(height * width, dtype=jnp.int32)
+    y, x = i // width, i % width
+    first = (((y // bh) * nbx + x // bw) * (bw * bh) + (y % bh) * bw + x % bw) * spp
+    return order, first
 
 
 def power_heuristic(a, b):

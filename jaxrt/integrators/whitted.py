@@ -65,7 +65,7 @@ from jaxtyping import Array, Bool, Float, Int
 import brdfs
 from jaxrt import camera
 from jaxrt import lights as _lights
-from jaxrt.integrators.common import intersect_active, sample_order
+from jaxrt.integrators.common import intersect_active, sample_order_arrays
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading import shadows as _shadows
 from jaxrt.shading.direct import local_radiance
@@ -143,7 +143,7 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
     wdtype = jnp.result_type(mats.delta.dtype, jnp.float32)
     glass_shadows = transmits(scene)
 
-    order, first = sample_order(th, tw, spp)
+    order, first = sample_order_arrays(th, tw, spp)
     # made in slot order (no gather of the rays), unit directions
     o0, d0 = camera.generate_rays(cam, st.spp, st.seed, window=window, order=order)
     pad = B - n
@@ -151,8 +151,8 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
     d0 = jnp.concatenate([d0, jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], d0.dtype), (pad, 3))])
     act0 = jnp.arange(B) < n
     if window is not None:
-        act0 = act0 & (jnp.pad(jnp.asarray(order % spp), (0, pad)) < window.count)
-    pix0 = jnp.pad(jnp.asarray(order // spp), (0, pad))
+        act0 = act0 & (jnp.pad(order % spp, (0, pad)) < window.count)
+    pix0 = jnp.pad(order // spp, (0, pad))
 
     buf = None
     if record:
@@ -364,7 +364,7 @@ def shade(gbuffer: GBuffer, scene, aovs: bool = False):
     image = (jnp.sum(imgs, axis=0) / st.spp).reshape(cam.height, cam.width, 3)
     if not aovs:
         return image
-    first = sample_order(cam.height, cam.width, st.spp)[1]  # level-0 slot of each pixel's first sample
+    first = sample_order_arrays(cam.height, cam.width, st.spp)[1]  # level-0 slot of each pixel's first sample
     return image, build_aovs(scene, *(x[0, first] for x in (gbuffer.prim, gbuffer.u, gbuffer.v, gbuffer.t,
                                                            gbuffer.direction)))
 

@@ -296,3 +296,19 @@ def test_sample_order_blocks_and_inverse():
         if h % 4 == 0 and w % 8 == 0 and spp == 1:
             y, x = np.divmod(pix.reshape(-1, 32), w)
             assert np.all(y.max(1) - y.min(1) == 3) and np.all(x.max(1) - x.min(1) == 7)
+
+
+def test_sample_order_arrays_are_sample_orders_tables():
+    """The slot order made in a program from indices (whole 8x4 blocks) or read from constants
+    (otherwise) equals `sample_order`'s numpy tables, and a program of a block-divisible image holds
+    no table-sized constant."""
+    from jaxrt.integrators import sample_order
+    from jaxrt.integrators.common import sample_order_arrays
+
+    for h, w, spp in ((8, 16, 1), (12, 40, 3), (64, 24, 2), (7, 13, 3), (4, 12, 1)):
+        order, first = sample_order(h, w, spp)
+        got = jax.jit(sample_order_arrays, static_argnums=(0, 1, 2))(h, w, spp)
+        np.testing.assert_array_equal(np.asarray(got[0]), order, err_msg=f"{h}x{w}x{spp}")
+        np.testing.assert_array_equal(np.asarray(got[1]), first, err_msg=f"{h}x{w}x{spp}")
+    text = jax.jit(sample_order_arrays, static_argnums=(0, 1, 2)).lower(256, 256, 1).as_text()
+    assert len(text) < 20_000, len(text)  # no 65,536-entry table in the program (such a table: ~1 MB of text)

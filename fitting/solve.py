@@ -312,7 +312,7 @@ def _dot_exact(J: Float[Array, "M n"], x: Float[Array, " n"]) -> Float[Array, " 
 
 def _columnwise_jvp(r_of: Callable) -> Callable:
     """`r_of(z, args)` (z pytree -> residual vector) with a JVP in z that forms the Jacobian J column by
-    column, one forward-mode pass per flat parameter (unrolled, primal shared), and returns J·dz.
+    column, one forward-mode pass per flat parameter, and returns J·dz.
 
     Why: the Gauss-Newton solvers take J from `jax.linearize` and materialise it by vmapping the linear
     map over the basis vectors (as `jax.jacfwd` does), which carries all tangents through every op of
@@ -350,8 +350,8 @@ def _columnwise_jvp(r_of: Callable) -> Callable:
         def g(x):
             return r_of(unravel(x), args)
 
-        eye = jnp.eye(flat.size, dtype=flat.dtype)
-        J = jnp.stack([jax.jvp(g, (flat,), (eye[i],))[1] for i in range(flat.size)], axis=-1)
+        # one column a loop iteration (`lax.map`): traced and compiled once whatever the parameter count
+        J = jax.lax.map(lambda e: jax.jvp(g, (flat,), (e,))[1], jnp.eye(flat.size, dtype=flat.dtype)).T
         out = g(flat)
         if all(map(is_zero, jax.tree.leaves(dz, is_leaf=is_zero))):
             out_dot = jnp.zeros_like(out)

@@ -365,15 +365,19 @@ def _columnwise_jvp(r_of: Callable) -> Callable:
     return r
 
 
-def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
+def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int, columnwise: bool = False):
     """The single-start solve both entry points run: (z0, gbuffer, pixels, fixed, controls) -> (z, loss,
-    steps, ok); `controls` = `_controls(rtol, atol, max_steps)`, traced, max_steps ≤ `cap`."""
+    steps, ok); `controls` = `_controls(rtol, atol, max_steps)`, traced, max_steps ≤ `cap`. `columnwise`:
+    the Gauss-Newton solvers' Jacobian by `_columnwise_jvp`, for the unbatched solve only: vmapped over
+    starts or targets, its loop of forward passes runs batched too and was measured slower than the
+    batched forward mode (the 6 starts of the 256² CLI fit vmapped: 16-21 CPU s with it, 6.1-6.3 without;
+    one after another with it, 1.5), so the vmapped solves keep `jax.linearize`'s Jacobian."""
 
     def r_of(z, args):
         gbuffer, pixels, fixed = args
         return _residuals(shade(_params_from_z(free, z, fixed), gbuffer), pixels)
 
-    residuals = _columnwise_jvp(r_of) if solver in _JACOBIAN_SOLVERS else r_of
+    residuals = _columnwise_jvp(r_of) if columnwise and solver in _JACOBIAN_SOLVERS else r_of
 
     def solve(z0, gbuffer, pixels, fixed, controls):
         optx = _optx()
@@ -408,7 +412,7 @@ def _jit(fn: Callable, what: str, shade: Callable, *parts) -> Callable:
 def _compiled_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
     """A jitted single-start solve; cached so repeated fits with new targets, starts, tolerances or
     step limits (up to `cap`) never recompile."""
-    return _jit(_solve_one(shade, free, solver, cap), "solve", shade, free, solver, cap)
+    return _jit(_solve_one(shade, free, solver, cap, columnwise=True), "solve", shade, free, solver, cap)
 
 
 @functools.lru_cache(maxsize=32)

@@ -318,7 +318,8 @@ def _columnwise_jvp(r_of: Callable) -> Callable:
     map over the basis vectors (as `jax.jacfwd` does), which carries all tangents through every op of
     the shading as one batch. On XLA:CPU that batched tangent program costs far more than separate
     passes: for a 4-parameter Cook-Torrance fit over 12.6k nodes (34k residuals), 6.5 ms a Jacobian
-    batched against 2.4 ms column by column, most of an LM step (BENCHMARKS.md, "The CLI fit's solve").
+    batched against 2.4 ms column by column, most of an LM step (BENCHMARKS.md, "The CLI fit's solve, the
+    runtime's start and the image writers").
     Here J is computed in the primal part of the JVP, so under `jax.linearize` it is evaluated once per
     point, and each use of the linear map (materialising it, the trust region's predicted reduction) is
     a product with J. The columns are what forward mode gives (the same rules, one tangent at a time).
@@ -536,8 +537,9 @@ def fit_images(
             N, "all" or a list of `jax.devices()` (`jaxrt._devices.select`): the starts are split
             over those devices, each running its share as one vmapped solve (`_devices.batched`:
             padded to a multiple of N with copies of the last start, whose results are dropped).
-            Each start's solve is the same arithmetic either way, so the result equals the
-            one-device fit up to the rounding of a differently compiled program (see
+            Each start's solve is the same method either way (on one device the Gauss-Newton
+            solvers form their Jacobian column by column, `_columnwise_jvp`; vmapped, by batched
+            forward mode), so the result equals the one-device fit up to rounding (see
             `tests/integrators/test_devices_work.py` for the tolerance).
 
     Returns: FitResult with the best start's parameters, standard errors, error metrics and the

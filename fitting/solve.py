@@ -273,13 +273,112 @@ def _capped(inner, limit):
     return (minimiser if isinstance(inner, _optx().AbstractMinimiser) else least_squares)(inner, limit)
 
 
-def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
-    """The single-start solve both entry points run: (z0, gbuffer, pixels, fixed, controls) -> (z, loss,
-    steps, ok); `controls` = `_controls(rtol, atol, max_steps)`, traced, max_steps ≤ `cap`."""
+# The solvers that build the residuals' Jacobian each step (optimistix linearises the residuals and the
+# damped Gauss-Newton step materialises the linear map); BFGS takes a gradient (one reverse pass) instead.
+_JACOBIAN_SOLVERS = frozenset({"lm", "lm_normal", "gauss_newton", "dogleg"})
 
-    def residuals(z, args):
+
+# Error-free transformations for `_dot_exact`: Knuth's TwoSum and Dekker's TwoProduct with Veltkamp's
+# split of a float32 into two 12-bit halves (4097 = 2^12 + 1); see Ogita, Rump & Oishi, "Accurate sum
+# and dot product", SIAM J. Sci. Comput. 26(6), 2005.
+def _two_sum(a, b):
+    s = a + b
+    bb = s - a
+    return s, (a - (s - bb)) + (b - bb)
+
+
+def _two_product(a, b):
+    def split(x):
+        c = x * 4097.0
+        hi = c - (c - x)
+        return hi, x - hi
+
+    p = a * b
+    (ah, al), (bh, bl) = split(a), split(b)
+    return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+def _dot_exact(J: Float[Array, "M n"], x: Float[Array, " n"]) -> Float[Array, " M"]:
+    """J·x as if computed in twice the working precision and rounded once (Ogita-Rump-Oishi Dot2): the
+    products and the running sum carry their rounding errors, added back at the end."""
+    s = jnp.zeros(J.shape[:-1], J.dtype)
+    err = jnp.zeros(J.shape[:-1], J.dtype)
+    for j in range(J.shape[-1]):
+        p, e_p = _two_product(J[:, j], x[j])
+        s, e_s = _two_sum(s, p)
+        err = err + (e_p + e_s)
+    return s + err
+
+
+def _columnwise_jvp(r_of: Callable) -> Callable:
+    """`r_of(z, args)` (z pytree -> residual vector) with a JVP in z that forms the Jacobian J column by
+    column, one forward-mode pass per flat parameter, and returns J·dz.
+
+    Why: the Gauss-Newton solvers take J from `jax.linearize` and materialise it by vmapping the linear
+    map over the basis vectors (as `jax.jacfwd` does), which carries all tangents through every op of
+    the shading as one batch. On XLA:CPU that batched tangent program costs far more than separate
+    passes: for a 4-parameter Cook-Torrance fit over 12.6k nodes (34k residuals), 6.5 ms a Jacobian
+    batched against 2.4 ms column by column, most of an LM step (BENCHMARKS.md, "The CLI fit's solve, the
+    runtime's start and the image writers").
+    Here J is computed in the primal part of the JVP, so under `jax.linearize` it is evaluated once per
+    point, and each use of the linear map (materialising it, the trust region's predicted reduction) is
+    a product with J. The columns are what forward mode gives (the same rules, one tangent at a time).
+
+    J·dz is summed error-free (`_dot_exact`): near the optimum the trust region's predicted reduction
+    ½(‖r + J·δ‖² − ‖r‖²) cancels almost entirely, and a plain float32 sum of the products J_ij δ_j,
+    whose terms cancel for correlated parameters (ρs against η), rounded enough to reject steps the
+    chain-rule JVP accepted: 3 of 6 fits ran to max_steps unconverged, where with the exact sum every
+    fit converged in about the chain rule's number of steps. For a basis vector the product is J_ij
+    itself, so the materialised matrix is exactly J. Tangents of `args` (the solvers take none) go
+    through an ordinary JVP of `r_of`, so the rule is right for any caller."""
+    from jax.custom_derivatives import SymbolicZero
+    from jax.flatten_util import ravel_pytree
+
+    def is_zero(t):
+        return isinstance(t, SymbolicZero)
+
+    def instantiate(tree):
+        return jax.tree.map(lambda t: np.zeros(t.shape, t.dtype) if is_zero(t) else t, tree, is_leaf=is_zero)
+
+    @jax.custom_jvp
+    def r(z, args):
+        return r_of(z, args)
+
+    def r_jvp(primals, tangents):
+        (z, args), (dz, dargs) = primals, tangents
+        flat, unravel = ravel_pytree(z)
+
+        def g(x):
+            return r_of(unravel(x), args)
+
+        # one column a loop iteration (`lax.map`): traced and compiled once whatever the parameter count
+        J = jax.lax.map(lambda e: jax.jvp(g, (flat,), (e,))[1], jnp.eye(flat.size, dtype=flat.dtype)).T
+        out = g(flat)
+        if all(map(is_zero, jax.tree.leaves(dz, is_leaf=is_zero))):
+            out_dot = jnp.zeros_like(out)
+        else:
+            out_dot = _dot_exact(J, ravel_pytree(instantiate(dz))[0])
+        if not all(map(is_zero, jax.tree.leaves(dargs, is_leaf=is_zero))):
+            out_dot = out_dot + jax.jvp(lambda a: r_of(z, a), (args,), (instantiate(dargs),))[1]
+        return out, out_dot
+
+    r.defjvp(r_jvp, symbolic_zeros=True)
+    return r
+
+
+def _solve_one(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int, columnwise: bool = False):
+    """The single-start solve both entry points run: (z0, gbuffer, pixels, fixed, controls) -> (z, loss,
+    steps, ok); `controls` = `_controls(rtol, atol, max_steps)`, traced, max_steps ≤ `cap`. `columnwise`:
+    the Gauss-Newton solvers' Jacobian by `_columnwise_jvp`, for the unbatched solve only: vmapped over
+    starts or targets, its loop of forward passes runs batched too and was measured slower than the
+    batched forward mode (the 6 starts of the 256² CLI fit vmapped: 16-21 CPU s with it, 6.1-6.3 without;
+    one after another with it, 1.5), so the vmapped solves keep `jax.linearize`'s Jacobian."""
+
+    def r_of(z, args):
         gbuffer, pixels, fixed = args
         return _residuals(shade(_params_from_z(free, z, fixed), gbuffer), pixels)
+
+    residuals = _columnwise_jvp(r_of) if columnwise and solver in _JACOBIAN_SOLVERS else r_of
 
     def solve(z0, gbuffer, pixels, fixed, controls):
         optx = _optx()
@@ -314,7 +413,7 @@ def _jit(fn: Callable, what: str, shade: Callable, *parts) -> Callable:
 def _compiled_solver(shade: Callable, free: tuple[FreeParam, ...], solver: str, cap: int):
     """A jitted single-start solve; cached so repeated fits with new targets, starts, tolerances or
     step limits (up to `cap`) never recompile."""
-    return _jit(_solve_one(shade, free, solver, cap), "solve", shade, free, solver, cap)
+    return _jit(_solve_one(shade, free, solver, cap, columnwise=True), "solve", shade, free, solver, cap)
 
 
 @functools.lru_cache(maxsize=32)
@@ -438,8 +537,9 @@ def fit_images(
             N, "all" or a list of `jax.devices()` (`jaxrt._devices.select`): the starts are split
             over those devices, each running its share as one vmapped solve (`_devices.batched`:
             padded to a multiple of N with copies of the last start, whose results are dropped).
-            Each start's solve is the same arithmetic either way, so the result equals the
-            one-device fit up to the rounding of a differently compiled program (see
+            Each start's solve is the same method either way (on one device the Gauss-Newton
+            solvers form their Jacobian column by column, `_columnwise_jvp`; vmapped, by batched
+            forward mode), so the result equals the one-device fit up to rounding (see
             `tests/integrators/test_devices_work.py` for the tolerance).
 
     Returns: FitResult with the best start's parameters, standard errors, error metrics and the

@@ -113,3 +113,24 @@ def test_read_errors(tmp_path):
         image.read_exr(tmp_path / "bad.exr")
     with pytest.raises(InputError, match="shape"):
         image.write_exr(tmp_path / "x.exr", np.zeros((2, 2)))
+
+
+def test_render_writes_exr_and_png_at_once_as_one_after_the_other(tmp_path):
+    """`jaxrt render`'s writers run at the same time (`cli.render.write_outputs`): the files equal
+    those of the writers called one after the other, byte for byte, and an error in either (a
+    non-finite pixel) reaches the caller after both have finished."""
+    from jaxrt.cli.render import write_outputs
+
+    rng = np.random.default_rng(3)
+    img = rng.random((96, 128, 3), dtype=np.float32) * 2.0
+    aovs = {"depth": rng.random((96, 128), dtype=np.float32)}
+    image.write_exr(tmp_path / "one.exr", img, aovs)
+    image.write_png(tmp_path / "one.png", img, exposure=0.5)
+    tmp = {"a.exr": tmp_path / "both.exr", "a.png": tmp_path / "both.png"}
+    write_outputs(tmp, "a.exr", "a.png", img, aovs, 0.5)
+    assert (tmp_path / "both.exr").read_bytes() == (tmp_path / "one.exr").read_bytes()
+    assert (tmp_path / "both.png").read_bytes() == (tmp_path / "one.png").read_bytes()
+    bad = img.copy()
+    bad[5, 7, 1] = np.nan
+    with pytest.raises(InputError):
+        write_outputs({"a.exr": tmp_path / "x.exr", "a.png": tmp_path / "x.png"}, "a.exr", "a.png", bad, None, 0.0)

@@ -191,6 +191,9 @@ def run(args: argparse.Namespace) -> int:
     from fitting import setup as fit_setup
 
     check_common(args)
+    from jaxrt.cli.render import start_backend
+
+    start_backend()  # the runtime starts while the targets and scene files are read
     if args.demo:
         outs = check_outputs((args.out, ".json", "--out"), (args.plot or "fit_demo.png", ".png", "--plot"))
         return _demo(args, outs)

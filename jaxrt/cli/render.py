@@ -187,6 +187,57 @@ def parse_glare_option(text: str) -> tuple[str, dict]:
     return "set", values
 
 
+_backend: list[threading.Thread] = []
+
+
+def start_backend() -> None:
+    """Start JAX's runtime (`jax.devices()`: the platform plugins, the client, a GPU's context) in a
+    background thread, once per process, so that it overlaps the reading of the input files (scene,
+    targets, the cached mesh and BVH arrays) instead of waiting for the first transfer (~0.4 s on an
+    H200 host). The first JAX call of the command waits for it if it is still starting. Nothing is
+    compiled or placed on a device; an error here is left for that first call to raise and report.
+    The process waits for the thread before it exits (`atexit`), so a command that stops on bad input
+    meanwhile never tears the interpreter down under a runtime that is still starting."""
+    if _backend:
+        return
+
+    def start():
+        try:
+            import jax
+
+            jax.devices()
+        except Exception:  # noqa: BLE001 -- see the docstring
+            pass
+
+    import atexit
+
+    t = threading.Thread(target=start, name="jaxrt-backend", daemon=True)
+    _backend.append(t)
+    t.start()
+    atexit.register(t.join)
+
+
+def write_outputs(tmp, exr, png, img, extra, exposure: float) -> None:
+    """The EXR and the PNG, each into its temporary path, at the same time: they are independent, and
+    their compression (OpenEXR's ZIP, Pillow's zlib) runs in C with the GIL released for much of it."""
+    from jaxrt import image
+
+    jobs = []
+    if exr is not None:
+        jobs.append(lambda: image.write_exr(tmp[exr], img, extra))
+    if png is not None:
+        jobs.append(lambda: image.write_png(tmp[png], img, exposure=exposure))
+    if len(jobs) < 2:
+        for job in jobs:
+            job()
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(len(jobs), thread_name_prefix="jaxrt-write") as pool:
+        for f in [pool.submit(job) for job in jobs]:
+            f.result()  # the first error, after both have finished
+
+
 def run(args: argparse.Namespace) -> int:
     from jaxrt import _config
 
@@ -199,6 +250,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxrt import _devices
 
     devices = _devices.parse(args.devices, "--devices")  # the range is checked against the host's devices later
+    start_backend()
     outs = Outputs()
     outs.add(args.output, ".exr", "-o")
     outs.add(args.png, ".png", "--png")
@@ -232,9 +284,9 @@ def run(args: argparse.Namespace) -> int:
 
     c = spec.camera
     npix = c.width * c.height
-    # the writers run one after the other, after the render
-    reserve = max(npix * (EXR_PIXEL + (EXR_AOV_PIXEL if args.aovs else 0)) if exr is not None else 0,
-                  npix * PNG_PIXEL + min(npix, PNG_STRIP_PIXELS) * PNG_STRIP_PIXEL if png is not None else 0)
+    # the writers run at the same time, after the render (`write_outputs`)
+    reserve = (npix * (EXR_PIXEL + (EXR_AOV_PIXEL if args.aovs else 0)) if exr is not None else 0) + \
+              (npix * PNG_PIXEL + min(npix, PNG_STRIP_PIXELS) * PNG_STRIP_PIXEL if png is not None else 0)
     bar = None
     if not args.quiet:
         from tqdm import tqdm
@@ -268,10 +320,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"jaxrt render: warning: {path.name}: the image is black everywhere (no light reaches the camera)",
               file=sys.stderr)
     with outs.writing() as tmp:  # all outputs or none
-        if exr is not None:
-            image.write_exr(tmp[exr], img, extra)
-        if png is not None:
-            image.write_png(tmp[png], img, exposure=args.exposure)
+        write_outputs(tmp, exr, png, img, extra, args.exposure)
     if not args.quiet:
         wrote = " and ".join(str(p) for p in (exr, png) if p is not None)
         print(f"{path.name}: {c.width}x{c.height}, {spec.render.spp} {'passes' if spec.render.integrator == 'sppm' else 'spp'}, "

@@ -182,9 +182,12 @@ def test_step_limit_and_tolerances_are_traced_and_match_optimistix(gbuffer, solv
     assert counter["n"] == after_first  # new limits and tolerances compiled nothing
     for (max_steps, rtol, atol), (z, loss, steps, ok) in zip(settings, ours):
 
-        def residuals(z_, args):  # the data as arguments, as the library's solve takes them (same rounding)
+        def plain(z_, args):  # the data as arguments, as the library's solve takes them (same rounding)
             gb, px = args
             return S._residuals(shade(S._params_from_z(free, z_, {}), gb), px)
+
+        # the library's residuals carry its Jacobian rule for the Gauss-Newton solvers (same arithmetic)
+        residuals = S._columnwise_jvp(plain) if solver in S._JACOBIAN_SOLVERS else plain
 
         def reference(z_, gb, px, rtol=rtol, atol=atol, max_steps=max_steps):
             sol = optx.least_squares(residuals, S.SOLVERS[solver](rtol, atol), z_, args=(gb, px), max_steps=max_steps,
@@ -198,3 +201,59 @@ def test_step_limit_and_tolerances_are_traced_and_match_optimistix(gbuffer, solv
         for k in z:
             np.testing.assert_allclose(np.asarray(z[k]), np.asarray(value[k]), rtol=1e-5, atol=1e-6)
     assert S.step_cap(40) == S.step_cap(64) == 64 and S.step_cap(65) == 128 and S.step_cap(200) == 256
+
+
+def test_columnwise_jacobian_rule_matches_forward_mode_and_float64(gbuffer):
+    """The solvers' Jacobian rule (`fitting.solve._columnwise_jvp`): the materialised Jacobian equals
+    `jax.jacfwd`'s to float32 rounding and a float64 central difference to its truncation error, J·dz
+    is the float64 product of those columns rounded once, and a tangent of the data (which the
+    solvers never take) still gets the ordinary derivative."""
+    from jax.flatten_util import ravel_pytree
+
+    from fitting import solve as S
+
+    truth = {"rho_d": jnp.array([0.2, 0.3, 0.4]), "rho_s": jnp.asarray(0.4), "s": jnp.asarray(60.0)}
+    targets = shade(truth, gbuffer)
+    free = S.free_params(TOY, {}, True)
+    pixels = S._pixels(np.asarray(targets), np.ones(targets.shape[:-1], np.float32))
+    z = {"rho_d": jnp.array([0.1, -0.3, 0.5]), "rho_s": jnp.asarray(-0.2), "s": jnp.asarray(0.4)}
+
+    def plain(z_, args):
+        gb, px = args
+        return S._residuals(shade(S._params_from_z(free, z_, {}), gb), px)
+
+    ours = S._columnwise_jvp(plain)
+    flat, unravel = ravel_pytree(z)
+    args = (gbuffer, pixels)
+    J = jax.jit(jax.jacfwd(lambda x: ours(unravel(x), args)))(flat)
+    J_ref = jax.jit(jax.jacfwd(lambda x: plain(unravel(x), args)))(flat)
+    np.testing.assert_allclose(np.asarray(J), np.asarray(J_ref), rtol=1e-4, atol=1e-6)
+    # float64 central differences of the residuals, evaluated in numpy from the float32 renders' inputs
+    wi, wo = (np.asarray(gbuffer[k], np.float64) for k in ("wi", "wo"))
+    idx, tgt, sqrt_w = (np.asarray(v, np.float64) for v in pixels)
+
+    def r64(x):
+        zz = unravel(jnp.asarray(x, jnp.float32))
+        p = {k: np.asarray(v, np.float64) for k, v in S._params_from_z(free, zz, {}).items()}
+        # the parameters in float64 from the float32 transform, then the toy model in float64
+        h = wi + wo
+        h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+        lobe = (p["s"] + 8) / (8 * np.pi) * np.clip(h[..., 2], 0.0, 1.0)[..., None] ** p["s"]
+        img = (p["rho_d"] / np.pi + p["rho_s"] * lobe) * wi[..., 2:3]
+        return ((img.reshape(-1, 3)[idx.astype(int)] - tgt) * sqrt_w).reshape(-1)
+
+    # central differences in x: the transform is evaluated in float32, so step on a float32-exact grid
+    h = 2.0**-8
+    fd = np.stack([(r64(flat + h * e) - r64(flat - h * e)) / (2 * h) for e in np.eye(flat.size)], axis=-1)
+    scale = np.abs(fd).max(axis=0)
+    assert np.all(np.abs(np.asarray(J) - fd) <= 2e-3 * scale + 1e-6), np.abs(np.asarray(J) - fd).max(axis=0) / scale
+    # J·dz: the columns' float64 product, rounded once
+    dz = jnp.asarray(np.random.default_rng(0).normal(size=flat.size), jnp.float32)
+    _, tangent = jax.jit(lambda x, t: jax.jvp(lambda y: ours(unravel(y), args), (x,), (t,)))(flat, dz)
+    exact = (np.asarray(J, np.float64) @ np.asarray(dz, np.float64)).astype(np.float32)
+    np.testing.assert_array_max_ulp(np.asarray(tangent), exact, maxulp=1)
+    # a tangent of the data: the ordinary JVP
+    dgb = jax.tree.map(lambda v: 0.01 * jnp.ones_like(v), gbuffer)
+    got = jax.jvp(lambda g: ours(z, (g, pixels)), (gbuffer,), (dgb,))[1]
+    want = jax.jvp(lambda g: plain(z, (g, pixels)), (gbuffer,), (dgb,))[1]
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-7)

@@ -216,3 +216,49 @@ def test_glb_nodes_are_objects_with_transforms(tmp_path):
     tri_r = m.vertices[m.faces[m.object_id == right]]
     np.testing.assert_allclose(tri_r, (v + [10, 0, 0])[f[:2]].astype(np.float32), atol=1e-5)
     assert np.sum(m.object_id == right) == 2 and np.sum(m.object_id != right) == 4
+
+
+def _ascii_ply(vertices, faces, vertex_props="property float x\nproperty float y\nproperty float z\n",
+               face_prop="property list uchar int vertex_indices\n", counts=None) -> bytes:
+    counts = [3] * len(faces) if counts is None else counts
+    head = (f"ply\nformat ascii 1.0\ncomment made by a test\nelement vertex {len(vertices)}\n{vertex_props}"
+            f"element face {len(faces)}\n{face_prop}end_header\n")
+    body = "".join(" ".join(repr(float(x)) for x in v) + " \n" for v in vertices)
+    body += "".join(f"{c} " + " ".join(str(i) for i in f) + "\n" for c, f in zip(counts, faces))
+    return (head + body).encode()
+
+
+def test_ascii_ply_fast_path_equals_trimesh(tmp_path, monkeypatch):
+    """The one-call reader of the common ASCII PLY layout (`mesh._ascii_ply_triangles`) gives the Mesh
+    trimesh's reader gives, value for value (vertices rounded to the declared float type), and leaves
+    every other layout (extra properties, polygons, binary) to trimesh."""
+    rng = np.random.default_rng(5)
+    verts = rng.normal(size=(40, 3)) * 3.7
+    faces = rng.integers(0, 40, size=(60, 3))
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+    cases = {
+        "plain.ply": _ascii_ply(verts, faces),
+        "double.ply.gz": gzip.compress(_ascii_ply(verts, faces, vertex_props="property double x\nproperty double y\n"
+                                                                            "property double z\n")),
+        "normals.ply": _ascii_ply(np.concatenate([verts, verts / np.linalg.norm(verts, axis=1, keepdims=True)], 1),
+                                  faces, vertex_props="".join(f"property float {k}\n" for k in ("x", "y", "z", "nx", "ny", "nz"))),
+        "quads.ply": _ascii_ply(verts, np.concatenate([faces, faces[:, :1]], 1), counts=[4] * len(faces)),
+    }
+    fast_layout = {"plain.ply": True, "double.ply.gz": True, "normals.ply": False, "quads.ply": False}
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        raw = gzip.decompress(data) if name.endswith(".gz") else data
+        assert (mesh._ascii_ply_triangles(raw) is not None) == fast_layout[name], name
+        ours = mesh.load(tmp_path / name)
+        with monkeypatch.context() as m:
+            m.setattr(mesh, "_ascii_ply_triangles", lambda raw: None)
+            theirs = mesh.load(tmp_path / name)
+        for field in ("vertices", "faces", "normals", "tangents", "object_id"):
+            np.testing.assert_array_equal(getattr(ours, field), getattr(theirs, field), err_msg=f"{name} {field}")
+        assert ours.names == theirs.names
+    # the float type is honoured: a float32 file's vertices are float32 values
+    v = mesh.load(tmp_path / "plain.ply").vertices
+    np.testing.assert_array_equal(v, verts.astype(np.float32).astype(np.float64))
+    # a binary file is not this layout
+    binary = trimesh.Trimesh(verts, faces, process=False).export(file_type="ply", encoding="binary")
+    assert mesh._ascii_ply_triangles(binary) is None

@@ -200,6 +200,9 @@ def start_backend() -> None:
     meanwhile never tears the interpreter down under a runtime that is still starting."""
     if _backend:
         return
+    from jaxrt import _config
+
+    _config.apply_runtime_defaults()  # before the backend starts (no GPU preallocation), whoever imported what
 
     def start():
         try:

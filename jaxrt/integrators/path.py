@@ -135,7 +135,7 @@ def _chunk_size(n: int, triangles: int) -> int:
 
     On the CPU a bounce is ~50 XLA ops that each stream every path's state through memory: in chunks
     of CPU_CHUNK paths that state stays in cache (the Cornell box at 256², 16 spp: ~20 % less CPU
-    time per pass; BENCHMARKS.md, "Path tracing on the CPU: chunks and fusions"). The Embree kernel
+    time per pass; BENCHMARKS.md, "Path tracing on the CPU: chunks and stored samples"). The Embree kernel
     hashes its triangle table on every call (`jaxrt.accel.traverse_embree`), so a chunk keeps at
     least as many paths as there are triangles (the 871k-triangle dragon's 31 MB took ~3 ms a call:
     chunks of 4096 made its pass 2.3x slower). The n paths go in equal chunks, the fewest that respect

@@ -103,7 +103,8 @@ def main(argv=None) -> int:
           f"{os.getloadavg()[0]:.1f}")
     for k, (w, c) in med.items():
         print(f"  {k:7s} wall {w * 1e3:8.1f} ms  cpu {c * 1e3:8.1f} ms")
-    print(f"  change: wall {med['after'][0] / med['before'][0] - 1:+.1%}, cpu {med['after'][1] / med['before'][1] - 1:+.1%}")
+    (wb, cb), (wa, ca) = med["before"], med["after"]
+    print(f"  change: wall {wa / wb - 1:+.1%}, cpu {ca / cb - 1:+.1%}")
     return 0
 
 

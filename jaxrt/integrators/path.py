@@ -135,11 +135,11 @@ def _chunk_size(n: int, triangles: int) -> int:
 
     On the CPU a bounce is ~50 XLA ops that each stream every path's state through memory: in chunks
     of CPU_CHUNK paths that state stays in cache (the Cornell box at 256², 16 spp: ~20 % less CPU
-    time per pass; BENCHMARKS.md, "Path tracing on the CPU: chunks and stored samples"). The Embree kernel
-    hashes its triangle table on every call (`jaxrt.accel.traverse_embree`), so a chunk keeps at
-    least as many paths as there are triangles (the 871k-triangle dragon's 31 MB took ~3 ms a call:
-    chunks of 4096 made its pass 2.3x slower). The n paths go in equal chunks, the fewest that respect
-    both bounds. Elsewhere (GPUs) every path at once."""
+    time per pass; BENCHMARKS.md, "Path tracing on the CPU: chunks and stored samples"). The Embree
+    kernel hashes its triangle table on every call (`jaxrt.accel.traverse_embree`), so a chunk keeps
+    at least as many paths as there are triangles (the 871k-triangle dragon's 31 MB take 2-4 ms a
+    call: chunks of 4096 made its pass 2.3x slower). The n paths go in equal chunks, the fewest that
+    respect both bounds. Elsewhere (GPUs) every path at once."""
     if jax.default_backend() != "cpu":
         return n
     m = max(1, n // max(CPU_CHUNK, triangles))
@@ -152,7 +152,10 @@ def _in_chunks(fn, xs, n: int, chunk: int):
     if chunk >= n:
         return fn(xs)
     m = -(-n // chunk)
-    pad = lambda x: jnp.pad(x, [(0, m * chunk - n)] + [(0, 0)] * (x.ndim - 1)).reshape((m, chunk) + x.shape[1:])  # noqa: E731
+    def pad(x):
+        x = jnp.pad(x, [(0, m * chunk - n)] + [(0, 0)] * (x.ndim - 1))
+        return x.reshape((m, chunk) + x.shape[1:])
+
     out = lax.map(fn, jax.tree.map(pad, xs))
     return jax.tree.map(lambda y: y.reshape((m * chunk,) + y.shape[2:])[:n], out)
 
@@ -365,7 +368,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         first = dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
         # the throughput's dtype follows the material values so float64 tests stay float64
         one = jnp.ones((B, 3), jnp.result_type(float))
-        carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, uniforms(keys, 0), keys)
+        carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, uniforms(keys, 0),
+                 keys)
         carry = lax.fori_loop(0, D, body, carry)
         carry = lax.cond(jnp.any(carry[2]), lambda c: work(D, c, last=True), lambda c: c, carry)
         return carry[6], carry[7]

@@ -144,11 +144,19 @@ def load(path: str | os.PathLike, scale: float = 1.0, rotate: float = 0.0) -> En
         raise InputError(f"{path}: {e}") from None
 
 
+def _rotate(m, d, transpose: bool):
+    """m @ d (or m.T @ d) of each direction, as its three components. Written out: XLA:CPU runs a
+    (B, 3) x (3, 3) product as a library (YNNPACK) fusion that takes longer than the arithmetic."""
+    m = m.T if transpose else m
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    return tuple(m[i, 0] * x + m[i, 1] * y + m[i, 2] * z for i in range(3))
+
+
 def _to_uv(env: EnvMap, d):
-    d = d @ env.rotation.T
-    u = jnp.arctan2(d[..., 0], -d[..., 2]) * (0.5 / math.pi)
+    dx, dy, dz = _rotate(env.rotation, d, transpose=False)
+    u = jnp.arctan2(dx, -dz) * (0.5 / math.pi)
     u = u - jnp.floor(u)
-    cos_t = jnp.clip(d[..., 1], -1.0, 1.0)
+    cos_t = jnp.clip(dy, -1.0, 1.0)
     v = jnp.arccos(cos_t) / math.pi
     return u, v, jnp.sqrt(jnp.maximum(1.0 - cos_t * cos_t, 0.0))
 
@@ -157,7 +165,8 @@ def _from_uv(env: EnvMap, u, v):
     theta, phi = v * math.pi, u * 2.0 * math.pi
     st = jnp.sin(theta)
     d = jnp.stack([jnp.sin(phi) * st, jnp.cos(theta), -jnp.cos(phi) * st], axis=-1)
-    return d @ env.rotation, st  # map -> world (the inverse of a rotation is its transpose)
+    # map -> world (the inverse of a rotation is its transpose)
+    return jnp.stack(_rotate(env.rotation, d, transpose=True), axis=-1), st
 
 
 def _texel(env: EnvMap, u, v):

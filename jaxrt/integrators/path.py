@@ -1,7 +1,8 @@
 """Unidirectional path tracing with next-event estimation and multiple importance sampling.
 
 `integrator = "path"`. Every pixel sample is one path; the B = H·W·spp paths advance together
-(wavefront style), one bounce per iteration of a `lax.fori_loop` (a scan: BVH traversal is compiled
+(wavefront style; on the CPU in chunks, one after another: `_chunk_size`), one bounce per iteration of
+a `lax.fori_loop` (a scan: BVH traversal is compiled
 once, not once per bounce, and the loop is reverse-differentiable), then one last ray query that only
 collects the emission found after max_depth vertices (no light sample or next direction there). An
 iteration whose paths are all dead skips its work (`lax.cond`), so short paths cost little whatever
@@ -72,6 +73,7 @@ from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, norm
 
 RR_DEPTH = 3
 _NU = 8  # uniforms per path and bounce (see module docstring)
+CPU_CHUNK = 16384  # paths per chunk of a pass on the CPU (`_chunk_size`)
 _sg = lax.stop_gradient
 
 
@@ -112,6 +114,50 @@ def _path_keys(kpath, window: camera.Window, spp: int, width: int):
     k_hi = jax.vmap(jax.random.fold_in)(k_lo, hi)
     data = jnp.where((hi == 0)[:, None], jax.random.key_data(k_lo), jax.random.key_data(k_hi))
     return jax.random.wrap_key_data(data, impl=jax.random.key_impl(kpath))
+
+
+def _stored(tree, alive):
+    """`tree`, computed once and kept in memory, on the CPU. XLA fuses an elementwise producer into
+    each of its consumers and recomputes it there: in the environment-lit dragon's bounce
+    (`benchmarks/path.py`) each sampled direction's sines and cosines were made three times (the
+    traced program had 7 sines, the compiled one 22; 1.9x the traced program's elementwise
+    operations in all, 1.4x with the stores). An optimisation barrier does not stop that on the CPU
+    (XLA:CPU removes barriers before fusing); a conditional's operands and results are buffers. Its
+    predicate (some path of the batch alive) always holds where this runs, which the compiler cannot
+    know. On GPUs recomputing is cheap and a conditional costs a wait for the device: no-op there."""
+    if jax.default_backend() != "cpu":
+        return tree
+    return lax.cond(jnp.any(alive), lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
+
+
+def _chunk_size(n: int, triangles: int) -> int:
+    """Paths traced together (one `lax.map` step) of a pass of n paths.
+
+    On the CPU a bounce is ~50 XLA ops that each stream every path's state through memory: in chunks
+    of CPU_CHUNK paths that state stays in cache (the Cornell box at 256², 16 spp: ~20 % less CPU
+    time per pass; BENCHMARKS.md, "Path tracing on the CPU: chunks and stored samples"). The Embree
+    kernel hashes its triangle table on every call (`jaxrt.accel.traverse_embree`), so a chunk keeps
+    at least as many paths as there are triangles (the 871k-triangle dragon's 31 MB take 2-4 ms a
+    call: chunks of 4096 made its pass 2.3x slower). The n paths go in equal chunks, the fewest that
+    respect both bounds. Elsewhere (GPUs) every path at once."""
+    if jax.default_backend() != "cpu":
+        return n
+    m = max(1, n // max(CPU_CHUNK, triangles))
+    return -(-n // m)
+
+
+def _in_chunks(fn, xs, n: int, chunk: int):
+    """fn over the leading axis of the pytree xs (n rows) in chunks of `chunk` rows, one after another
+    (`lax.map`); the last chunk is padded with zeros and its padding dropped."""
+    if chunk >= n:
+        return fn(xs)
+    m = -(-n // chunk)
+    def pad(x):
+        x = jnp.pad(x, [(0, m * chunk - n)] + [(0, 0)] * (x.ndim - 1))
+        return x.reshape((m, chunk) + x.shape[1:])
+
+    out = lax.map(fn, jax.tree.map(pad, xs))
+    return jax.tree.map(lambda y: y.reshape((m * chunk,) + y.shape[2:])[:n], out)
 
 
 def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None = None, aovs: bool = False,
@@ -157,12 +203,13 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         path_keys = _path_keys(kpath, window, spp, cam.width)
         alive0 = jnp.broadcast_to(jnp.arange(nsamp) < window.count, (npix, nsamp)).reshape(-1)
 
-    def uniforms(k):
+    def uniforms(keys, k):
         # jax.random.uniform(fold_in(path key, k), (_NU,)) of every path, bit for bit
-        return fold_in_uniforms(path_keys, k, _NU)
+        return fold_in_uniforms(keys, k, _NU)
 
     def work(k, carry, last: bool = False):
-        o, d, alive, tput, specular, pdf_prev, L, first, u = carry
+        o, d, alive, tput, specular, pdf_prev, L, first, u, keys = carry
+        B = o.shape[0]  # the paths of one chunk
         hit = intersect_active(geo, o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0
@@ -187,11 +234,14 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         if last:
             # vertex max_depth + 1 only collects the emission its ray found: no light sample, no
             # next direction (in the loop they would all be masked off by k < D)
-            return (o, d, jnp.zeros_like(alive), tput, specular, pdf_prev, L, first, u)
+            return (o, d, jnp.zeros_like(alive), tput, specular, pdf_prev, L, first, u, keys)
         cont = found & (k < D)
         ng, ns, _ = oriented(s, d)
         frame = local_frame(ns, s.tangent)
         wo = to_local(-d, frame)
+        # stored: the shading frame (a cross product), the light sample and the BSDF sample each
+        # have several consumers, which would recompute them (see `_stored`)
+        frame, wo = _stored((frame, wo), alive)
         eps = offset_scale(s.p)
         glass = cont & is_glass(mats, s.material)
         opaque = cont & ~glass
@@ -240,6 +290,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
                 wi_c = jnp.where(pick_tri[:, None], wi_c, wi_e)
                 le_c = jnp.where(pick_tri[:, None], le_c, le_e)
                 p_c = jnp.where(pick_tri, p_c, p_env * _sg(pdf_e))
+            wi_c, le_c, p_c, dist_c = _stored((wi_c, le_c, p_c, dist_c), alive)
             wi_cl = to_local(wi_c, frame)
             f_c, pb = eval_f(wi_cl, wo)
             lit_c = opaque & (dot(wi_c, ng) > 0) & (p_c > 0)
@@ -266,6 +317,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             wk, _, pk = at_hits(params[kk], lambda p, model=model: model.sample(_sg(p), _sg(wo), u[:, 5:7]))
             wi_s = jnp.where(sel[kk][:, None], wk, wi_s)
             pdf_s = jnp.where(sel[kk], pk, pdf_s)
+        wi_s, pdf_s = _stored((wi_s, pdf_s), alive)
         f_s, _ = eval_f(wi_s, wo)
         ok_s = pdf_s > 0
         # (q = 1 always takes the mirror; the guard keeps this unused branch finite for gradients)
@@ -303,21 +355,30 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         good = alive & jnp.all(jnp.isfinite(tput), axis=-1)
         tput = jnp.where(good[:, None], tput, 0.0)
         # the next bounce's numbers, made here so that they are stored in the loop state
-        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first, uniforms(k + 1))
+        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first, uniforms(keys, k + 1),
+                keys)
 
     def body(k, carry):
         return lax.cond(jnp.any(carry[2]), lambda c: work(k, c), lambda c: c, carry)
 
-    first = dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
-    # the throughput's dtype follows the material values so float64 tests stay float64
-    one = jnp.ones((B, 3), jnp.result_type(float))
-    carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, uniforms(0))
-    carry = lax.fori_loop(0, D, body, carry)
-    carry = lax.cond(jnp.any(carry[2]), lambda c: work(D, c, last=True), lambda c: c, carry)
-    L = carry[6]
+    def trace(o0, d0, alive0, key_data):
+        # the paths of one chunk, from their camera rays to their ends: (radiance, first hits)
+        B = o0.shape[0]
+        keys = jax.random.wrap_key_data(key_data, impl=jax.random.key_impl(kpath))
+        first = dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
+        # the throughput's dtype follows the material values so float64 tests stay float64
+        one = jnp.ones((B, 3), jnp.result_type(float))
+        carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, uniforms(keys, 0),
+                 keys)
+        carry = lax.fori_loop(0, D, body, carry)
+        carry = lax.cond(jnp.any(carry[2]), lambda c: work(D, c, last=True), lambda c: c, carry)
+        return carry[6], carry[7]
+
+    xs = (o0, d0, alive0, jax.random.key_data(path_keys))
+    L, first = _in_chunks(lambda x: trace(*x), xs, B, _chunk_size(B, geo.triangle_count))
     L = jnp.where(jnp.isfinite(L), L, 0.0).reshape(npix, nsamp, 3)
     if aovs:
-        return L, carry[7]
+        return L, first
     return L
 
 

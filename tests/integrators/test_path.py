@@ -97,6 +97,23 @@ def test_progressive_accumulation_matches_passes(furnace):
     assert not np.allclose(passes[0], passes[1])  # different passes use different random streams
 
 
+def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
+    # On the CPU a pass's paths go through the bounce loop in chunks (`path._chunk_size`); each path
+    # keeps its own random numbers, so chunked radiance and first hits are the unchunked ones bit
+    # for bit. A small CPU_CHUNK gives three chunks (one per sphere triangle at least, 5120) that do
+    # not divide the 16·16·64 paths: the last one's padding is dropped.
+    sc = _with_material(furnace, "glossy")
+    whole = jax.jit(lambda s: path.samples(s, 3, jitter=True, aovs=True))(sc)
+    monkeypatch.setattr(path, "CPU_CHUNK", 1500)
+    n = 16 * 16 * sc.settings.spp
+    chunk = path._chunk_size(n, sc.geometry.triangle_count)
+    assert jax.default_backend() != "cpu" or (chunk < n and n % chunk)
+    chunked = jax.jit(lambda s: path.samples(s, 3, jitter=True, aovs=True))(sc)
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(chunked), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert float(jnp.mean(whole[0])) > 0
+
+
 # --------------------------------------------------------------------------- gradients
 
 

@@ -22,10 +22,13 @@ with the reference file made on the GPU:
     python benchmarks/sppm.py                                   # 128x96, 65536 photons, 8 passes
     python benchmarks/sppm.py --picture docs/caustics.png --seconds 40 --size 192
 
-Throughput (no other mode): compile time of one pass (`jaxrt.integrators.sppm.step`), then the
-median wall time of `passes` passes (block_until_ready each); passes/s = 1 / median; photons/s =
-photons per pass / median (the whole pass: camera pass, photon pass, hash grid, gather); the photon
-pass alone (`sppm.trace_photons`, compiled separately) gives photons traced/s.
+Throughput (no other mode): compile time of the passes' program (`jaxrt.integrators.sppm.steps`),
+then, interleaved in three rounds, `passes` calls of one pass and `passes` calls of --passes-per-call
+passes (default `sppm.passes_per_call`'s choice for the measured pass, at least 2), block_until_ready
+after each call: the median wall and CPU seconds per pass; passes/s = 1 / median; photons/s = photons
+per pass / median (the whole pass: camera pass, photon pass, hash grid, gather); the photon pass
+alone (`sppm.trace_photons`, compiled separately) gives photons traced/s. --throughput-scene
+equal-time measures the equal-time comparison's frame instead of the shipped scene.
 
 The equal-time scene (`caustic_doc`): scenes/caustics.toml without its point light (the path tracer
 cannot render a point light's caustic at all), its 0.3 m lamp moved behind the sphere (to where the
@@ -60,7 +63,8 @@ max_depth, every scene value; one line and exit status 2 otherwise), then runs S
 pass, --camera-samples visible points per pixel per pass, initial radius --radius (default: the
 integrator's, one pixel footprint), --photon-aim F: the fraction of photons aimed at the glass, default
 the scene's 0.5; aiming changes the estimator, not the expected image, so the reference's check
-ignores it) and the path tracer (--path-spp samples per pass) each once for
+ignores it; so do --grid-levels and --passes-per-call, default `sppm.passes_per_call`'s choice for
+calls of at most a tenth of the shortest budget) and the path tracer (--path-spp samples per pass) each once for
 max(T) seconds of rendering after compilation (excluded), taking their images when the time passed
 reaches each T. For each T it prints the relative RMS error over the caustic region
 (sqrt(mean (image − reference)²) / mean reference, over the region's pixels and channels), the same

@@ -64,7 +64,7 @@ pass, --camera-samples visible points per pixel per pass, initial radius --radiu
 integrator's, one pixel footprint), --photon-aim F: the fraction of photons aimed at the glass, default
 the scene's 0.5; aiming changes the estimator, not the expected image, so the reference's check
 ignores it; so do --grid-levels and --passes-per-call, default `sppm.passes_per_call`'s choice for
-calls of at most a tenth of the shortest budget) and the path tracer (--path-spp samples per pass) each once for
+calls of at most a tenth of the shortest budget, as a render's within `sppm.CALL_SECONDS`) and the path tracer (--path-spp samples per pass) each once for
 max(T) seconds of rendering after compilation (excluded), taking their images when the time passed
 reaches each T. For each T it prints the relative RMS error over the caustic region
 (sqrt(mean (image − reference)²) / mean reference, over the region's pixels and channels), the same

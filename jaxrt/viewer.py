@@ -22,7 +22,7 @@ path`) render progressively: every change starts a new `jaxrt.integrators.path.A
 `jaxrt.integrators.path.samples_jit`, and `image` is the running mean, sum/count. The title shows the count.
 Photon-mapped scenes (`integrator = "sppm"`) refine the same way through `jaxrt.integrators.sppm.steps`: the
 first `refine()` after a change runs one pass, later ones as many as the last call's time per pass fits in
-`jaxrt.integrators.sppm.CALL_SECONDS` (`passes_per_call`; a small frame's pass takes milliseconds on a GPU).
+VIEW_CALL_SECONDS (`jaxrt.integrators.sppm.passes_per_call`; a small frame's pass takes milliseconds on a GPU).
 
 On several devices (`devices=`, `jaxrt view --devices N`, as `jaxrt render`) a frame is split into the
 tiles `jaxrt render` would use (`jaxrt.render_tiles.plan`, planned once: the scene's shapes never
@@ -48,6 +48,7 @@ from jaxrt import sweep as _sweep
 from jaxrt.errors import InputError
 
 MAX_SAMPLES = 1 << 16  # the idle timer stops refining here (samples per pixel)
+VIEW_CALL_SECONDS = 0.1  # an SPPM refine() runs the passes that fit in this (a slider answers within it)
 
 
 def orbit_position(look_at, distance: float, azimuth: float, elevation: float) -> np.ndarray:
@@ -233,7 +234,8 @@ class Viewer:
                                                       return_plan=True)
         elif self.scene.settings.integrator == "sppm":
             if self.accumulation is not None:
-                count = _sppm.passes_per_call(self._pass_seconds, max(MAX_SAMPLES - self.samples, 1))
+                count = _sppm.passes_per_call(self._pass_seconds, max(MAX_SAMPLES - self.samples, 1),
+                                              VIEW_CALL_SECONDS)
             acc = _sppm.accumulate(self.scene, self.accumulation, count)
         else:
             acc = _path.accumulate(self.scene, self.accumulation)

@@ -66,8 +66,8 @@ Passes per call: `step(scene, state, count)` runs `count` passes in one compiled
 `lax.fori_loop` over the one pass, `count` traced: one compilation for every count), the same
 operations on the same random streams as `count` calls of one pass. A pass of a small frame is many
 small kernels (the bounces, the sort, the gather), a few milliseconds on a GPU, where a call per pass
-would add its dispatch and a synchronisation to each; renders and the viewer run `passes_per_call`
-passes a call, about CALL_SECONDS of work.
+would add its dispatch and a synchronisation to each; renders run `passes_per_call` passes a call,
+about CALL_SECONDS of work (the viewer less, to answer its sliders).
 
 Defaults: photons per pass = the pixel count, within [2^12, 2^20]; initial radius RADIUS_PIXELS = 1
 pixel footprint at each chain's first visible point (`initial_radius`); `[render] radius` sets one
@@ -124,11 +124,12 @@ MAX_CAMERA_SAMPLES = 64
 DEFAULT_GRID_LEVELS = {"cpu": 2, "gpu": 2}
 #: upper bound of `[render] grid_levels`
 MAX_GRID_LEVELS = 4
-#: a render or the viewer runs as many passes in one compiled call as take about this long
-#: (`passes_per_call`): long enough that a call's dispatch and synchronisation are a small part of it
-#: on a GPU, where a pass of a small frame takes milliseconds, short enough for the progress bar,
-#: Ctrl-C and the viewer's sliders to answer within a fraction of a second
-CALL_SECONDS = 0.1
+#: a render runs as many passes in one compiled call as take about this long (`passes_per_call`):
+#: long enough that what a call costs besides its passes is a small part of it (on a GPU, where a
+#: pass of a small frame takes milliseconds, the dispatch and synchronisation; on a CPU a pass a call
+#: was 1.5x slower than 8 a call at 96x72, BENCHMARKS.md "Photon mapping"), short enough for the
+#: progress bar and Ctrl-C to answer within a second (the viewer asks for less, `jaxrt.viewer`)
+CALL_SECONDS = 0.5
 #: upper bound of the passes of one call
 MAX_PASSES_PER_CALL = 1024
 #: the finest cells are 2x this quantile of the radii of the visible points that receive photons

@@ -156,7 +156,12 @@ def throughput(size: int, photons: int, passes: int, per_call: int | None = None
     st, med, cpu = _per_pass(run, st, 1, 2)  # warm
     per_call = per_call or max(2, sppm.passes_per_call(med, 1 << 30))
     rows = {1: ([], []), per_call: ([], [])}
-    for _ in range(3):  # interleaved: one call per pass, then per_call passes a call
+    idle = []
+    for _ in range(3):  # interleaved: one call per pass, then per_call passes a call, then a call of none
+        t0 = time.perf_counter()
+        st = run(st, 0)
+        st.passes.block_until_ready()
+        idle.append(time.perf_counter() - t0)
         for k in rows:
             st, m, c = _per_pass(run, st, k, max(passes // 3, 1))
             rows[k][0].append(m)
@@ -177,6 +182,7 @@ def throughput(size: int, photons: int, passes: int, per_call: int | None = None
     print(f"  compile+first pass {compile_s:.1f} s; photon pass alone {statistics.median(pt) * 1e3:.1f} ms = "
           f"{photons / statistics.median(pt) / 1e6:.3f} M photons traced/s; image finite: "
           f"{bool(np.isfinite(img).all())}")
+    print(f"  a call of 0 passes (what a call costs besides its passes): {statistics.median(idle) * 1e3:.2f} ms")
     for k, (wall, cpu) in rows.items():
         m, c = statistics.median(wall), statistics.median(cpu)
         print(f"  {k} pass{'es' if k > 1 else ''} a call: {m * 1e3:.2f} ms a pass (CPU {c * 1e3:.2f} ms), "

@@ -18,6 +18,12 @@ with the reference file made on the GPU:
     python benchmarks/sppm.py --size 64 --make-reference 1073741824 --chunk-spp 256 --crop 3 --crop-after 12 \
         --max-seconds 1800 --out caustic_ref64.npz
     python benchmarks/sppm.py --size 64 --equal-time 5,10,20 --reference caustic_ref64.npz --bias-seeds 0
+    # CPU alone at the GPU's 96x72: 2,048 spp of full frames, then the window; 25 minutes
+    python benchmarks/sppm.py --make-reference 1073741824 --chunk-spp 256 --crop 3 --crop-after 8 \
+        --max-seconds 1500 --out caustic_ref96.npz
+    python benchmarks/sppm.py --size 96 --equal-time 5,10,20 --reference caustic_ref96.npz --bias-seeds 0
+    # several passes a call against one (SPPM's per-pass cost and what a call costs besides its passes)
+    python benchmarks/sppm.py --throughput-scene equal-time --size 96 --photons 4096 --passes 12 --passes-per-call 8
     # throughput on the shipped scene; the README's picture
     python benchmarks/sppm.py                                   # 128x96, 65536 photons, 8 passes
     python benchmarks/sppm.py --picture docs/caustics.png --seconds 40 --size 192

@@ -126,9 +126,10 @@ DEFAULT_GRID_LEVELS = {"cpu": 2, "gpu": 2}
 MAX_GRID_LEVELS = 4
 #: a render runs as many passes in one compiled call as take about this long (`passes_per_call`):
 #: long enough that what a call costs besides its passes is a small part of it (on a GPU, where a
-#: pass of a small frame takes milliseconds, the dispatch and synchronisation; on a CPU a pass a call
-#: was 1.5x slower than 8 a call at 96x72, BENCHMARKS.md "Photon mapping"), short enough for the
-#: progress bar and Ctrl-C to answer within a second (the viewer asks for less, `jaxrt.viewer`)
+#: pass of a small frame takes milliseconds, the dispatch and synchronisation; on a CPU 8 passes a
+#: call took 0.8x the CPU time of one a call at 64x48 and 96x72, BENCHMARKS.md "Photon mapping"),
+#: short enough for the progress bar and Ctrl-C to answer within a second (the viewer asks for
+#: less, `jaxrt.viewer`)
 CALL_SECONDS = 0.5
 #: upper bound of the passes of one call
 MAX_PASSES_PER_CALL = 1024

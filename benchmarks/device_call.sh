@@ -61,6 +61,20 @@ for s in "$@"; do
                       --chunk-spp 4096 --crop 3 --crop-after 32 --out "$OUT/caustic_ref.npz"
                   stage caustic-equal-time 110 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
                       --reference "$OUT/caustic_ref.npz" ;;
+        caustic-calls)  # after `caustic` (its reference; or CAUSTIC_REF=.gpudata/caustic_ref.npz, carried): SPPM
+                  # passes per compiled call and grid levels. Throughput of the equal-time frame (96x72, the GPU
+                  # defaults: 4 visible points, 65,536 photons), one pass a call against passes_per_call's choice,
+                  # with 2 and 1 grid levels; then the equal-time table with one pass a call (as before passes per
+                  # call) and with 1 grid level. With `caustic` in the same call: about 9.5 minutes together
+                  ref=${CAUSTIC_REF:-$OUT/caustic_ref.npz}
+                  for L in 2 1; do
+                      stage "caustic-calls-throughput-L$L" 75 python3 benchmarks/sppm.py --throughput-scene equal-time \
+                          --size 96 --photons 65536 --camera-samples 4 --grid-levels "$L" --passes 30
+                  done
+                  stage caustic-calls-one-a-call 60 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                      --reference "$ref" --passes-per-call 1 --bias-seeds 0
+                  stage caustic-calls-L1 60 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                      --reference "$ref" --grid-levels 1 --bias-seeds 0 ;;
         caustic-sweep)  # after `caustic` (its reference): SPPM's visible points per pixel and photons per pass
                   for cfg in "1 262144" "4 65536" "16 65536" "16 262144" "64 65536"; do
                       read -r k p <<< "$cfg"

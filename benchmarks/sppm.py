@@ -18,14 +18,23 @@ with the reference file made on the GPU:
     python benchmarks/sppm.py --size 64 --make-reference 1073741824 --chunk-spp 256 --crop 3 --crop-after 12 \
         --max-seconds 1800 --out caustic_ref64.npz
     python benchmarks/sppm.py --size 64 --equal-time 5,10,20 --reference caustic_ref64.npz --bias-seeds 0
+    # CPU alone at the GPU's 96x72: 2,048 spp of full frames, then the window; 25 minutes
+    python benchmarks/sppm.py --make-reference 1073741824 --chunk-spp 256 --crop 3 --crop-after 8 \
+        --max-seconds 1500 --out caustic_ref96.npz
+    python benchmarks/sppm.py --size 96 --equal-time 5,10,20 --reference caustic_ref96.npz --bias-seeds 0
+    # several passes a call against one (SPPM's per-pass cost and what a call costs besides its passes)
+    python benchmarks/sppm.py --throughput-scene equal-time --size 96 --photons 4096 --passes 12 --passes-per-call 8
     # throughput on the shipped scene; the README's picture
     python benchmarks/sppm.py                                   # 128x96, 65536 photons, 8 passes
     python benchmarks/sppm.py --picture docs/caustics.png --seconds 40 --size 192
 
-Throughput (no other mode): compile time of one pass (`jaxrt.integrators.sppm.step`), then the
-median wall time of `passes` passes (block_until_ready each); passes/s = 1 / median; photons/s =
-photons per pass / median (the whole pass: camera pass, photon pass, hash grid, gather); the photon
-pass alone (`sppm.trace_photons`, compiled separately) gives photons traced/s.
+Throughput (no other mode): compile time of the passes' program (`jaxrt.integrators.sppm.steps`),
+then, interleaved in three rounds, `passes` calls of one pass and `passes` calls of --passes-per-call
+passes (default `sppm.passes_per_call`'s choice for the measured pass, at least 2), block_until_ready
+after each call: the median wall and CPU seconds per pass; passes/s = 1 / median; photons/s = photons
+per pass / median (the whole pass: camera pass, photon pass, hash grid, gather); the photon pass
+alone (`sppm.trace_photons`, compiled separately) gives photons traced/s. --throughput-scene
+equal-time measures the equal-time comparison's frame instead of the shipped scene.
 
 The equal-time scene (`caustic_doc`): scenes/caustics.toml without its point light (the path tracer
 cannot render a point light's caustic at all), its 0.3 m lamp moved behind the sphere (to where the
@@ -60,7 +69,8 @@ max_depth, every scene value; one line and exit status 2 otherwise), then runs S
 pass, --camera-samples visible points per pixel per pass, initial radius --radius (default: the
 integrator's, one pixel footprint), --photon-aim F: the fraction of photons aimed at the glass, default
 the scene's 0.5; aiming changes the estimator, not the expected image, so the reference's check
-ignores it) and the path tracer (--path-spp samples per pass) each once for
+ignores it; so do --grid-levels and --passes-per-call, default `sppm.passes_per_call`'s choice for
+calls of at most a tenth of the shortest budget, as a render's within `sppm.CALL_SECONDS`) and the path tracer (--path-spp samples per pass) each once for
 max(T) seconds of rendering after compilation (excluded), taking their images when the time passed
 reaches each T. For each T it prints the relative RMS error over the caustic region
 (sqrt(mean (image − reference)²) / mean reference, over the region's pixels and channels), the same
@@ -116,20 +126,53 @@ REF_FORMAT = 2
 _READS_FORMATS = (1, 2)
 
 
-def throughput(size: int, photons: int, passes: int) -> None:
+def _per_pass(run, state, count: int, calls: int):
+    """Median wall and CPU seconds per pass of `calls` calls of `count` passes (`run(state, count)`,
+    synchronised after each call, as a render's loop); returns (state, wall, cpu)."""
+    wall, cpu = [], []
+    for _ in range(calls):
+        t0, c0 = time.perf_counter(), time.process_time()
+        state = run(state, count)
+        state.passes.block_until_ready()
+        wall.append((time.perf_counter() - t0) / count)
+        cpu.append((time.process_time() - c0) / count)
+    return state, statistics.median(wall), statistics.median(cpu)
+
+
+def throughput(size: int, photons: int, passes: int, per_call: int | None = None, levels: int = 0,
+               scene: str = "caustics", samples: int = 1) -> None:
+    """Compile time, then passes/s and photons/s of one pass a call and, interleaved in the same
+    process, of `per_call` passes a call (default: `sppm.passes_per_call` from the one-pass time, at
+    least 2), each the median of `passes` calls' per-pass times; `scene` "caustics" (the shipped one)
+    or "equal-time" (the equal-time comparison's, `caustic_doc`)."""
     w, h = size, size * 3 // 4
-    scn = S.load("caustics", overrides={"camera.width": w, "camera.height": h, "render.photons": photons})
+    over = {"photons": photons, "camera_samples": samples}
+    if levels:
+        over["grid_levels"] = levels
+    if scene == "equal-time":
+        scn = _build(caustic_doc(size), **over)
+    else:
+        scn = S.load(scene, overrides={"camera.width": w, "camera.height": h,
+                                       **{f"render.{k}": v for k, v in over.items()}})
     t0 = time.perf_counter()
     st = sppm.accumulate(scn)
     st.passes.block_until_ready()
     compile_s = time.perf_counter() - t0
-    times = []
-    for _ in range(passes):
+    run = lambda s, k: sppm.step(scn, s, k)  # noqa: E731
+    st, med, cpu = _per_pass(run, st, 1, 2)  # warm
+    per_call = per_call or max(2, sppm.passes_per_call(med, 1 << 30))
+    rows = {1: ([], []), per_call: ([], [])}
+    idle = []
+    for _ in range(3):  # interleaved: one call per pass, then per_call passes a call, then a call of none
         t0 = time.perf_counter()
-        st = sppm.accumulate(scn, st)
+        st = run(st, 0)
         st.passes.block_until_ready()
-        times.append(time.perf_counter() - t0)
-    med = statistics.median(times)
+        idle.append(time.perf_counter() - t0)
+        for k in rows:
+            st, m, c = _per_pass(run, st, k, max(passes // 3, 1))
+            rows[k][0].append(m)
+            rows[k][1].append(c)
+    med = statistics.median(rows[1][0])
     trace = jax.jit(sppm.trace_photons, static_argnums=2)
     key = jax.random.key(1)
     trace(scn, key, photons).valid.block_until_ready()
@@ -139,12 +182,18 @@ def throughput(size: int, photons: int, passes: int) -> None:
         trace(scn, jax.random.fold_in(key, i), photons).valid.block_until_ready()
         pt.append(time.perf_counter() - t0)
     img = np.asarray(st.image)
-    print(f"device {jax.devices()[0].device_kind}; caustics {w}x{h}, {photons} photons/pass, max_depth "
+    print(f"device {_device()}; {scene} {scn.camera.width}x{scn.camera.height}, {photons} photons/pass, "
+          f"{samples} visible points/pixel/pass, grid levels {sppm.grid_levels(scn)}, max_depth "
           f"{scn.settings.max_depth}, {scn.geometry.triangle_count} triangles")
-    print(f"  compile+first pass {compile_s:.1f} s; pass median {med * 1e3:.0f} ms over {passes}: "
-          f"{1 / med:.2f} passes/s, {photons / med / 1e6:.3f} M photons/s (whole pass), "
-          f"photon pass alone {statistics.median(pt) * 1e3:.0f} ms = {photons / statistics.median(pt) / 1e6:.3f} "
-          f"M photons traced/s; image finite: {bool(np.isfinite(img).all())}")
+    print(f"  compile+first pass {compile_s:.1f} s; photon pass alone {statistics.median(pt) * 1e3:.1f} ms = "
+          f"{photons / statistics.median(pt) / 1e6:.3f} M photons traced/s; image finite: "
+          f"{bool(np.isfinite(img).all())}")
+    print(f"  a call of 0 passes (what a call costs besides its passes): {statistics.median(idle) * 1e3:.2f} ms")
+    for k, (wall, cpu) in rows.items():
+        m, c = statistics.median(wall), statistics.median(cpu)
+        print(f"  {k} pass{'es' if k > 1 else ''} a call: {m * 1e3:.2f} ms a pass (CPU {c * 1e3:.2f} ms), "
+              f"{1 / m:.1f} passes/s, {photons / m / 1e6:.3f} M photons/s (whole pass); per round "
+              f"{', '.join(f'{x * 1e3:.1f}' for x in wall)} ms")
 
 
 def _run_for(seconds, step, state):
@@ -453,16 +502,22 @@ def _diff(a, b, where="") -> str:
     return f"{where}: file {a!r}, this run {b!r}"
 
 
-def _run_until(marks, step):
+def _run_until(marks, step, per_call=None):
     """Run `step` (state -> state; None starts) for max(marks) seconds after a first, compiling call
-    (excluded); returns [(state, passes, seconds)] taken when each mark's time has passed."""
-    jax.block_until_ready(step(None))
+    (excluded); returns [(state, passes, seconds)] taken when each mark's time has passed. With
+    `per_call` (seconds per pass so far, passes so far -> passes for the next call), `step` is
+    (state, count) -> state and runs that many passes a call."""
+    jax.block_until_ready(step(None) if per_call is None else step(None, 1))
     out, marks = [], sorted(marks)
     t0, n, state = time.perf_counter(), 0, None
     while marks:
-        state = step(state)
+        if per_call is None:
+            state, k = step(state), 1
+        else:
+            k = per_call((time.perf_counter() - t0) / n if n else float("nan"), n)
+            state = step(state, k)
         jax.block_until_ready(state)
-        n += 1
+        n += k
         t = time.perf_counter() - t0
         while marks and t >= marks[0]:
             out.append((state, n, t))
@@ -472,7 +527,7 @@ def _run_until(marks, step):
 
 def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: float, path_spp: int | None,
                bias_seeds: int, lamp: float | None = None, aim: float | None = None,
-               samples: int | None = None) -> None:
+               samples: int | None = None, levels: int = 0, per_call: int = 0) -> None:
     ref = load_reference(ref_path, size, lamp)
     meta, doc = ref["meta"], ref["doc"]
     photons = photons or _default(GPU_PHOTONS, CPU_PHOTONS)
@@ -496,14 +551,22 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
         extra["radius"] = radius
     samples = samples or _default(GPU_CAMERA_SAMPLES, CPU_CAMERA_SAMPLES)
     extra["camera_samples"] = samples
+    if levels:
+        extra["grid_levels"] = levels
     sp = _build(doc, photons=photons, **extra)
     pt = _build(doc, integrator="path", spp=path_spp)
-    runs_s = _run_until(marks, lambda s: sppm.accumulate(sp, s))
+    # SPPM's passes a call: --passes-per-call, else as a render picks them (`sppm.passes_per_call`)
+    # for calls of at most a tenth of the shortest budget, so that the images are taken close to it
+    target = min(sppm.CALL_SECONDS, min(marks) / 10)
+    calls = ((lambda sec, n: per_call) if per_call else
+             (lambda sec, n: sppm.passes_per_call(sec, sppm.MAX_PASSES_PER_CALL, target)))
+    runs_s = _run_until(marks, lambda s, k: sppm.accumulate(sp, s, k), calls)
     runs_p = _run_until(marks, lambda a: P.accumulate(pt, a))
     print(f"device {_device()}; equal time on the caustic scene (area light only) {meta['width']}x{meta['height']}, "
           f"max_depth {meta['max_depth']}; SPPM {photons} photons/pass, {samples} visible points/pixel/pass, "
           f"initial radius {radius or f'{sppm.RADIUS_PIXELS:g} pixel footprint'}, photon_aim "
-          f"{sp.settings.photon_aim:g}; path {path_spp} spp/pass")
+          f"{sp.settings.photon_aim:g}, grid levels {sppm.grid_levels(sp)}, passes a call "
+          f"{per_call or f'adaptive (~{target:g} s a call)'}; path {path_spp} spp/pass")
     print(f"reference {ref_path}: {meta['spp']} spp ({meta['chunks']} chunks) on {meta['device']}, commit "
           f"{meta['commit']}; caustic region {int(region.sum())} px, mean {m:.4g}; its relative RMS error "
           f"s = {s_ref:.4f} (the larger of {s_chunks:.4f} from its chunks' spread and "
@@ -524,7 +587,7 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
     means = [float(np.asarray(runs_s[-1][0].image, np.float64)[region].mean())]
     for seed in range(1, bias_seeds):
         sp_k = _build(doc, photons=photons, seed=seed, **extra)
-        means.append(float(np.asarray(_run_until([T], lambda s: sppm.accumulate(sp_k, s))[0][0].image,
+        means.append(float(np.asarray(_run_until([T], lambda s, k: sppm.accumulate(sp_k, s, k), calls)[0][0].image,
                                       np.float64)[region].mean()))
     mu = statistics.fmean(means)
     se_s = statistics.stdev(means) / math.sqrt(len(means))
@@ -542,7 +605,14 @@ def main() -> None:
     ap.add_argument("--photons", type=int, default=None,
                     help="photons per SPPM pass (throughput 65536; equal time: %d on a GPU, %d on a CPU)"
                     % (GPU_PHOTONS, CPU_PHOTONS))
-    ap.add_argument("--passes", type=int, default=8)
+    ap.add_argument("--passes", type=int, default=8, help="throughput: calls timed per variant")
+    ap.add_argument("--passes-per-call", type=int, default=0, metavar="P",
+                    help="SPPM passes per compiled call (throughput: compared with 1; equal time: fixed instead "
+                         "of sppm.passes_per_call's choice)")
+    ap.add_argument("--grid-levels", type=int, default=0, metavar="L",
+                    help="SPPM [render] grid_levels (default: the integrator's for this backend)")
+    ap.add_argument("--throughput-scene", default="caustics", choices=("caustics", "equal-time"),
+                    help="throughput on the shipped caustics scene or on the equal-time comparison's")
     ap.add_argument("--make-reference", type=int, default=0, metavar="SPP",
                     help="render the path-traced reference with SPP samples per pixel into --out")
     ap.add_argument("--out", default="caustic_ref.npz")
@@ -584,9 +654,10 @@ def main() -> None:
         if not a.reference:
             _fail("--equal-time needs --reference FILE (made with --make-reference)")
         equal_time(marks, a.reference, a.size or 96, a.photons, a.radius, a.path_spp, a.bias_seeds, a.lamp,
-                   a.photon_aim, a.camera_samples)
+                   a.photon_aim, a.camera_samples, a.grid_levels, a.passes_per_call)
     else:
-        throughput(a.size or 128, a.photons or 65536, a.passes)
+        throughput(a.size or 128, a.photons or 65536, a.passes, a.passes_per_call or None, a.grid_levels,
+                   a.throughput_scene, a.camera_samples or 1)
 
 
 if __name__ == "__main__":

@@ -272,26 +272,28 @@ def pass_program(devices: tuple[jax.Device, ...], shape: tuple[int, int, int]):
     return jax.jit(smap, in_shardings=(r, split, split, r), out_shardings=split)
 
 
-def _device_sppm(scene, state, *, count: int):
-    # one device's share of an SPPM pass: the same visible points everywhere, its own photons and grid,
-    # M and Φ summed over the mesh (the one collective), the same update on every device
-    return integrators.sppm.pass_share(scene, state, AXIS, count)
+def _device_sppm(scene, state, passes, *, count: int):
+    # one device's share of `passes` SPPM passes (a loop in the one call, as `integrators.sppm.steps`):
+    # the same visible points everywhere, its own photons and grid, M and Φ summed over the mesh (the
+    # one collective), the same update on every device
+    return jax.lax.fori_loop(0, passes, lambda i, st: integrators.sppm.pass_share(scene, st, AXIS, count), state)
 
 
 @functools.lru_cache(maxsize=32)
 def sppm_program(devices: tuple[jax.Device, ...]):
-    """One pass of stochastic progressive photon mapping over a mesh of `devices`:
-    ``f(scene, state)`` -> the next `integrators.sppm.SPPMState`, scene and state replicated
+    """Passes of stochastic progressive photon mapping over a mesh of `devices`: ``f(scene, state,
+    count)`` -> the `integrators.sppm.SPPMState` after `count` passes (an int32 scalar,
+    `integrators.sppm.pass_count`, traced), scene and state replicated
     (`replicate`); each device traces ceil(n/D) of the pass's n photons (the last padded with photons
     of zero power), gathers from its own hash grid at every visible point, and a `psum` adds the
     per-pixel photon counts and fluxes before the progressive update (`integrators.sppm.pass_share`).
-    The pass index is the state's (traced): one compilation for every pass."""
+    The pass index is the state's and the count traced: one compilation for every pass and count."""
     m = mesh(devices)
     rep = PartitionSpec()
     body = functools.partial(_device_sppm, count=len(devices))
-    smap = _shard_map(body, mesh=m, in_specs=(rep, rep), out_specs=rep, **_UNCHECKED)
+    smap = _shard_map(body, mesh=m, in_specs=(rep, rep, rep), out_specs=rep, **_UNCHECKED)
     r = NamedSharding(m, rep)
-    return jax.jit(smap, in_shardings=(r, r), out_shardings=r)
+    return jax.jit(smap, in_shardings=(r, r, r), out_shardings=r)
 
 
 @functools.lru_cache(maxsize=32)

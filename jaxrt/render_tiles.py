@@ -16,10 +16,12 @@ budget then applies to each device (on a CPU, whose virtual devices share the RA
 between them), and the image has at least max(32, 4·N) tiles for load balance.
 
 A progressive whole-frame integrator (`integrators.sppm`: each pass needs every pixel's visible point
-and the whole photon map) is not tiled: `render` runs its passes one compiled call at a time, the
-progress bar counting passes and Ctrl-C checked between them; on several devices each pass's photons
-are split over them and the per-pixel photon statistics summed (`jaxrt._devices.sppm_program`), on
-one device it is the one-device pass (`integrators.sppm.step`) unchanged.
+and the whole photon map) is not tiled: `render` runs its passes through one compiled program, several
+passes a call (`integrators.sppm.passes_per_call`: about `sppm.CALL_SECONDS` of work each, from the previous
+call's time), the progress bar counting passes and Ctrl-C checked between calls; on several devices
+each pass's photons are split over them and the per-pixel photon statistics summed
+(`jaxrt._devices.sppm_program`), on one device it is the one-device program (`integrators.sppm.steps`)
+unchanged. The image does not depend on how the passes are grouped into calls.
 
 
 Memory model
@@ -80,6 +82,7 @@ import dataclasses
 import functools
 import math
 import os
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -529,7 +532,7 @@ def check_passes(scene, *, memory: int | str | None = None, aovs: bool = False, 
     shapes; the statistics are described by `jax.eval_shape`, never allocated) and the host image.
     Such a pass cannot be tiled (every visible point meets the whole photon map), so a frame that does
     not fit is refused here with one line instead of running out of memory. The program measured is
-    the one the passes run (`step(scene, state)`), so checking costs no extra compilation. With
+    the one the passes run (`steps(scene, state, count)`), so checking costs no extra compilation. With
     `devices` (several, `jaxrt._devices.select`) that is the sharded pass (`jaxrt._devices.sppm_program`,
     photons split over the devices), called with the scene and state replicated over them; the scene,
     statistics and pass are then needed on each device, and on a CPU (virtual devices sharing the
@@ -554,9 +557,9 @@ def check_passes(scene, *, memory: int | str | None = None, aovs: bool = False, 
     need, compiled = fixed, None
     if fixed <= budget:  # else refused without compiling: the arrays alone are too large
         if devices:
-            compiled = _devices.sppm_program(tuple(devices)).lower(scene, state).compile()
+            compiled = _devices.sppm_program(tuple(devices)).lower(scene, state, sppm.pass_count(1)).compile()
         else:
-            compiled = sppm.step.lower(scene, state).compile()
+            compiled = sppm.steps.lower(scene, state, sppm.pass_count(1)).compile()
         need += copies * _compiled_bytes(compiled)
     if need > budget:
         raise InputError(f"{what} needs {format_bytes(need)} per pass (a pass is one whole-frame program, not "
@@ -567,9 +570,11 @@ def check_passes(scene, *, memory: int | str | None = None, aovs: bool = False, 
 
 def _render_passes(scene, step, aovs, progress, should_stop, devices=()):
     """A progressive integrator's image (`integrators.sppm`): settings.spp passes of one compiled
-    whole-frame program, the progress bar counting passes and Ctrl-C (`should_stop`) checked between
-    them, `step` the compiled pass (`check_passes`). Its working set is one pass's (visible points and
-    photons), checked against the budget before. With several `devices`, `step` is the sharded pass
+    whole-frame program, `sppm.passes_per_call` of them a call (1 first, then as many as the last
+    call's time per pass fits in `sppm.CALL_SECONDS`), the progress bar counting passes and Ctrl-C
+    (`should_stop`) checked between calls, `step` the compiled program (`check_passes`: ``step(scene,
+    state, count)``). Its working set is one pass's (visible points and photons; the passes of a call
+    run one after the other), checked against the budget before. With several `devices`, `step` is the sharded pass
     and the scene and statistics are replicated over them; the image is read from this process's
     first copy of the (replicated) statistics."""
     sppm = integrators.sppm
@@ -589,14 +594,19 @@ def _render_passes(scene, step, aovs, progress, should_stop, devices=()):
         run_scene = scene
         if devices:
             run_scene, state = _devices.replicate(scene, devices), _devices.replicate(state, devices)
-        for i in range(passes):
+        done, per_pass = 0, float("nan")
+        while done < passes:
             if should_stop is not None and should_stop():
                 raise KeyboardInterrupt
-            state = step(run_scene, state)
+            count = sppm.passes_per_call(per_pass, passes - done)
+            t0 = time.perf_counter()
+            state = step(run_scene, state, sppm.pass_count(count))
             state.passes.block_until_ready()
+            per_pass = (time.perf_counter() - t0) / count
+            done += count
             if bar:
                 bar.set_description_str("rendering")
-                bar.update(1)
+                bar.update(count)
         if devices:  # every device holds the same statistics: this process's first copy
             state = jax.tree.map(lambda x: x.addressable_data(0) if isinstance(x, jax.Array) else x, state)
         img = np.asarray(state.image)

@@ -20,8 +20,9 @@ Path-traced scenes (`[render] integrator = "path"`, or `integrator="path"` / `ja
 path`) render progressively: every change starts a new `jaxrt.integrators.path.Accumulation` with pass 0, each
 `refine()` (called by the window's idle timer) adds the next pass through the one compiled
 `jaxrt.integrators.path.samples_jit`, and `image` is the running mean, sum/count. The title shows the count.
-Photon-mapped scenes (`integrator = "sppm"`) refine the same way, one SPPM pass (`jaxrt.integrators.sppm.step`)
-per `refine()`.
+Photon-mapped scenes (`integrator = "sppm"`) refine the same way through `jaxrt.integrators.sppm.steps`: the
+first `refine()` after a change runs one pass, later ones as many as the last call's time per pass fits in
+VIEW_CALL_SECONDS (`jaxrt.integrators.sppm.passes_per_call`; a small frame's pass takes milliseconds on a GPU).
 
 On several devices (`devices=`, `jaxrt view --devices N`, as `jaxrt render`) a frame is split into the
 tiles `jaxrt render` would use (`jaxrt.render_tiles.plan`, planned once: the scene's shapes never
@@ -47,6 +48,7 @@ from jaxrt import sweep as _sweep
 from jaxrt.errors import InputError
 
 MAX_SAMPLES = 1 << 16  # the idle timer stops refining here (samples per pixel)
+VIEW_CALL_SECONDS = 0.1  # an SPPM refine() runs the passes that fit in this (a slider answers within it)
 
 
 def orbit_position(look_at, distance: float, azimuth: float, elevation: float) -> np.ndarray:
@@ -130,6 +132,7 @@ class Viewer:
         self._fig = None
         self.sliders: dict[str, Any] = {}
         self.frame_time = float("nan")
+        self._pass_seconds = float("nan")  # seconds per progressive pass of the last refine()
         self._timer = None
         self.progressive = self.scene.settings.integrator in ("path", "sppm")
         self.accumulation = None
@@ -179,7 +182,7 @@ class Viewer:
         from jaxrt import integrators as _render
 
         if self.scene.settings.integrator == "sppm":
-            return _render.sppm.step._cache_size()
+            return _render.sppm.steps._cache_size()
         return (_path.samples_jit if self.progressive else _render.frame)._cache_size()
 
     @property
@@ -214,25 +217,32 @@ class Viewer:
 
     def refine(self) -> Float[np.ndarray, "H W 3"]:
         """Add the next pass (settings.spp samples per pixel, pass index = passes so far) to the
-        accumulation and show the running mean; a Whitted viewer's image is final, so it returns
-        it unchanged. The pass index is traced: no pass recompiles."""
+        accumulation and show the running mean (SPPM: `sppm.passes_per_call` passes, one the first
+        time after a change); a Whitted viewer's image is final, so it returns it unchanged. The pass
+        index (and SPPM's pass count) is traced: no pass recompiles."""
         from jaxrt.integrators import path as _path
         from jaxrt.integrators import sppm as _sppm
 
         if not self.progressive:
             return self.image
         t0 = time.perf_counter()
+        count = 1
         if self._plan is not None:
             from jaxrt import render_tiles
 
             acc, self._plan = render_tiles.accumulate(self.scene, self.accumulation, use_plan=self._plan,
                                                       return_plan=True)
+        elif self.scene.settings.integrator == "sppm":
+            if self.accumulation is not None:
+                count = _sppm.passes_per_call(self._pass_seconds, max(MAX_SAMPLES - self.samples, 1),
+                                              VIEW_CALL_SECONDS)
+            acc = _sppm.accumulate(self.scene, self.accumulation, count)
         else:
-            accumulate = _sppm.accumulate if self.scene.settings.integrator == "sppm" else _path.accumulate
-            acc = accumulate(self.scene, self.accumulation)
+            acc = _path.accumulate(self.scene, self.accumulation)
         img = acc.image
         img.block_until_ready()
         self.frame_time = time.perf_counter() - t0
+        self._pass_seconds = self.frame_time / count
         self.accumulation = acc
         self._show(img)
         return self.image

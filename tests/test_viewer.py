@@ -324,3 +324,53 @@ def test_viewer_progressive_passes_on_4_devices_equal_one_devices():
     assert p["tiles"] >= 4 and p["measured"] and p["count"] == 6
     assert p["max"] <= 1e-5 * max(p["mean_ref"], 1.0) and p["mean_ref"] > 0.1, p
     assert p["reset"] == 2
+
+
+# ---- progressive photon mapping ----------------------------------------------------------------
+@pytest.mark.slow  # an SPPM pass compiles: ~70 CPU seconds on the 2-core CPU without a warm cache
+def test_sppm_refine_runs_several_passes_a_call(monkeypatch, tmp_path):
+    """An SPPM viewer's first refine after a change runs one pass, later ones `passes_per_call`
+    passes in one call (here forced to 3): the image equals that many single passes through
+    `jaxrt.integrators.sppm` itself, bit for bit, and no refine compiles anything."""
+    from jaxrt.integrators import sppm
+
+    monkeypatch.setattr(sppm, "passes_per_call", lambda seconds, remaining, target=sppm.CALL_SECONDS: 3)
+    scene = tmp_path / "lamp.toml"  # a Lambert floor and ball under a point light: a small program
+    scene.write_text("""
+[camera]
+position = [0.0, 1.5, 3.0]
+look_at = [0.0, 0.4, 0.0]
+width = 8
+height = 6
+[render]
+integrator = "sppm"
+max_depth = 3
+photons = 256
+[[lights]]
+position = [1.0, 3.0, 1.0]
+intensity = 5.0
+[materials.white]
+model = "lambert"
+rho_d = 0.7
+[[objects]]
+primitive = "plane"
+size = [4.0, 4.0]
+material = "white"
+[[objects]]
+primitive = "sphere"
+radius = 0.4
+subdivisions = 2
+translate = [0.0, 0.4, 0.0]
+material = "white"
+""")
+    v = Viewer(scene)
+    compiled = v.compiles
+    assert v.samples == 1  # the first pass, from render()
+    v.refine()
+    v.refine()
+    assert v.samples == 7
+    st = sppm.start(v.scene)
+    for _ in range(7):
+        st = sppm.step(v.scene, st)
+    np.testing.assert_array_equal(v.image, np.asarray(st.image))
+    assert v.compiles == compiled

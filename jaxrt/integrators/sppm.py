@@ -38,7 +38,7 @@ photon mapping", ACM TOG 28(5), 2009), the integrator that renders caustics of p
   Default f = DEFAULT_PHOTON_AIM = 0.5 where the scene has glass or mirror materials, 0 (no aiming,
   the same photons bit for bit) otherwise; environment photons are not aimed.
 
-Gathering uses a hash grid built with array operations, of GRID_LEVELS levels of cells (edges
+Gathering uses a hash grid built with array operations, of L = `grid_levels` levels of cells (edges
 c·2^l, c twice a low quantile of the radii of the visible points that receive photons, radii above
 a high quantile clamped to it: `_radii`; every deposit is in every level and a visible point reads
 the finest level whose cells are at least 2r wide), each deposit's cell hashed into a table of 2^k
@@ -48,7 +48,8 @@ visible point reads the 8 cells its radius-r ball can touch and, of each bucket,
 `CELL_PHOTONS` deposits; a bucket with n > CELL_PHOTONS deposits has its read deposits weighted by
 n / CELL_PHOTONS (they are a uniform random subset of the bucket, thanks to the random key), so
 the estimate of each cell's sum stays unbiased with static shapes. Deposits of another cell sharing
-the bucket are rejected by their cell coordinates.
+the bucket are rejected by their cell coordinates. L is `[render] grid_levels`, default
+DEFAULT_GRID_LEVELS per backend: every level adds a copy of each deposit to the one sort.
 
 Progressive statistics per pixel (Hachisuka & Jensen 2009, eqs. 5-8) with M the photons found in
 radius r this pass and Φ = Σ β·f(wo, wi)·Φ_p their reflected flux:
@@ -60,6 +61,13 @@ Several visible points per pixel (k > 1): each is a chain of its own with its ow
 radiance is the mean of its chains'. A pass's photons then serve k times as many camera samples,
 which pays where the error is the camera side's (one jittered point per pixel on a sharp caustic)
 rather than the photons'.
+
+Passes per call: `step(scene, state, count)` runs `count` passes in one compiled call (a
+`lax.fori_loop` over the one pass, `count` traced: one compilation for every count), the same
+operations on the same random streams as `count` calls of one pass. A pass of a small frame is many
+small kernels (the bounces, the sort, the gather), a few milliseconds on a GPU, where a call per pass
+would add its dispatch and a synchronisation to each; renders run `passes_per_call` passes a call,
+about CALL_SECONDS of work (the viewer less, to answer its sliders).
 
 Defaults: photons per pass = the pixel count, within [2^12, 2^20]; initial radius RADIUS_PIXELS = 1
 pixel footprint at each chain's first visible point (`initial_radius`); `[render] radius` sets one
@@ -110,8 +118,21 @@ RADIUS_PIXELS = 1.0
 CELL_QUANTILE = 0.9
 #: upper bound of `[render] camera_samples` (visible points per pixel per pass)
 MAX_CAMERA_SAMPLES = 64
-#: levels of the hash grid (cell edges c·2^l, c from the FINE_QUANTILE of the radii; `build_grid`)
-GRID_LEVELS = 2
+#: levels of the hash grid (cell edges c·2^l, c from the FINE_QUANTILE of the radii; `build_grid`) of a
+#: scene that does not set `[render] grid_levels`, per JAX backend (`grid_levels`; measured in
+#: BENCHMARKS.md, "Photon mapping"); other backends take the "cpu" entry
+DEFAULT_GRID_LEVELS = {"cpu": 2, "gpu": 2}
+#: upper bound of `[render] grid_levels`
+MAX_GRID_LEVELS = 4
+#: a render runs as many passes in one compiled call as take about this long (`passes_per_call`):
+#: long enough that what a call costs besides its passes is a small part of it (on a GPU, where a
+#: pass of a small frame takes milliseconds, the dispatch and synchronisation; on a CPU 8 passes a
+#: call took 0.8x the CPU time of one a call at 64x48 and 96x72, BENCHMARKS.md "Photon mapping"),
+#: short enough for the progress bar and Ctrl-C to answer within a second (the viewer asks for
+#: less, `jaxrt.viewer`)
+CALL_SECONDS = 0.5
+#: upper bound of the passes of one call
+MAX_PASSES_PER_CALL = 1024
 #: the finest cells are 2x this quantile of the radii of the visible points that receive photons
 FINE_QUANTILE = 0.1
 #: the default `[render] photon_aim` of scenes with glass or mirror (δ > 0) materials (0 without them)
@@ -174,6 +195,15 @@ def pixel_angle(cam) -> Float[Array, ""]:
     return 2.0 * jnp.tan(jnp.deg2rad(cam.vfov) * 0.5) / cam.height
 
 
+def grid_levels(scene) -> int:
+    """Levels of the hash grid (static): `[render] grid_levels`, else DEFAULT_GRID_LEVELS of the
+    default JAX backend. More levels serve a wider range of radii with cells close to each (fewer
+    reads wasted on photons outside the radius), at the cost of one more copy of every deposit in
+    the grid's sort."""
+    n = getattr(scene.settings, "grid_levels", 0)
+    return int(n) if n else DEFAULT_GRID_LEVELS.get(jax.default_backend(), DEFAULT_GRID_LEVELS["cpu"])
+
+
 def camera_samples(scene) -> int:
     """Visible points per pixel per pass (static): `[render] camera_samples`, default 1."""
     return int(getattr(scene.settings, "camera_samples", 0) or 1)
@@ -191,6 +221,9 @@ def check(scene) -> None:
     if not isinstance(k, int) or k < 0 or k > MAX_CAMERA_SAMPLES:
         raise InputError(f"{scene.source}: [render] camera_samples = {k!r}: allowed 1..{MAX_CAMERA_SAMPLES} "
                          "(0: default)")
+    g = getattr(scene.settings, "grid_levels", 0)
+    if not isinstance(g, int) or g < 0 or g > MAX_GRID_LEVELS:
+        raise InputError(f"{scene.source}: [render] grid_levels = {g!r}: allowed 1..{MAX_GRID_LEVELS} (0: default)")
     f = photon_aim(scene)
     if not (isinstance(f, (int, float)) and 0.0 <= f < 1.0):
         raise InputError(f"{scene.source}: [render] photon_aim = {f!r}: allowed 0 <= photon_aim < 1")
@@ -610,8 +643,8 @@ def _hash(c, size: int):
 class Grid(eqx.Module):
     """The valid deposits at every level, sorted by hash bucket (random order within a bucket):
     bucket (N,) sorted (`size` for invalid deposits, last), and each sorted entry's cell (x, y, z,
-    level), position, wi, power and scattering count; the finest level's cell edge () and the table
-    size (static). N = GRID_LEVELS x the deposits."""
+    level), position, wi, power and scattering count; the finest level's cell edge (), the table
+    size and the number of levels L (static). N = L x the deposits."""
 
     bucket: Int[Array, " N"]
     cells: Int[Array, "N 4"]
@@ -621,16 +654,17 @@ class Grid(eqx.Module):
     bounce: Int[Array, " N"]
     cell: Float[Array, ""]
     size: int = eqx.field(static=True)
+    levels: int = eqx.field(static=True, default=DEFAULT_GRID_LEVELS["cpu"])
 
 
-def build_grid(dep: Deposits, cell, key) -> Grid:
-    """The hash grid of the valid deposits, every deposit in each of the GRID_LEVELS levels of cells
-    of edge cell·2^l: one sort by (bucket, a random 32-bit key), so that a bucket's first entries
+def build_grid(dep: Deposits, cell, key, levels: int = DEFAULT_GRID_LEVELS["cpu"]) -> Grid:
+    """The hash grid of the valid deposits, every deposit in each of the `levels` (static) levels of
+    cells of edge cell·2^l: one sort by (bucket, a random 32-bit key), so that a bucket's first entries
     are a uniform random subset of it. A visible point reads the finest level whose cells are at
     least twice its radius (`_candidates`): where the radii span a wide range (a focused caustic's
     shrink fast, dim surfaces' slowly) the small ones read small cells, whose CELL_PHOTONS first
     entries are mostly within their radius, instead of a few among a large cell's many."""
-    n, L = dep.p.shape[0], GRID_LEVELS
+    n, L = dep.p.shape[0], levels
     N = n * L
     size = 1 << max(int(2 * N - 1).bit_length(), 4)
     src = jnp.tile(jnp.arange(n, dtype=jnp.int32), L)
@@ -641,7 +675,7 @@ def build_grid(dep: Deposits, cell, key) -> Grid:
     rand = jax.random.bits(key, (N,), jnp.uint32)
     b, _, order = lax.sort((b, rand, jnp.arange(N, dtype=jnp.int32)), num_keys=2)
     k = src[order]
-    return Grid(b, cells[order], dep.p[k], dep.wi[k], dep.power[k], dep.bounce[k], cell, size)
+    return Grid(b, cells[order], dep.p[k], dep.wi[k], dep.power[k], dep.bounce[k], cell, size, L)
 
 
 def _candidates(grid: Grid, p, r2):
@@ -651,7 +685,7 @@ def _candidates(grid: Grid, p, r2):
     N = grid.bucket.shape[0]
     # the finest level l with cell·2^l >= 2r (the coarsest for larger radii, which `_radii` clamps)
     ratio = 2.0 * jnp.sqrt(r2) / grid.cell
-    level = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(ratio, 1e-30))), 0, GRID_LEVELS - 1)
+    level = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(ratio, 1e-30))), 0, grid.levels - 1)
     edge = grid.cell * jnp.exp2(level)
     x = p / edge[:, None]
     base = jnp.floor(x)
@@ -876,7 +910,7 @@ def pass_keys(scene, passes) -> Array:
     return jax.random.split(key, 3)
 
 
-def _radii(state: SPPMState, vp):
+def _radii(state: SPPMState, vp, levels: int = DEFAULT_GRID_LEVELS["cpu"]):
     """The radii this pass gathers with and the grid's finest cell edge: (state, cell).
 
     A chain without a radius yet (r² = 0) takes RADIUS_PIXELS pixel footprints at its visible point.
@@ -887,7 +921,7 @@ def _radii(state: SPPMState, vp):
     r_c, the CELL_QUANTILE quantile of those, is clamped to it with N and τ scaled by the area ratio,
     the uniform-density step of the progressive update itself (Hachisuka & Jensen 2009: the density
     N/(πr²) and the radiance τ/(πr²) stay the same), so the estimate stays consistent. The finest
-    cells are twice the FINE_QUANTILE quantile, or 2·r_c / 2^(GRID_LEVELS − 1) where that is larger,
+    cells are twice the FINE_QUANTILE quantile, or 2·r_c / 2^(L − 1) where that is larger (L = `levels`),
     so that the coarsest level's cells are at least 2·r_c."""
     found = vp["found"]
     r2 = jnp.where((state.r2 > 0) | ~found, state.r2, jnp.square(RADIUS_PIXELS * vp["foot"]))
@@ -906,7 +940,7 @@ def _radii(state: SPPMState, vp):
                       state.height, state.width, state.photons, state.samples)
     # the finest level's cells: 2x the FINE_QUANTILE radius, unless the coarsest would then be
     # smaller than 2·r_c
-    fine = jnp.maximum(jnp.sqrt(quantile(FINE_QUANTILE)), jnp.sqrt(rc2) * 2.0 ** (1 - GRID_LEVELS))
+    fine = jnp.maximum(jnp.sqrt(quantile(FINE_QUANTILE)), jnp.sqrt(rc2) * 2.0 ** (1 - levels))
     return state, jnp.maximum(2.0 * fine, 1e-6)
 
 
@@ -923,9 +957,10 @@ def _update(state: SPPMState, m, phi, direct) -> SPPMState:
 def _pass(scene, state: SPPMState, with_first: bool = False):
     kvp, kph, kgrid = pass_keys(scene, state.passes)
     vp, direct, first = visible_points(scene, kvp, state.samples, state.passes)
-    state, cell = _radii(state, vp)
+    levels = grid_levels(scene)
+    state, cell = _radii(state, vp, levels)
     dep = trace_photons(scene, kph, state.photons)
-    grid = build_grid(dep, cell, kgrid)
+    grid = build_grid(dep, cell, kgrid, levels)
     m, phi = gather(scene, grid, vp, state.r2)
     new = _update(state, m, phi, direct)
     return (new, first) if with_first else new
@@ -945,17 +980,44 @@ def pass_share(scene, state: SPPMState, axis: str, count: int) -> SPPMState:
     device among that device's deposits, which is another unbiased estimate of the same sum."""
     kvp, kph, kgrid = pass_keys(scene, state.passes)
     vp, direct, _ = visible_points(scene, kvp, state.samples, state.passes)
-    state, cell = _radii(state, vp)
+    levels = grid_levels(scene)
+    state, cell = _radii(state, vp, levels)
     d = lax.axis_index(axis)
     dep = trace_photons(scene, kph, state.photons, share=(d, count))
-    grid = build_grid(dep, cell, jax.random.fold_in(kgrid, d))
+    grid = build_grid(dep, cell, jax.random.fold_in(kgrid, d), levels)
     m, phi = lax.psum(gather(scene, grid, vp, state.r2), axis)
     return _update(state, m, phi, direct)
 
 
-#: One pass (camera pass, photon pass, hash grid, gather, progressive update), compiled once per scene
-#: structure: `step(scene, state)` -> the next `SPPMState` (the pass index is the state's, traced).
-step = jax.jit(_pass)
+def _passes(scene, state: SPPMState, count) -> SPPMState:
+    # `count` (traced) passes in a loop whose body is the one pass: P passes in one call are the same
+    # operations on the same random streams (the pass index is the state's) as P calls of one pass
+    return lax.fori_loop(0, count, lambda i, st: _pass(scene, st), state)
+
+
+#: `count` passes (camera pass, photon pass, hash grid, gather, progressive update each), compiled once
+#: per scene structure: `steps(scene, state, count)` -> the `SPPMState` after them; `count` an int32
+#: scalar, traced like the pass index, so no pass count compiles anything new. `step` is the way to call it.
+steps = jax.jit(_passes)
+
+
+def pass_count(count) -> Array:
+    """`count` as the int32 scalar `steps` takes: the same argument type for every count (a Python int
+    would be weakly typed, a second compilation)."""
+    return jnp.asarray(count, jnp.int32)
+
+
+def step(scene, state: SPPMState, count: int = 1) -> SPPMState:
+    """`count` passes after `state` in one compiled call (`steps`): equal to `count` calls of one pass."""
+    return steps(scene, state, pass_count(count))
+
+
+def passes_per_call(seconds_per_pass: float, remaining: int, target: float = CALL_SECONDS) -> int:
+    """How many passes the next call should run: as many as take about `target` seconds at the
+    measured `seconds_per_pass` (nan or 0 before any was measured: 1), at least 1 and at most
+    `remaining` and MAX_PASSES_PER_CALL. The passes a call runs never change the image (`steps`)."""
+    fit = target / seconds_per_pass if seconds_per_pass > 0 else 1.0
+    return int(max(1, min(remaining, MAX_PASSES_PER_CALL, math.floor(fit) if math.isfinite(fit) else 1)))
 
 
 def _first_aovs(scene):
@@ -969,12 +1031,13 @@ def _first_aovs(scene):
 first_aovs = jax.jit(_first_aovs)
 
 
-def accumulate(scene, state: SPPMState | None = None) -> SPPMState:
-    """Add one pass to `state` (None: start); the compiled pass is reused (the pass index is traced)."""
+def accumulate(scene, state: SPPMState | None = None, passes: int = 1) -> SPPMState:
+    """Add `passes` passes to `state` (None: start) in one compiled call; the compiled program is
+    reused for every pass index and count (both traced)."""
     if state is None:
         check(scene)
         state = start(scene)
-    return step(scene, state)
+    return step(scene, state, passes)
 
 
 def render(scene, *, aovs: bool = False, window: camera.Window | None = None):

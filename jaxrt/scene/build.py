@@ -241,6 +241,7 @@ def build(spec: SceneSpec) -> Scene:
         photons=r.photons,
         radius=r.radius,
         camera_samples=r.camera_samples,
+        grid_levels=r.grid_levels,
         photon_aim=r.photon_aim if r.photon_aim is not None else integrators.sppm.default_photon_aim(
             any(brdfs.get(spec.materials[n].model).delta or spec.materials[n].delta > 0 for n in mat_names)),
     )

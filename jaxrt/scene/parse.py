@@ -298,6 +298,8 @@ def parse(
         radius=rc.number("radius", 0.0, lo=0.0, lo_open=True) if "radius" in rc.data else 0.0,
         camera_samples=(rc.integer("camera_samples", 0, lo=1, hi=integrators.sppm.MAX_CAMERA_SAMPLES)
                         if "camera_samples" in rc.data else 0),
+        grid_levels=(rc.integer("grid_levels", 0, lo=1, hi=integrators.sppm.MAX_GRID_LEVELS)
+                     if "grid_levels" in rc.data else 0),
         # SPPM photon aiming: the fraction of photons sent towards the glass and mirror objects
         # (None: the integrator's default, see `jaxrt.integrators.sppm`)
         photon_aim=rc.number("photon_aim", 0.0, lo=0.0, hi=1.0, hi_open=True) if "photon_aim" in rc.data else None,
@@ -306,6 +308,7 @@ def parse(
     rc.raw("photons", None)
     rc.raw("radius", None)
     rc.raw("camera_samples", None)
+    rc.raw("grid_levels", None)
     rc.raw("photon_aim", None)
     rc.done()
     glare = parse_glare(Table(file, "glare", doc["glare"])) if "glare" in doc else None

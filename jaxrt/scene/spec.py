@@ -97,6 +97,7 @@ class RenderSpec:
     photons: int = 0  # SPPM photons per pass (0: the integrator's default)
     radius: float = 0.0  # SPPM initial gather radius (0: the integrator's default)
     camera_samples: int = 0  # SPPM visible points per pixel per pass (0: the integrator's default)
+    grid_levels: int = 0  # SPPM hash-grid levels (0: the integrator's default for the backend)
     photon_aim: float | None = None  # SPPM fraction of photons aimed at delta objects (None: default)
 
 

@@ -79,6 +79,8 @@ class Settings(eqx.Module):
     radius: float = eqx.field(static=True, default=0.0)
     # visible points per pixel per pass (0: the integrator's default)
     camera_samples: int = eqx.field(static=True, default=0)
+    # levels of the photon hash grid (0: the integrator's default for the JAX backend)
+    grid_levels: int = eqx.field(static=True, default=0)
     # the fraction of photons aimed at the glass and mirror objects (`jaxrt.integrators.sppm`), in
     # [0, 1); 0 turns aiming off (the photon pass is then the unaimed one, bit for bit)
     photon_aim: float = eqx.field(static=True, default=0.0)

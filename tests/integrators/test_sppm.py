@@ -122,7 +122,8 @@ def test_environment_photons_carry_its_power_into_the_bounding_sphere():
 @pytest.mark.parametrize("key,value", [("photons", -5), ("photons", 0), ("photons", 1.5), ("photons", 1 << 30),
                                        ("radius", -1.0), ("radius", 0.0), ("radius", "big"),
                                        ("radius", float("inf")), ("camera_samples", 0),
-                                       ("camera_samples", 1000), ("camera_samples", 2.5)])
+                                       ("camera_samples", 1000), ("camera_samples", 2.5), ("grid_levels", 0),
+                                       ("grid_levels", 5), ("grid_levels", 1.5)])
 def test_bad_settings_are_one_line_errors(key, value):
     with pytest.raises(InputError) as e:
         R.load_scene(diffuse_scene(**{key: value}))
@@ -173,6 +174,75 @@ def test_settings_reach_the_integrator():
     assert sppm.initial_radius(default) == 0.0
     assert sppm.camera_samples(default) == 1
     assert sppm.camera_samples(R.load_scene(diffuse_scene(camera_samples=3))) == 3
+    assert sppm.grid_levels(R.load_scene(diffuse_scene(grid_levels=3))) == 3
+    assert sppm.grid_levels(default) == sppm.DEFAULT_GRID_LEVELS[jax.default_backend()]
+
+
+# ---------------------------------------------------------------------------------------------- calls
+
+def test_passes_in_one_call_equal_separate_calls():
+    """`step(scene, state, P)` runs P passes in one compiled call: the statistics after 1 + 3 + 2
+    passes in three calls are those of six calls of one pass, bit for bit (the same loop body on the
+    same random streams), and every count runs the one compiled program."""
+    scene = R.load_scene(diffuse_scene(width=12, height=9, photons=500, camera_samples=2))
+    before = sppm.steps._cache_size()
+    one = sppm.start(scene)
+    for _ in range(6):
+        one = sppm.step(scene, one)
+    grouped = sppm.start(scene)
+    for count in (1, 3, 2):
+        grouped = sppm.step(scene, grouped, count)
+    assert int(one.passes) == int(grouped.passes) == 6
+    for name in ("n", "r2", "tau", "direct"):
+        np.testing.assert_array_equal(np.asarray(getattr(grouped, name)), np.asarray(getattr(one, name)), err_msg=name)
+    assert np.asarray(one.tau).max() > 0  # photons were gathered: not a direct-only comparison
+    assert sppm.steps._cache_size() - before <= 1
+    # accumulate's count is the same call
+    acc = sppm.accumulate(scene, sppm.accumulate(scene, None, 4), 2)
+    np.testing.assert_array_equal(np.asarray(acc.tau), np.asarray(one.tau))
+    assert sppm.steps._cache_size() - before <= 1
+
+
+def test_render_groups_passes_into_calls_without_changing_the_image(monkeypatch):
+    """`render_tiles.render` runs several passes a call (`passes_per_call`) once the first call is
+    timed; its image is the one of one pass a call, bit for bit, and the progress bar counts every pass."""
+    from jaxrt import render_tiles
+
+    scene = R.load_scene(diffuse_scene(width=12, height=9, photons=500, spp=7))
+    counts = []
+    real = sppm.passes_per_call
+
+    def spy(seconds, remaining, target=sppm.CALL_SECONDS):
+        counts.append(real(seconds, remaining, target=1e9))  # every remaining pass in the second call
+        return counts[-1]
+
+    monkeypatch.setattr(sppm, "passes_per_call", spy)
+
+    class Bar:
+        n = 0
+        total = unit = None
+
+        def update(self, k):
+            self.n += k
+
+        def set_description_str(self, _):
+            pass
+
+    bar = Bar()
+    img = render_tiles.render(scene, memory="2G", progress=bar)
+    assert counts == [1, 6] and bar.n == 7
+    st = sppm.start(scene)
+    for _ in range(7):
+        st = sppm.step(scene, st)
+    np.testing.assert_array_equal(img, np.asarray(st.image))
+
+
+def test_passes_per_call_fills_the_target_time():
+    assert sppm.passes_per_call(float("nan"), 100) == 1  # nothing measured yet
+    assert sppm.passes_per_call(0.004, 1000, target=0.1) == 25
+    assert sppm.passes_per_call(0.004, 10, target=0.1) == 10  # no more than remain
+    assert sppm.passes_per_call(0.5, 10, target=0.1) == 1
+    assert sppm.passes_per_call(1e-9, 10**9) == sppm.MAX_PASSES_PER_CALL
 
 
 # ---------------------------------------------------------------------------------------------- radii
@@ -211,7 +281,8 @@ def test_default_initial_radius_is_a_pixel_footprint(mirror, length):
     np.testing.assert_allclose(np.sqrt(np.asarray(fixed.r2)), 0.01, rtol=1e-6)
 
 
-def test_clamping_radii_to_the_cell_keeps_the_image():
+@pytest.mark.parametrize("levels", [1, 2, 4])
+def test_clamping_radii_to_the_cell_keeps_the_image(levels):
     """`_radii` clamps radii above the cell's quantile with N and τ scaled by the area ratio: the
     radiance τ/(πr²) of every chain, so the image, stays the same, every found point's radius is at
     most the CELL_QUANTILE quantile r_c of the receiving points' radii and half the coarsest level's
@@ -226,13 +297,13 @@ def test_clamping_radii_to_the_cell_keeps_the_image():
     st = sppm.SPPMState(jnp.asarray(n), jnp.asarray(r2), jnp.asarray(tau), jnp.zeros((S, 3)),
                         jnp.asarray(3, jnp.int32), 20, 20, 1000)
     vp = {"found": jnp.asarray(found), "foot": jnp.full(S, 0.05)}
-    new, cell = sppm._radii(st, vp)
+    new, cell = sppm._radii(st, vp, levels)
     np.testing.assert_allclose(np.asarray(new.image), np.asarray(st.image), rtol=1e-5)
     rec = found & (n > 0)
     rc = math.sqrt(np.quantile(r2[rec], sppm.CELL_QUANTILE, method="inverted_cdf"))
     r_fine = math.sqrt(np.quantile(r2[rec], sppm.FINE_QUANTILE, method="inverted_cdf"))
-    np.testing.assert_allclose(float(cell), 2 * max(r_fine, rc * 2.0 ** (1 - sppm.GRID_LEVELS)), rtol=1e-6)
-    top = float(cell) * 2 ** (sppm.GRID_LEVELS - 1)  # the coarsest level's cells
+    np.testing.assert_allclose(float(cell), 2 * max(r_fine, rc * 2.0 ** (1 - levels)), rtol=1e-6)
+    top = float(cell) * 2 ** (levels - 1)  # the coarsest level's cells
     assert np.all(np.sqrt(np.asarray(new.r2))[found] <= min(rc, top / 2) * (1 + 1e-6))
     # N scales with the area too: the density N/(πr²) is kept
     np.testing.assert_allclose(np.asarray(new.n) / np.asarray(new.r2), n / r2, rtol=1e-5)
@@ -282,11 +353,12 @@ def test_gather_finds_every_photon_in_radius():
     np.testing.assert_array_equal(counts, brute.sum(1))
     assert brute.sum() > 150
 
-def test_gather_reads_each_radius_at_its_level():
-    """Radii from 0.002 to half the coarsest cell against a grid of finest cell 0.01 and GRID_LEVELS
+@pytest.mark.parametrize("levels", [1, 2, 3])  # (4: the coarsest cells would hold more than CELL_PHOTONS)
+def test_gather_reads_each_radius_at_its_level(levels):
+    """Radii from 0.002 to half the coarsest cell against a grid of finest cell 0.01 and `levels`
     levels (cells 0.01·2^l): each point reads the level of cells at least 2r wide, and finds exactly
     the deposits within its radius (brute force), no bucket being subsampled."""
-    top = 0.01 * 2 ** (sppm.GRID_LEVELS - 1) / 2  # the largest radius the coarsest level serves
+    top = 0.01 * 2 ** (levels - 1) / 2  # the largest radius the coarsest level serves
     rng = np.random.default_rng(5)
     n, S = 3000, 300
     pts = np.concatenate([rng.uniform(-0.3, 0.3, (n, 2)), rng.uniform(-0.002, 0.002, (n, 1))], 1).astype(np.float32)
@@ -294,13 +366,14 @@ def test_gather_reads_each_radius_at_its_level():
     r2 = np.exp(rng.uniform(math.log(0.002), math.log(top), S)).astype(np.float32) ** 2
     dep = sppm.Deposits(jnp.asarray(pts), jnp.zeros((n, 3)).at[:, 2].set(1.0), jnp.ones((n, 3)),
                         jnp.zeros(n, jnp.int32), jnp.ones(n, bool))
-    grid = sppm.build_grid(dep, 0.01, jax.random.key(0))
+    grid = sppm.build_grid(dep, 0.01, jax.random.key(0), levels)
     assert np.bincount(np.asarray(grid.bucket)).max() <= sppm.CELL_PHOTONS  # nothing subsampled
     counts = np.asarray(sppm.count_near(grid, jnp.asarray(vp_p), jnp.asarray(r2)))
     brute = (((pts[None] - vp_p[:, None]) ** 2).sum(-1) < r2[:, None]).sum(1)
     np.testing.assert_array_equal(counts, brute)
     # points at the finest level (r <= 0.005) and at the coarsest find deposits
-    assert brute[r2 <= 0.005**2].sum() > 20 and brute[r2 > (0.75 * top) ** 2].sum() > 50
+    # (one level: the two are the same cells and the radii span only 0.002-0.005)
+    assert brute[r2 <= 0.005**2].sum() > 20 and brute[r2 > (0.75 * top) ** 2].sum() > (50 if levels > 1 else 20)
 
 
 

@@ -91,6 +91,12 @@ for s in "$@"; do
                       --reference .gpudata/caustic_ref.npz
                   stage caustic-aim-65k 60 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
                       --reference .gpudata/caustic_ref.npz --photons 65536 --bias-seeds 0 ;;
+        caustic-carried)  # equal time against the reference carried in .gpudata/ (passes per call as a render picks them)
+                  stage caustic-carried 90 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                      --reference .gpudata/caustic_ref.npz --bias-seeds 0 ;;
+        latency-dragon)  # one latency row: `jaxrt render dragon` 1024², cold then 3 warm processes
+                  stage latency-dragon 80 python3 benchmarks/latency.py --no-mitsuba --warm-runs 3 \
+                      --json "$OUT/latency_dragon.json" --cases render-dragon ;;
         peers)    stage peers 110 python3 benchmarks/peers.py --size 1024 --no-mitsuba ;;
         peers-mitsuba)  # the same rows with Mitsuba's cuda_ad_rgb in the same run (needs .mitsuba/ carried)
                   stage peers-mitsuba 170 python3 benchmarks/peers.py --size 1024 --repeats 5 ;;

@@ -327,14 +327,13 @@ def test_viewer_progressive_passes_on_4_devices_equal_one_devices():
 
 
 # ---- progressive photon mapping ----------------------------------------------------------------
-@pytest.mark.slow  # an SPPM pass compiles: ~70 CPU seconds on the 2-core CPU without a warm cache
-def test_sppm_refine_runs_several_passes_a_call(monkeypatch, tmp_path):
+def check_sppm_refine_runs_several_passes_a_call(tmp_path):
     """An SPPM viewer's first refine after a change runs one pass, later ones `passes_per_call`
     passes in one call (here forced to 3): the image equals that many single passes through
     `jaxrt.integrators.sppm` itself, bit for bit, and no refine compiles anything."""
     from jaxrt.integrators import sppm
 
-    monkeypatch.setattr(sppm, "passes_per_call", lambda seconds, remaining, target=sppm.CALL_SECONDS: 3)
+    sppm.passes_per_call = lambda seconds, remaining, target=sppm.CALL_SECONDS: 3  # its own process
     scene = tmp_path / "lamp.toml"  # a Lambert floor and ball under a point light: a small program
     scene.write_text("""
 [camera]
@@ -374,3 +373,19 @@ material = "white"
         st = sppm.step(v.scene, st)
     np.testing.assert_array_equal(v.image, np.asarray(st.image))
     assert v.compiles == compiled
+
+
+@pytest.mark.slow  # an SPPM pass compiles: ~70 CPU seconds on the 2-core CPU without a warm cache
+def test_sppm_refine_runs_several_passes_a_call(tmp_path):
+    """`check_sppm_refine_runs_several_passes_a_call` in a process of its own: XLA:CPU once crashed
+    (a segmentation fault inside the compiler) compiling this program in a test worker that had
+    compiled many others before; in a fresh process it compiles as a render's does."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import sys; from pathlib import Path; sys.path.insert(0, sys.argv[1]); import test_viewer as T; "
+            "T.check_sppm_refine_runs_several_passes_a_call(Path(sys.argv[2]))")
+    r = subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent), str(tmp_path)], capture_output=True,
+                       text=True, timeout=900, check=False)
+    assert r.returncode == 0, r.stderr[-3000:]

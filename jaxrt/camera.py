@@ -13,6 +13,8 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int
 
+from jaxrt.shading.surface import dot
+
 
 class Camera(eqx.Module):
     """A look-at camera.
@@ -194,9 +196,10 @@ def generate_rays(
             lens = (lens_r * jnp.cos(phi))[..., None] * r + (lens_r * jnp.sin(phi))[..., None] * up
         o = jnp.broadcast_to(camera.position + lens, shape + (3,))
         d = d * camera.focus_distance - lens
-        # |d| written out: jnp.linalg.norm's reduction over an axis of 3 is a library (YNNPACK) fusion
-        # on XLA:CPU that took a quarter of a 512² direct frame (BENCHMARKS.md, "jaxrt beside Mitsuba 3")
-        d = d / jnp.sqrt(d[..., 0:1] * d[..., 0:1] + d[..., 1:2] * d[..., 1:2] + d[..., 2:3] * d[..., 2:3])
+        # |d| from the written-out `dot`: jnp.linalg.norm's reduction over an axis of 3 is a library
+        # (YNNPACK) fusion on XLA:CPU that took a quarter of a 512² direct frame (BENCHMARKS.md, "jaxrt
+        # beside Mitsuba 3")
+        d = d / jnp.sqrt(dot(d, d))[..., None]
         return o.reshape(-1, 3), d.reshape(-1, 3)
 
     if jitter:

@@ -35,6 +35,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxrt.errors import InputError
+from jaxrt.shading.surface import dot
 
 _LUM = (0.2126, 0.7152, 0.0722)  # Rec. 709 luminance weights: all positive, so lum = 0 iff black
 
@@ -145,11 +146,11 @@ def load(path: str | os.PathLike, scale: float = 1.0, rotate: float = 0.0) -> En
 
 
 def _rotate(m, d, transpose: bool):
-    """m @ d (or m.T @ d) of each direction, as its three components. Written out: XLA:CPU runs a
-    (B, 3) x (3, 3) product as a library (YNNPACK) fusion that takes longer than the arithmetic."""
+    """m @ d (or m.T @ d) of each direction, as its three components: a row's `dot` with d each, written
+    out, as XLA:CPU runs a (B, 3) x (3, 3) product as a library (YNNPACK) fusion that takes longer
+    than the arithmetic."""
     m = m.T if transpose else m
-    x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    return tuple(m[i, 0] * x + m[i, 1] * y + m[i, 2] * z for i in range(3))
+    return tuple(dot(m[i], d) for i in range(3))
 
 
 def _to_uv(env: EnvMap, d):

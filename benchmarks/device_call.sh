@@ -61,6 +61,14 @@ for s in "$@"; do
                       --chunk-spp 4096 --crop 3 --crop-after 32 --out "$OUT/caustic_ref.npz"
                   stage caustic-equal-time 110 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
                       --reference "$OUT/caustic_ref.npz" ;;
+        caustic-ref)  # only the reference of `caustic` (to carry as .gpudata/caustic_ref.npz to later calls)
+                  stage caustic-ref 170 python3 benchmarks/sppm.py --make-reference 1073741824 --max-seconds 100 \
+                      --chunk-spp 4096 --crop 3 --crop-after 32 --out "$OUT/caustic_ref.npz" ;;
+        profiles) # kernel by kernel (`benchmarks/gpu_profile.py`): an SPPM pass, path-tracing passes, a direct frame
+                  stage profile-sppm 70 python3 benchmarks/gpu_profile.py sppm --size 96 --repeats 20
+                  stage profile-path-dragon 70 python3 benchmarks/gpu_profile.py path-dragon --size 512 --repeats 5
+                  stage profile-path-cornell 50 python3 benchmarks/gpu_profile.py path-cornell --size 512 --repeats 5
+                  stage profile-direct-dragon 60 python3 benchmarks/gpu_profile.py direct-dragon --size 1024 --repeats 10 ;;
         caustic-calls)  # after `caustic` (its reference; or CAUSTIC_REF=.gpudata/caustic_ref.npz, carried): SPPM
                   # passes per compiled call and grid levels. Throughput of the equal-time frame (96x72, the GPU
                   # defaults: 4 visible points, 65,536 photons), one pass a call against passes_per_call's choice,

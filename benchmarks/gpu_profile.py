@@ -28,14 +28,14 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def _workload(name: str, size: int):
+def _workload(name: str, size: int, photons: int, camera_samples: int):
     """(one repetition as a callable returning an array to wait on, a description)."""
     import jaxrt.scene as S
     from jaxrt.integrators import path as P
     from jaxrt.integrators import sppm
     if name == "sppm":
         import sppm as bench  # benchmarks/sppm.py: the equal-time scene
-        scn = bench._build(bench.caustic_doc(size))
+        scn = bench._build(bench.caustic_doc(size), photons=photons, camera_samples=camera_samples)
         state = [sppm.accumulate(scn)]
 
         def run():
@@ -72,8 +72,10 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=96)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--top", type=int, default=25)
+    ap.add_argument("--photons", type=int, default=65536, help="sppm: photons per pass (the GPU's equal-time value)")
+    ap.add_argument("--camera-samples", type=int, default=4, help="sppm: visible points per pixel per pass")
     a = ap.parse_args()
-    run, what = _workload(a.workload, a.size)
+    run, what = _workload(a.workload, a.size, a.photons, a.camera_samples)
     for _ in range(3):  # compile and warm
         jax.block_until_ready(run())
     wall = []

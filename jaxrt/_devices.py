@@ -276,7 +276,9 @@ def _device_sppm(scene, state, passes, *, count: int):
     # one device's share of `passes` SPPM passes (a loop in the one call, as `integrators.sppm.steps`):
     # the same visible points everywhere, its own photons and grid, M and Φ summed over the mesh (the
     # one collective), the same update on every device
-    return jax.lax.fori_loop(0, passes, lambda i, st: integrators.sppm.pass_share(scene, st, AXIS, count), state)
+    sources = integrators.sppm.photon_sources(scene)  # once, outside the loop
+    return jax.lax.fori_loop(0, passes, lambda i, st: integrators.sppm.pass_share(scene, st, AXIS, count, sources),
+                             state)
 
 
 @functools.lru_cache(maxsize=32)

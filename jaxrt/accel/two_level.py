@@ -361,6 +361,7 @@ def occluded(
 def decode(tree: InstancedBVH, prim: Int[Array, " B"]) -> tuple[Int[Array, " B"], Int[Array, " B"]]:
     """Virtual face id -> (instance, local face index in the instance's prototype); -1 gives (0, 0)."""
     p = jnp.maximum(prim, 0)
-    inst = jnp.searchsorted(tree.inst_face_offset, p, side="right").astype(jnp.int32) - 1
+    # unrolled: a loop's every step is a host round trip on a GPU (`jaxrt.integrators.common.SEARCH`)
+    inst = jnp.searchsorted(tree.inst_face_offset, p, side="right", method="scan_unrolled").astype(jnp.int32) - 1
     inst = jnp.clip(inst, 0, tree.inst_face_offset.shape[0] - 1)
     return inst, p - tree.inst_face_offset[inst]

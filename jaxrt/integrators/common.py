@@ -72,6 +72,12 @@ def fold_in_uniforms(keys: Key[Array, " B"], k: int | Array, n: int) -> Float[Ar
     return lax.bitcast_convert_type(mant, jnp.float32) - 1.0
 
 
+#: `jnp.searchsorted`'s method for the integrators' table look-ups (light CDFs, the photon grid's
+#: buckets): the binary search written out step by step. Its default ("scan") is a loop, and on a GPU
+#: each loop iteration is a round trip to the host for the loop's condition; unrolled, a look-up is
+#: one fused kernel of log2(n) gathers. The result is the same index either way.
+SEARCH = "scan_unrolled"
+
 BLOCK = (8, 4)  # pixels (wide, high) per block of level-0 slots: one GPU warp's 32 rays
 
 
@@ -158,7 +164,7 @@ def sample_emitter_point(geo, al, table: EmitterTable, u: Float[Array, "B 3"]):
     triangle's area (u[:, 1:3], the square-root warp of Shirley & Chiu): (face, its vertices
     (v0, v1, v2), point y, geometric normal n of the triangle's winding). Shared by next-event
     estimation and photon emission."""
-    j = jnp.clip(jnp.searchsorted(table.cdf, u[:, 0], side="right") - 1, 0, al.count - 1)
+    j = jnp.clip(jnp.searchsorted(table.cdf, u[:, 0], side="right", method=SEARCH) - 1, 0, al.count - 1)
     face = al.prims[j]
     v0, v1, v2 = geo.triangles(face)
     su = jnp.sqrt(u[:, 1])

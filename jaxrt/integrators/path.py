@@ -5,8 +5,8 @@
 a `lax.fori_loop` (a scan: BVH traversal is compiled
 once, not once per bounce, and the loop is reverse-differentiable), then one last ray query that only
 collects the emission found after max_depth vertices (no light sample or next direction there). An
-iteration whose paths are all dead skips its work (`lax.cond`), so short paths cost little whatever
-max_depth is.
+iteration whose paths are all dead skips its work on the CPU (`lax.cond`), so short paths cost little
+whatever max_depth is (on a GPU every iteration runs: see `samples`).
 
 Estimator (pbrt-v4's PathIntegrator, power heuristic with β = 2). At each path vertex:
 
@@ -114,6 +114,11 @@ def _path_keys(kpath, window: camera.Window, spp: int, width: int):
     k_hi = jax.vmap(jax.random.fold_in)(k_lo, hi)
     data = jnp.where((hi == 0)[:, None], jax.random.key_data(k_lo), jax.random.key_data(k_hi))
     return jax.random.wrap_key_data(data, impl=jax.random.key_impl(kpath))
+
+
+def _on_cpu() -> bool:
+    # whether the program is made for the CPU (where conditionals that skip dead work pay off)
+    return jax.default_backend() == "cpu"
 
 
 def _stored(tree, alive):
@@ -358,7 +363,15 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first, uniforms(keys, k + 1),
                 keys)
 
+    # A bounce whose paths are all dead is skipped on the CPU (`lax.cond`). On a GPU a conditional
+    # costs a wait for the device to hand its predicate to the host and copies of the loop state
+    # into the conditional's results, every bounce, while a pass's batch of paths is rarely all dead
+    # before max_depth: there the bounce runs unconditionally (dead paths are masked throughout).
+    on_cpu = _on_cpu()
+
     def body(k, carry):
+        if not on_cpu:
+            return work(k, carry)
         return lax.cond(jnp.any(carry[2]), lambda c: work(k, c), lambda c: c, carry)
 
     def trace(o0, d0, alive0, key_data):
@@ -371,7 +384,10 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, uniforms(keys, 0),
                  keys)
         carry = lax.fori_loop(0, D, body, carry)
-        carry = lax.cond(jnp.any(carry[2]), lambda c: work(D, c, last=True), lambda c: c, carry)
+        if on_cpu:
+            carry = lax.cond(jnp.any(carry[2]), lambda c: work(D, c, last=True), lambda c: c, carry)
+        else:
+            carry = work(D, carry, last=True)
         return carry[6], carry[7]
 
     xs = (o0, d0, alive0, jax.random.key_data(path_keys))

@@ -97,7 +97,8 @@ import brdfs
 from jaxrt import camera, envmap
 from jaxrt import lights as _lights
 from jaxrt.errors import InputError
-from jaxrt.integrators.common import emitter_table, intersect_active, sample_area_light, sample_emitter_point
+from jaxrt.integrators.common import (SEARCH, emitter_table, intersect_active, sample_area_light,
+                                      sample_emitter_point)
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, glass_split, hit_params, is_glass
 from jaxrt.shading.surface import (dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented,
@@ -384,13 +385,18 @@ def aim_targets(scene) -> AimTargets:
     obj = geo.face_object(prim)
     if K > MAX_AIM_OBJECTS:
         obj, K = jnp.zeros_like(obj), 1
-    seg = jnp.where(delta, obj, K)  # non-delta faces go to a dropped segment
-    lo = jax.ops.segment_min(jnp.min(v, 1), seg, K + 1)[:K]
-    hi = jax.ops.segment_max(jnp.max(v, 1), seg, K + 1)[:K]
-    active = jax.ops.segment_max(delta.astype(jnp.int32), seg, K + 1)[:K] > 0
+    seg = jnp.where(delta, obj, K)  # non-delta faces belong to no target
+    # (F, K) membership and masked reductions over the faces: K is at most MAX_AIM_OBJECTS, and a
+    # segment reduction into K slots is a scatter whose every face updates one of a few addresses,
+    # which a GPU serialises (atomics on the same words: ~0.5 ms for 20k faces into 4 slots)
+    member = seg[:, None] == jnp.arange(K)[None, :]
+    inf = jnp.asarray(jnp.inf, v.dtype)
+    lo = jnp.min(jnp.where(member[:, :, None], jnp.min(v, 1)[:, None, :], inf), axis=0)
+    hi = jnp.max(jnp.where(member[:, :, None], jnp.max(v, 1)[:, None, :], -inf), axis=0)
+    active = jnp.any(member, axis=0)
     centre = jnp.where(active[:, None], 0.5 * (lo + hi), 0.0)
     dist = jnp.max(jnp.linalg.norm(v - centre[jnp.minimum(seg, K - 1)][:, None, :], axis=-1), axis=1)
-    radius = jax.ops.segment_max(dist, seg, K + 1)[:K]
+    radius = jnp.max(jnp.where(member, dist[:, None], 0.0), axis=0)
     return AimTargets(centre, jnp.where(active, radius, 0.0), active)
 
 
@@ -442,24 +448,35 @@ def aim_pdf(t: AimTargets, f: float, x: Float[Array, "n 3"], normal: Float[Array
     return jnp.where(jnp.any(t.active), (1.0 - f) * p_emit + f * cone_pdf(t, x, w), p_emit)
 
 
-def emit(scene, u: Float[Array, "n c"]):
+def photon_sources(scene):
+    """What photon emission reads of the scene besides the random numbers: the lights' selection
+    weights, the emitter table, the bounding sphere (`_light_choice`) and the aiming targets (None
+    without aiming). The same for every pass of a render: `steps` makes it once per call and its
+    passes read it (a face reduction over the whole mesh per pass otherwise)."""
+    w, table, sphere = _light_choice(scene)
+    aim = aim_targets(scene) if photon_aim(scene) > 0 else None
+    return w, table, sphere, aim
+
+
+def emit(scene, u: Float[Array, "n c"], sources=None):
     """Photons leaving the lights, one per row of uniforms u.
 
     Returns origins (n, 3), unit directions (n, 3) and powers (n, 3) [W], each photon's power its
     light's emitted flux over the probability density of the photon, so the mean power over photons
     is an unbiased estimate of `light_power` (exactly it for one light of one colour), plus, with an
     environment, π r²·∫L dω, the power it sends into the bounding sphere of radius r. u has 6
-    columns, 10 with photon aiming (`photon_aim` > 0: the last 4 choose and sample the cones)."""
+    columns, 10 with photon aiming (`photon_aim` > 0: the last 4 choose and sample the cones).
+    sources: `photon_sources(scene)`, made here when None."""
     geo = _sg(scene.geometry)
     n = u.shape[0]
-    w, table, sphere = _light_choice(scene)
+    w, table, sphere, aim = photon_sources(scene) if sources is None else sources
     nl = scene.lights.count
     tot = jnp.sum(w)
     if w.shape[0] == 0:
         z = jnp.zeros((n, 3))
         return z, z.at[:, 2].set(1.0), z
     cdf = jnp.concatenate([jnp.zeros(1), jnp.cumsum(w) / jnp.where(tot > 0, tot, 1.0)])
-    pick = jnp.clip(jnp.searchsorted(cdf, u[:, 0], side="right") - 1, 0, w.shape[0] - 1)
+    pick = jnp.clip(jnp.searchsorted(cdf, u[:, 0], side="right", method=SEARCH) - 1, 0, w.shape[0] - 1)
     p_pick = jnp.where(tot > 0, w[pick] / jnp.where(tot > 0, tot, 1.0), 0.0)
     inv_p = jnp.where(p_pick > 0, 1.0 / jnp.where(p_pick > 0, p_pick, 1.0), 0.0)
     # uniform direction on the sphere (point lights)
@@ -493,7 +510,7 @@ def emit(scene, u: Float[Array, "n c"]):
     if f > 0 and (nl or table is not None):
         if u.shape[1] < 10:
             raise ValueError(f"emit: photon aiming needs 10 uniforms per photon, got {u.shape[1]}")
-        t = aim_targets(scene)
+        t = aim
         area = (pick == nl) if table is not None else jnp.zeros(n, bool)
         # the cone's apex: the point on the lamp (before the ray offset) or the point light
         x = jnp.where(area[:, None], y, o) if table is not None else o
@@ -543,6 +560,11 @@ class Deposits(eqx.Module):
     valid: Array
 
 
+def _on_cpu() -> bool:
+    # whether the program is made for the CPU (where conditionals that skip dead work pay off)
+    return jax.default_backend() == "cpu"
+
+
 def _share_rows(x, share):
     # this device's rows of a whole pass's array of per-photon random numbers: the array is drawn for
     # all n photons (so photon i's numbers are the one-device pass's whatever device traces it),
@@ -556,13 +578,14 @@ def _share_rows(x, share):
     return lax.dynamic_slice_in_dim(x, d * per, per, 0)
 
 
-def trace_photons(scene, key, n: int, share: tuple | None = None) -> Deposits:
+def trace_photons(scene, key, n: int, share: tuple | None = None, sources=None) -> Deposits:
     """Emit `n` photons and trace them for max_depth − 1 scatterings; a deposit at every non-delta
     hit after the first scattering (see the module docstring).
 
     share: None (all n photons), or (d, D): device d's ceil(n/D) of the photons split over D devices
     (d traced, D static), photon i the same as in the whole pass (its random numbers are row i of the
-    whole pass's); the last device's rows past photon n − 1 are padding with zero power, never traced."""
+    whole pass's); the last device's rows past photon n − 1 are padding with zero power, never traced.
+    sources: `photon_sources(scene)` (made here when None)."""
     geo = _sg(scene.geometry)
     mats = _sg(scene.materials)
     scene = _sg(scene)
@@ -571,7 +594,7 @@ def trace_photons(scene, key, n: int, share: tuple | None = None) -> Deposits:
     u = jax.random.uniform(jax.random.fold_in(key, 1 << 20), (n, 6))
     if photon_aim(scene) > 0:
         u = jnp.concatenate([u, jax.random.uniform(jax.random.fold_in(key, (1 << 20) + 1), (n, 4))], 1)
-    o, d, power = emit(scene, _share_rows(u, share))
+    o, d, power = emit(scene, _share_rows(u, share), sources)
     if share is not None:
         per = o.shape[0]
         real = share[0] * per + jnp.arange(per) < n
@@ -601,6 +624,10 @@ def trace_photons(scene, key, n: int, share: tuple | None = None) -> Deposits:
             z = jnp.zeros((n, 3))
             return c, (z, z, z, jnp.zeros(n, bool))
 
+        if not _on_cpu():
+            # a conditional on a GPU waits for the device to hand its predicate to the host, once a
+            # bounce; the dead photons' work (masked) costs less than that at a pass's sizes
+            return work((o, d, alive, beta))
         return lax.cond(jnp.any(alive), work, idle, (o, d, alive, beta))
 
     _, (p, wi, pw, ok) = lax.scan(body, (o, d, alive, power), jnp.arange(D))
@@ -695,8 +722,8 @@ def _candidates(grid: Grid, p, r2):
     cells = jnp.concatenate([cells, jnp.broadcast_to(level.astype(jnp.int32)[:, None, None], cells.shape[:2] + (1,))],
                             axis=-1)  # (S, 8, 4)
     hq = _hash(cells, grid.size)
-    start = jnp.searchsorted(grid.bucket, hq, side="left")
-    end = jnp.searchsorted(grid.bucket, hq, side="right")
+    start = jnp.searchsorted(grid.bucket, hq, side="left", method=SEARCH)
+    end = jnp.searchsorted(grid.bucket, hq, side="right", method=SEARCH)
     j = start[..., None] + jnp.arange(K)  # (S, 8, K)
     jc = jnp.clip(j, 0, N - 1)
     same = jnp.all(grid.cells[jc] == cells[:, :, None, :], axis=-1)
@@ -766,11 +793,12 @@ def subpixel_positions(scene, pass_index, samples: int) -> Float[Array, "H W k 2
     return jnp.minimum(jnp.mod(shift + seq[None, None], 1.0), 1.0 - 2.0 ** -24)
 
 
-def visible_points(scene, key, samples: int = 1, pass_index=None):
+def visible_points(scene, key, samples: int = 1, pass_index=None, table=None):
     """`samples` camera rays per pixel to their visible points, S = H·W·samples ordered (row,
     column, sample); returns (vp dict, direct (S, 3), first hits). With `pass_index` the rays' positions
     in their pixels are `subpixel_positions`', else independent uniform jitter. The vp dict's `foot`
-    is the pixel footprint at the visible point (path length times `pixel_angle`)."""
+    is the pixel footprint at the visible point (path length times `pixel_angle`). table: the emitter
+    table of the next-event estimate (`emitter_table`; made there when None)."""
     st, cam, mats = scene.settings, _sg(scene.camera), _sg(scene.materials)
     geo = _sg(scene.geometry)
     scene = _sg(scene)
@@ -821,13 +849,14 @@ def visible_points(scene, key, samples: int = 1, pass_index=None):
         alive = found & is_delta & ok
         beta = jnp.where(alive[:, None], beta * fac, 0.0)
         o, d = no, nd
-    direct = emitted + vp["beta"] * _nee(scene, vp, models, knee)
+    direct = emitted + vp["beta"] * _nee(scene, vp, models, knee, table)
     return vp, jnp.where(jnp.isfinite(direct), direct, 0.0), first
 
 
-def _nee(scene, vp, models, key):
+def _nee(scene, vp, models, key, table=None):
     """Direct light at the visible points: every point light and one sample of the emissive
-    triangles or the environment (probability 1/2 each when both exist), light sampling only."""
+    triangles or the environment (probability 1/2 each when both exist), light sampling only.
+    table: the emitter table (`emitter_table`; made here when None)."""
     geo, mats = scene.geometry, scene.materials
     s = vp["surface"]
     S = s.p.shape[0]
@@ -860,7 +889,7 @@ def _nee(scene, vp, models, key):
         dist_c = jnp.full(S, jnp.inf)
         pick_tri = u[:, 0] < p_tri
         if has_tri:
-            table = emitter_table(scene)
+            table = emitter_table(scene) if table is None else table
             wi_t, le_t, p_t, dist = sample_area_light(geo, al, table, origin, u[:, 1:4], p_tri)
             wi_c = jnp.where(pick_tri[:, None], wi_t, wi_c)
             le_c = jnp.where(pick_tri[:, None], le_t, le_c)
@@ -954,19 +983,20 @@ def _update(state: SPPMState, m, phi, direct) -> SPPMState:
                      state.photons, state.samples)
 
 
-def _pass(scene, state: SPPMState, with_first: bool = False):
+def _pass(scene, state: SPPMState, with_first: bool = False, sources=None):
     kvp, kph, kgrid = pass_keys(scene, state.passes)
-    vp, direct, first = visible_points(scene, kvp, state.samples, state.passes)
+    vp, direct, first = visible_points(scene, kvp, state.samples, state.passes,
+                                       table=None if sources is None else sources[1])
     levels = grid_levels(scene)
     state, cell = _radii(state, vp, levels)
-    dep = trace_photons(scene, kph, state.photons)
+    dep = trace_photons(scene, kph, state.photons, sources=sources)
     grid = build_grid(dep, cell, kgrid, levels)
     m, phi = gather(scene, grid, vp, state.r2)
     new = _update(state, m, phi, direct)
     return (new, first) if with_first else new
 
 
-def pass_share(scene, state: SPPMState, axis: str, count: int) -> SPPMState:
+def pass_share(scene, state: SPPMState, axis: str, count: int, sources=None) -> SPPMState:
     """One pass with its photons split over the `count` devices of mesh axis `axis`, to run inside
     `shard_map` with the scene and the state replicated: every device computes the same visible
     points (the pass's camera keys), traces its share of the photons (`trace_photons`' share: photon
@@ -979,11 +1009,12 @@ def pass_share(scene, state: SPPMState, axis: str, count: int) -> SPPMState:
     every deposit within a radius is read on either side. A fuller bucket is subsampled on each
     device among that device's deposits, which is another unbiased estimate of the same sum."""
     kvp, kph, kgrid = pass_keys(scene, state.passes)
-    vp, direct, _ = visible_points(scene, kvp, state.samples, state.passes)
+    vp, direct, _ = visible_points(scene, kvp, state.samples, state.passes,
+                                   table=None if sources is None else sources[1])
     levels = grid_levels(scene)
     state, cell = _radii(state, vp, levels)
     d = lax.axis_index(axis)
-    dep = trace_photons(scene, kph, state.photons, share=(d, count))
+    dep = trace_photons(scene, kph, state.photons, share=(d, count), sources=sources)
     grid = build_grid(dep, cell, jax.random.fold_in(kgrid, d), levels)
     m, phi = lax.psum(gather(scene, grid, vp, state.r2), axis)
     return _update(state, m, phi, direct)
@@ -992,7 +1023,8 @@ def pass_share(scene, state: SPPMState, axis: str, count: int) -> SPPMState:
 def _passes(scene, state: SPPMState, count) -> SPPMState:
     # `count` (traced) passes in a loop whose body is the one pass: P passes in one call are the same
     # operations on the same random streams (the pass index is the state's) as P calls of one pass
-    return lax.fori_loop(0, count, lambda i, st: _pass(scene, st), state)
+    sources = photon_sources(scene)  # once, outside the loop
+    return lax.fori_loop(0, count, lambda i, st: _pass(scene, st, sources=sources), state)
 
 
 #: `count` passes (camera pass, photon pass, hash grid, gather, progressive update each), compiled once
@@ -1047,8 +1079,9 @@ def render(scene, *, aovs: bool = False, window: camera.Window | None = None):
         raise InputError(f"{scene.source}: integrator 'sppm' renders whole frames, not tiles")
     check(scene)
     state0 = start(scene)
-    state, first = _pass(scene, state0, with_first=True)
-    state = lax.fori_loop(1, scene.settings.spp, lambda i, st: _pass(scene, st), state)
+    sources = photon_sources(scene)
+    state, first = _pass(scene, state0, with_first=True, sources=sources)
+    state = lax.fori_loop(1, scene.settings.spp, lambda i, st: _pass(scene, st, sources=sources), state)
     img = state.image
     if not aovs:
         return img

@@ -114,6 +114,21 @@ def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
     assert float(jnp.mean(whole[0])) > 0
 
 
+def test_unconditional_bounces_equal_skipped_dead_bounces(furnace, monkeypatch):
+    # On a GPU every bounce runs (no `lax.cond` skipping a batch whose paths are all dead): dead
+    # paths must then contribute nothing. Made here by telling the path tracer it is not on the
+    # CPU, at a depth where the whole batch has died (the furnace's max_depth 10: a convex sphere,
+    # every path escapes after its first bounces): the images agree to float32 rounding (the two
+    # programs fuse differently).
+    sc = _with_material(furnace, "glossy")
+    skipped = jax.jit(lambda s: path.samples(s, 5, jitter=True, aovs=True))(sc)
+    monkeypatch.setattr(path, "_on_cpu", lambda: False)
+    always = jax.jit(lambda s: path.samples(s, 5, jitter=True, aovs=True))(sc)
+    for a, b in zip(jax.tree.leaves(skipped), jax.tree.leaves(always), strict=True):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-5, atol=1e-6)
+    assert float(jnp.mean(skipped[0])) > 0
+
+
 # --------------------------------------------------------------------------- gradients
 
 

@@ -203,6 +203,22 @@ def test_passes_in_one_call_equal_separate_calls():
     assert sppm.steps._cache_size() - before <= 1
 
 
+def test_unconditional_photon_bounces_equal_skipped_dead_bounces(monkeypatch):
+    """On a GPU every photon bounce runs (no `lax.cond` skipping a bounce whose photons are all
+    dead): dead photons must then deposit nothing. Made here by telling the photon tracer it is not
+    on the CPU, with a max_depth past where every photon has died (diffuse albedo 0 on the wall,
+    photons leaving the scene): the statistics agree to float32 rounding."""
+    scene = R.load_scene(diffuse_scene(width=12, height=9, photons=700, camera_samples=2, max_depth=8))
+    run = lambda: jax.jit(sppm._passes)(scene, sppm.start(scene), jnp.int32(3))  # noqa: E731
+    skipped = run()
+    monkeypatch.setattr(sppm, "_on_cpu", lambda: False)
+    always = run()
+    for name in ("n", "r2", "tau", "direct"):
+        np.testing.assert_allclose(np.asarray(getattr(always, name)), np.asarray(getattr(skipped, name)),
+                                   rtol=1e-5, atol=1e-6, err_msg=name)
+    assert np.asarray(skipped.tau).max() > 0
+
+
 def test_render_groups_passes_into_calls_without_changing_the_image(monkeypatch):
     """`render_tiles.render` runs several passes a call (`passes_per_call`) once the first call is
     timed; its image is the one of one pass a call, bit for bit, and the progress bar counts every pass."""

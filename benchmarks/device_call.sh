@@ -69,6 +69,13 @@ for s in "$@"; do
                   stage profile-path-dragon 70 python3 benchmarks/gpu_profile.py path-dragon --size 512 --repeats 5
                   stage profile-path-cornell 50 python3 benchmarks/gpu_profile.py path-cornell --size 512 --repeats 5
                   stage profile-direct-dragon 60 python3 benchmarks/gpu_profile.py direct-dragon --size 1024 --repeats 10 ;;
+        quick)    # after a change to the GPU passes: their profiles, then SPPM vs path at equal time (carried
+                  # reference) and the path-tracing rows beside Mitsuba (.mitsuba/ carried)
+                  stage profile-sppm 70 python3 benchmarks/gpu_profile.py sppm --size 96 --repeats 20
+                  stage profile-path-dragon 70 python3 benchmarks/gpu_profile.py path-dragon --size 512 --repeats 5
+                  stage caustic-carried 90 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                      --reference .gpudata/caustic_ref.npz --bias-seeds 0
+                  stage peers-path 120 python3 benchmarks/peers.py --rows path --repeats 5 ;;
         caustic-calls)  # after `caustic` (its reference; or CAUSTIC_REF=.gpudata/caustic_ref.npz, carried): SPPM
                   # passes per compiled call and grid levels. Throughput of the equal-time frame (96x72, the GPU
                   # defaults: 4 visible points, 65,536 photons), one pass a call against passes_per_call's choice,

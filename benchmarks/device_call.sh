@@ -76,6 +76,15 @@ for s in "$@"; do
                   stage caustic-carried 90 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
                       --reference .gpudata/caustic_ref.npz --bias-seeds 0
                   stage peers-path 120 python3 benchmarks/peers.py --rows path --repeats 5 ;;
+        hlo)      # the optimised GPU programs of a path-tracing pass and an SPPM call, as text (xz) beside the
+                  # kernel profiles: to read which fusions and copies the profiles' kernel names are
+                  for w in path-dragon path-cornell sppm; do
+                      size=512; [ "$w" = sppm ] && size=96
+                      XLA_FLAGS="--xla_dump_to=/tmp/hlo-$w --xla_dump_hlo_as_text --xla_dump_hlo_pass_re=^$" \
+                          stage "hlo-$w" 70 python3 benchmarks/gpu_profile.py "$w" --size "$size" --repeats 3 --top 40
+                      big=$(ls -S /tmp/hlo-$w/*after_optimizations.txt 2>/dev/null | head -1)
+                      [ -n "$big" ] && xz -c "$big" > "$OUT/hlo-$w.txt.xz"
+                  done ;;
         caustic-calls)  # after `caustic` (its reference; or CAUSTIC_REF=.gpudata/caustic_ref.npz, carried): SPPM
                   # passes per compiled call and grid levels. Throughput of the equal-time frame (96x72, the GPU
                   # defaults: 4 visible points, 65,536 photons), one pass a call against passes_per_call's choice,

@@ -200,6 +200,11 @@ def pdf(env: EnvMap, wi: Float[Array, "*B 3"]) -> Float[Array, "*B"]:
     return jnp.where(ok, p_uv / (2.0 * math.pi**2 * jnp.where(ok, st, 1.0)), 0.0)
 
 
+def _search_in_loop() -> bool:
+    # `_count_le`'s binary search as a loop (CPU) or unrolled (elsewhere)
+    return jax.default_backend() == "cpu"
+
+
 def _count_le(cdf, row, u):
     """Number of entries <= u in row `row` of the nondecreasing rows of cdf (R, m), per sample:
     ``jnp.searchsorted(cdf[row], u, side="right")``, by a binary search that gathers one entry per
@@ -209,15 +214,22 @@ def _count_le(cdf, row, u):
 
     def step(_, lohi):
         lo, hi = lohi
-        mid = (lo + hi) // 2
+        mid = (lo + hi) >> 1  # both non-negative: the halving without a signed division's corrections
         right = cdf[row, jnp.minimum(mid, m - 1)] <= u
         open_ = lo < hi
         return jnp.where(open_ & right, mid + 1, lo), jnp.where(open_ & ~right, mid, hi)
 
-    # a loop, not unrolled: unrolled, XLA fuses the chain of dependent gathers into each consumer
-    lo = jnp.zeros(jnp.shape(u), jnp.int32)
-    lo, _ = jax.lax.fori_loop(0, m.bit_length(), step, (lo, jnp.full(jnp.shape(u), m, jnp.int32)))
-    return lo  # each step halves [lo, hi): m + 1 candidate counts
+    lohi = (jnp.zeros(jnp.shape(u), jnp.int32), jnp.full(jnp.shape(u), m, jnp.int32))
+    if _search_in_loop():
+        # a loop on the CPU: unrolled, XLA:CPU fuses the chain of dependent gathers into each consumer
+        lo, _ = jax.lax.fori_loop(0, m.bit_length(), step, lohi)
+        return lo  # each step halves [lo, hi): m + 1 candidate counts
+    # unrolled elsewhere: on a GPU every iteration of a loop is a host round trip for its condition
+    # plus copies of its state (~15 of each per environment sample of a path-tracing bounce); the
+    # barrier keeps the result computed once rather than fused into each consumer
+    for i in range(m.bit_length()):
+        lohi = step(i, lohi)
+    return jax.lax.optimization_barrier(lohi[0])
 
 
 def _sample_cdf(cdf, u, row=None):

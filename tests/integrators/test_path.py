@@ -617,9 +617,12 @@ def test_fold_in_uniforms_are_jax_random_bit_for_bit(k):
     np.testing.assert_array_equal(np.asarray(got), np.asarray(ref))
 
 
-def test_envmap_row_search_matches_numpy_searchsorted():
+@pytest.mark.parametrize("loop", [True, False], ids=["loop", "unrolled"])
+def test_envmap_row_search_matches_numpy_searchsorted(loop, monkeypatch):
     # the environment sampler's per-sample binary search in a row of the 2-D cdf table must count
-    # exactly what numpy's searchsorted(side="right") counts, ties and empty bins included
+    # exactly what numpy's searchsorted(side="right") counts, ties and empty bins included, as the
+    # CPU's loop and as the GPU's unrolled steps
+    monkeypatch.setattr(envmap, "_search_in_loop", lambda: loop)
     rng = np.random.default_rng(5)
     for m in (2, 3, 64, 129, 130):
         w = rng.random((17, m - 1)) * (rng.random((17, m - 1)) < 0.6)  # zero-width bins (plateaus)

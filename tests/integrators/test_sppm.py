@@ -219,6 +219,21 @@ def test_unconditional_photon_bounces_equal_skipped_dead_bounces(monkeypatch):
     assert np.asarray(skipped.tau).max() > 0
 
 
+@pytest.mark.parametrize("on_cpu", [True, False], ids=["one-sort", "two-sorts"])
+def test_grid_order_is_bucket_then_random_key_then_index(on_cpu, monkeypatch):
+    """The hash grid's entries in (bucket, random key, index) order, against numpy's lexsort, for the
+    CPU's one sort of two keys and the two stable sorts of one key used elsewhere; ties in the
+    random key (few distinct values here) fall back to the index."""
+    monkeypatch.setattr(sppm, "_on_cpu", lambda: on_cpu)
+    rng = np.random.default_rng(3)
+    b = rng.integers(0, 40, 5000).astype(np.int32)
+    rand = rng.integers(0, 6, 5000).astype(np.uint32)
+    got_b, order = jax.jit(sppm._sort_by_bucket)(jnp.asarray(b), jnp.asarray(rand))
+    want = np.lexsort((np.arange(5000), rand, b))
+    np.testing.assert_array_equal(np.asarray(order), want)
+    np.testing.assert_array_equal(np.asarray(got_b), b[want])
+
+
 def test_render_groups_passes_into_calls_without_changing_the_image(monkeypatch):
     """`render_tiles.render` runs several passes a call (`passes_per_call`) once the first call is
     timed; its image is the one of one pass a call, bit for bit, and the progress bar counts every pass."""

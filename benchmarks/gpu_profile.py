@@ -3,7 +3,7 @@ device's kernels summed by name (launches, total and median microseconds, share 
 and the launches and device time per repetition. For deciding what to fuse or drop, not for ratios
 against a peer (`benchmarks/peers.py`, `benchmarks/sppm.py` do those).
 
-    python benchmarks/gpu_profile.py sppm --size 96 --repeats 20       # one SPPM pass of the equal-time scene
+    python benchmarks/gpu_profile.py sppm --size 96 --repeats 20       # calls of 8 SPPM passes, equal-time scene
     python benchmarks/gpu_profile.py path-dragon --size 512 --repeats 5  # a path-tracing pass, dragon in an envmap
     python benchmarks/gpu_profile.py path-cornell --size 512 --repeats 5
     python benchmarks/gpu_profile.py direct-dragon --size 1024 --repeats 10  # a direct-light frame
@@ -28,7 +28,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def _workload(name: str, size: int, photons: int, camera_samples: int):
+def _workload(name: str, size: int, photons: int, camera_samples: int, passes: int):
     """(one repetition as a callable returning an array to wait on, a description)."""
     import jaxrt.scene as S
     from jaxrt.integrators import path as P
@@ -39,9 +39,9 @@ def _workload(name: str, size: int, photons: int, camera_samples: int):
         state = [sppm.accumulate(scn)]
 
         def run():
-            state[0] = sppm.step(scn, state[0], 1)
+            state[0] = sppm.step(scn, state[0], passes)
             return state[0].passes
-        return run, (f"SPPM pass, equal-time caustic scene {scn.camera.width}x{scn.camera.height}, "
+        return run, (f"{passes} SPPM passes a call (a repetition), equal-time caustic scene {scn.camera.width}x{scn.camera.height}, "
                      f"{sppm.photons_per_pass(scn)} photons, {sppm.camera_samples(scn)} visible points/pixel, "
                      f"{sppm.grid_levels(scn)} grid levels")
     if name.startswith("path-"):
@@ -74,8 +74,9 @@ def main() -> None:
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--photons", type=int, default=65536, help="sppm: photons per pass (the GPU's equal-time value)")
     ap.add_argument("--camera-samples", type=int, default=4, help="sppm: visible points per pixel per pass")
+    ap.add_argument("--sppm-passes", type=int, default=8, help="sppm: passes a call (a repetition)")
     a = ap.parse_args()
-    run, what = _workload(a.workload, a.size, a.photons, a.camera_samples)
+    run, what = _workload(a.workload, a.size, a.photons, a.camera_samples, a.sppm_passes)
     for _ in range(3):  # compile and warm
         jax.block_until_ready(run())
     wall = []

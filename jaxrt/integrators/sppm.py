@@ -138,6 +138,11 @@ MAX_PASSES_PER_CALL = 1024
 FINE_QUANTILE = 0.1
 #: the default `[render] photon_aim` of scenes with glass or mirror (δ > 0) materials (0 without them)
 DEFAULT_PHOTON_AIM = 0.5
+#: photons a GPU traces at once when passes are batched (`photon_batch`): a pass of 65k photons
+#: traces a bounce in ~100 µs on an H200 at a fraction of its width (BENCHMARKS.md, "Photon mapping")
+PHOTON_BATCH = 1 << 19
+#: upper bound of the passes traced in one batch
+MAX_PHOTON_BATCH = 8
 #: objects aimed at one by one up to this many (each photon tests every cone); more share one sphere
 MAX_AIM_OBJECTS = 16
 _sg = lax.stop_gradient
@@ -586,14 +591,31 @@ def trace_photons(scene, key, n: int, share: tuple | None = None, sources=None) 
     (d traced, D static), photon i the same as in the whole pass (its random numbers are row i of the
     whole pass's); the last device's rows past photon n − 1 are padding with zero power, never traced.
     sources: `photon_sources(scene)` (made here when None)."""
+    return jax.tree.map(lambda x: x[0], trace_photon_batch(scene, key[None], n, share, sources))
+
+
+def trace_photon_batch(scene, keys, n: int, share: tuple | None = None, sources=None) -> Deposits:
+    """`trace_photons` of several passes at once, one per key of `keys` (B,): every field gains a
+    leading axis of B, and pass b's deposits are those `trace_photons(scene, keys[b], n)` makes (the
+    same random streams), traced as one batch of B·n photons: each bounce is one traversal launch for
+    all of them, where a GPU runs B small launches at a fraction of its width. `share` needs B = 1."""
     geo = _sg(scene.geometry)
     mats = _sg(scene.materials)
     scene = _sg(scene)
     D = scene.settings.max_depth
     models = _models(mats)
-    u = jax.random.uniform(jax.random.fold_in(key, 1 << 20), (n, 6))
+    B = keys.shape[0]
+    if share is not None and B != 1:
+        raise ValueError("trace_photon_batch: a device's share of the photons is traced one pass at a time")
+
+    def rows(fn):  # per-pass random numbers (B, m, c) as the batch's rows (B·m, c)
+        x = jax.vmap(fn)(keys)
+        return x.reshape((-1,) + x.shape[2:])
+
+    u = rows(lambda key: jax.random.uniform(jax.random.fold_in(key, 1 << 20), (n, 6)))
     if photon_aim(scene) > 0:
-        u = jnp.concatenate([u, jax.random.uniform(jax.random.fold_in(key, (1 << 20) + 1), (n, 4))], 1)
+        u = jnp.concatenate([u, rows(lambda key: jax.random.uniform(jax.random.fold_in(key, (1 << 20) + 1),
+                                                                    (n, 4)))], 1)
     o, d, power = emit(scene, _share_rows(u, share), sources)
     if share is not None:
         per = o.shape[0]
@@ -607,7 +629,7 @@ def trace_photons(scene, key, n: int, share: tuple | None = None, sources=None) 
 
         def work(c):
             o, d, alive, beta = c
-            u = _share_rows(jax.random.uniform(jax.random.fold_in(key, k), (n_all, 3)), share)
+            u = _share_rows(rows(lambda key: jax.random.uniform(jax.random.fold_in(key, k), (n_all, 3))), share)
             hit = intersect_active(geo, o, d, alive)
             prim = jnp.where(alive, hit.prim, -1)
             found = prim >= 0
@@ -621,8 +643,8 @@ def trace_photons(scene, key, n: int, share: tuple | None = None, sources=None) 
             return (no, nd, good, jnp.where(good[:, None], nb, 0.0)), dep
 
         def idle(c):
-            z = jnp.zeros((n, 3))
-            return c, (z, z, z, jnp.zeros(n, bool))
+            z = jnp.zeros((o.shape[0], 3))
+            return c, (z, z, z, jnp.zeros(o.shape[0], bool))
 
         if not _on_cpu():
             # a conditional on a GPU waits for the device to hand its predicate to the host, once a
@@ -633,10 +655,12 @@ def trace_photons(scene, key, n: int, share: tuple | None = None, sources=None) 
     _, (p, wi, pw, ok) = lax.scan(body, (o, d, alive, power), jnp.arange(D))
     # the first hit never deposits (its light is the next-event estimate's): its slots are dropped,
     # which keeps them out of the grid's sort
-    p, wi, pw, ok = p[1:], wi[1:], pw[1:], ok[1:]
-    steps = p.shape[0]
-    bounce = jnp.broadcast_to(jnp.arange(1, steps + 1, dtype=jnp.int32)[:, None], (steps, n))
-    return Deposits(p.reshape(-1, 3), wi.reshape(-1, 3), pw.reshape(-1, 3), bounce.reshape(-1), ok.reshape(-1))
+    steps, m = D - 1, n // B  # m: the rows of one pass
+    # (steps, B·m, ...) -> per pass (B, steps·m, ...), each pass's deposits in (bounce, photon) order
+    per_pass = lambda x: jnp.swapaxes(x[1:].reshape((steps, B, m) + x.shape[2:]), 0, 1).reshape(  # noqa: E731
+        (B, steps * m) + x.shape[2:])
+    bounce = jnp.broadcast_to(jnp.arange(1, steps + 1, dtype=jnp.int32)[:, None], (steps, m)).reshape(-1)
+    return Deposits(per_pass(p), per_pass(wi), per_pass(pw), jnp.broadcast_to(bounce, (B, steps * m)), per_pass(ok))
 
 
 # ---------------------------------------------------------------------------------------------- grid
@@ -1001,13 +1025,14 @@ def _update(state: SPPMState, m, phi, direct) -> SPPMState:
                      state.photons, state.samples)
 
 
-def _pass(scene, state: SPPMState, with_first: bool = False, sources=None):
+def _pass(scene, state: SPPMState, with_first: bool = False, sources=None, dep: Deposits | None = None):
     kvp, kph, kgrid = pass_keys(scene, state.passes)
     vp, direct, first = visible_points(scene, kvp, state.samples, state.passes,
                                        table=None if sources is None else sources[1])
     levels = grid_levels(scene)
     state, cell = _radii(state, vp, levels)
-    dep = trace_photons(scene, kph, state.photons, sources=sources)
+    if dep is None:
+        dep = trace_photons(scene, kph, state.photons, sources=sources)
     grid = build_grid(dep, cell, kgrid, levels)
     m, phi = gather(scene, grid, vp, state.r2)
     new = _update(state, m, phi, direct)
@@ -1038,11 +1063,34 @@ def pass_share(scene, state: SPPMState, axis: str, count: int, sources=None) -> 
     return _update(state, m, phi, direct)
 
 
+def photon_batch(scene, photons: int) -> int:
+    """Passes whose photons `steps` traces in one batch (static): 1 on the CPU (where a batch's
+    bounce state would leave the caches), else as many as keep PHOTON_BATCH photons in flight, at most
+    MAX_PHOTON_BATCH; 1 where one pass's photons alone fill that."""
+    if _on_cpu():
+        return 1
+    return int(max(1, min(MAX_PHOTON_BATCH, PHOTON_BATCH // max(int(photons), 1))))
+
+
 def _passes(scene, state: SPPMState, count) -> SPPMState:
     # `count` (traced) passes in a loop whose body is the one pass: P passes in one call are the same
     # operations on the same random streams (the pass index is the state's) as P calls of one pass
     sources = photon_sources(scene)  # once, outside the loop
-    return lax.fori_loop(0, count, lambda i, st: _pass(scene, st, sources=sources), state)
+    G = photon_batch(scene, state.photons)
+    if G == 1:
+        return lax.fori_loop(0, count, lambda i, st: _pass(scene, st, sources=sources), state)
+
+    def group(g, st):
+        # the next G passes' photons in one batch (their random streams are the passes' own, so the
+        # passes are those of one pass a call), then each pass's grid, gather and update in turn
+        keys = jax.vmap(lambda j: pass_keys(scene, st.passes + j)[1])(jnp.arange(G))
+        deps = trace_photon_batch(scene, keys, st.photons, sources=sources)
+        return lax.fori_loop(0, G, lambda j, s2: _pass(scene, s2, sources=sources,
+                                                       dep=jax.tree.map(lambda x: x[j], deps)), st)
+
+    # whole batches, then the rest one pass at a time (no photons traced for nothing)
+    state = lax.fori_loop(0, count // G, group, state)
+    return lax.fori_loop(0, count % G, lambda i, st: _pass(scene, st, sources=sources), state)
 
 
 #: `count` passes (camera pass, photon pass, hash grid, gather, progressive update each), compiled once

@@ -219,6 +219,34 @@ def test_unconditional_photon_bounces_equal_skipped_dead_bounces(monkeypatch):
     assert np.asarray(skipped.tau).max() > 0
 
 
+def test_batched_photon_passes_equal_one_pass_at_a_time(monkeypatch):
+    """Off the CPU `steps` traces several passes' photons in one batch (`photon_batch`); each pass
+    keeps its own random streams, so 5 passes (a batch of 3, then 2 one at a time) give the
+    statistics of 5 passes traced one at a time. Made on the CPU by telling
+    the integrator it is not on one."""
+    monkeypatch.setattr(sppm, "_on_cpu", lambda: False)
+    scene = R.load_scene(diffuse_scene(width=12, height=9, photons=600, camera_samples=2))
+    state = sppm.start(scene)
+    monkeypatch.setattr(sppm, "PHOTON_BATCH", 600)  # one pass a batch
+    assert sppm.photon_batch(scene, state.photons) == 1
+    one = jax.jit(sppm._passes)(scene, state, jnp.int32(5))
+    monkeypatch.setattr(sppm, "PHOTON_BATCH", 1800)
+    assert sppm.photon_batch(scene, state.photons) == 3
+    batched = jax.jit(sppm._passes)(scene, state, jnp.int32(5))
+    assert int(one.passes) == int(batched.passes) == 5
+    for name in ("n", "r2", "tau", "direct"):
+        np.testing.assert_allclose(np.asarray(getattr(batched, name)), np.asarray(getattr(one, name)),
+                                   rtol=1e-6, atol=1e-7, err_msg=name)
+    assert np.asarray(one.tau).max() > 0
+    # the deposits of a batch are each pass's own
+    keys = jax.vmap(lambda j: sppm.pass_keys(scene, j)[1])(jnp.arange(3))
+    batch = sppm.trace_photon_batch(scene, keys, 600)
+    for b in range(3):
+        alone = sppm.trace_photons(scene, keys[b], 600)
+        for x, y in zip(jax.tree.leaves(alone), jax.tree.leaves(jax.tree.map(lambda a: a[b], batch)), strict=True):
+            np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-6, atol=1e-7)
+
+
 @pytest.mark.parametrize("on_cpu", [True, False], ids=["one-sort", "two-sorts"])
 def test_grid_order_is_bucket_then_random_key_then_index(on_cpu, monkeypatch):
     """The hash grid's entries in (bucket, random key, index) order, against numpy's lexsort, for the

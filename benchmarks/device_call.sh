@@ -85,6 +85,10 @@ for s in "$@"; do
                       big=$(ls -S /tmp/hlo-$w/*after_optimizations.txt 2>/dev/null | head -1)
                       [ -n "$big" ] && xz -c "$big" > "$OUT/hlo-$w.txt.xz"
                   done ;;
+        sppm-quick) # after a change to the SPPM pass on the GPU: its profile and the equal-time table
+                  stage profile-sppm 70 python3 benchmarks/gpu_profile.py sppm --size 96 --repeats 10
+                  stage caustic-carried 90 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                      --reference .gpudata/caustic_ref.npz --bias-seeds 0 ;;
         caustic-calls)  # after `caustic` (its reference; or CAUSTIC_REF=.gpudata/caustic_ref.npz, carried): SPPM
                   # passes per compiled call and grid levels. Throughput of the equal-time frame (96x72, the GPU
                   # defaults: 4 visible points, 65,536 photons), one pass a call against passes_per_call's choice,

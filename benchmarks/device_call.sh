@@ -89,6 +89,12 @@ for s in "$@"; do
                   stage profile-sppm 70 python3 benchmarks/gpu_profile.py sppm --size 96 --repeats 10
                   stage caustic-carried 90 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
                       --reference .gpudata/caustic_ref.npz --bias-seeds 0 ;;
+        picture-dragon) # README's caustics_dragon picture, path tracing and SPPM at equal time on the GPU
+                  stage picture-dragon 150 python3 benchmarks/sppm.py --picture "$OUT/caustics_dragon.png" \
+                      --scene caustics_dragon --size 192 --seconds 20 ;;
+        latency-goals) # the latency rows with goals on a GPU: cold, 3 warm processes, the worker's later jobs
+                  stage latency-goals 300 python3 benchmarks/latency.py --no-mitsuba --worker --warm-runs 3 \
+                      --json "$OUT/latency.json" --cases render-dragon render-spheres fit-cli sweep-frame ;;
         caustic-calls)  # after `caustic` (its reference; or CAUSTIC_REF=.gpudata/caustic_ref.npz, carried): SPPM
                   # passes per compiled call and grid levels. Throughput of the equal-time frame (96x72, the GPU
                   # defaults: 4 visible points, 65,536 photons), one pass a call against passes_per_call's choice,

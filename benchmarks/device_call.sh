@@ -134,6 +134,7 @@ for s in "$@"; do
         peers)    stage peers 110 python3 benchmarks/peers.py --size 1024 --no-mitsuba ;;
         peers-mitsuba)  # the same rows with Mitsuba's cuda_ad_rgb in the same run (needs .mitsuba/ carried)
                   stage peers-mitsuba 170 python3 benchmarks/peers.py --size 1024 --repeats 5 ;;
+        profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

@@ -7,6 +7,7 @@ against a peer (`benchmarks/peers.py`, `benchmarks/sppm.py` do those).
     python benchmarks/gpu_profile.py path-dragon --size 512 --repeats 5  # a path-tracing pass, dragon in an envmap
     python benchmarks/gpu_profile.py path-cornell --size 512 --repeats 5
     python benchmarks/gpu_profile.py direct-dragon --size 1024 --repeats 10  # a direct-light frame
+    python benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10    # peers.py's camera-ray row
 
 On a machine without a GPU the trace holds host events only: the script says so and prints the host
 side's largest XLA events instead (still useful to count programs per repetition).
@@ -63,12 +64,21 @@ def _workload(name: str, size: int, photons: int, camera_samples: int, passes: i
         def run():
             return frame(scn)
         return run, f"direct-light frame, {name} {size}x{size}"
+    if name.startswith("rays-"):
+        import peers  # benchmarks/peers.py: its scenes and camera rays
+        scn = peers.load_direct(name.split("-", 1)[1], size)
+        o, d = peers.camera_rays(scn)
+        hit = jax.jit(lambda g, o, d: g.intersect(o, d))
+
+        def run():
+            return hit(scn.geometry, o, d)
+        return run, f"camera rays' closest hits (geometry.intersect), {name} {size}x{size}"
     raise SystemExit(f"unknown workload {name!r}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("workload", help="sppm, path-dragon, path-cornell, direct-dragon, direct-bunny")
+    ap.add_argument("workload", help="sppm, path-dragon, path-cornell, direct-dragon, direct-bunny, rays-dragon")
     ap.add_argument("--size", type=int, default=96)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--top", type=int, default=25)

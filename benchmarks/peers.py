@@ -11,8 +11,10 @@ Rows (each a median of --repeats runs after a warm-up run that compiles):
            camera ray and one shadow ray per pixel); Mitsuba's `direct` integrator with
            emitter_samples 1, bsdf_samples 0 on the same world-space triangles (`_mitsuba.direct_scene`).
   rays     the same scenes' camera rays (--size², pixel centres): closest hit (jaxrt
-           `geometry.intersect`, Mitsuba `ray_intersect_preliminary`) and shadow rays from those hits
-           to the light (jaxrt `bvh.occluded`, Mitsuba `ray_test`), the same rays for both.
+           `geometry.intersect`, Mitsuba `ray_intersect_preliminary`: t, triangle, barycentrics), the
+           hit's surface as well (jaxrt `geometry.intersect` then `geometry.surface`: point, normals,
+           tangent, material; Mitsuba `ray_intersect`, its SurfaceInteraction) and shadow rays from
+           those hits to the light (jaxrt `bvh.occluded`, Mitsuba `ray_test`), the same rays for both.
   path     `benchmarks/path.py`'s scenes and code: the Cornell box (area light) and the dragon in an
            environment map, --path-size², --spp, --depth; Mitsuba in a child process (path.py's).
 
@@ -147,7 +149,12 @@ class Peer:
             dr.eval(m)
             dr.sync_thread()
 
-        return median_time(hit, repeats), median_time(occ, repeats)
+        def surf():
+            si = scene.ray_intersect(prim)
+            dr.eval(si)
+            dr.sync_thread()
+
+        return median_time(hit, repeats), median_time(occ, repeats), median_time(surf, repeats)
 
 
 def bench_direct(name: str, size: int, repeats: int, peer: Peer | None) -> dict:
@@ -166,6 +173,12 @@ def bench_rays(name: str, size: int, repeats: int, peer: Peer | None) -> dict:
     geo = scn.geometry
     o, d = camera_rays(scn)
     f_hit = jax.jit(lambda g, o, d: g.intersect(o, d))
+
+    @jax.jit
+    def f_surf(g, o, d):
+        h = g.intersect(o, d)
+        return h, g.surface(h.prim, h.u, h.v)
+
     hit = f_hit(geo, o, d)
     ok = np.asarray(hit.prim) >= 0
     on, dn, tn = np.asarray(o), np.asarray(d), np.asarray(hit.t)
@@ -179,7 +192,8 @@ def bench_rays(name: str, size: int, repeats: int, peer: Peer | None) -> dict:
     args = tuple(jnp.asarray(x) for x in (so, sd, smin, smax))
     r = dict(n=len(on), n_shadow=len(so),
              jaxrt=(median_time(lambda: jax.block_until_ready(f_hit(geo, o, d)), repeats),
-                    median_time(lambda: jax.block_until_ready(f_occ(geo.tree, *args)), repeats)))
+                    median_time(lambda: jax.block_until_ready(f_occ(geo.tree, *args)), repeats),
+                    median_time(lambda: jax.block_until_ready(f_surf(geo, o, d)), repeats)))
     if peer is not None and peer.mi is not None:
         r["mitsuba"] = peer.rays(scn, on, dn, so, sd, smin, smax, repeats)
     return r
@@ -250,11 +264,15 @@ def main(argv=None) -> int:
     if "rays" in args.rows:
         for name in args.ray_models or (["dragon"] if gpu else ["bunny"]):
             r = bench_rays(name, args.size, args.repeats, peer)
-            (hj, oj), m = r["jaxrt"], r.get("mitsuba")
+            (hj, oj, sj), m = r["jaxrt"], r.get("mitsuba")
             add(f"{where}, {name} {args.size}² camera rays ({r['n']:,}), closest hit", hj, m and m[0])
+            add(f"{where}, {name}: the same with the hit's surface (jaxrt intersect + surface, Mitsuba "
+                "ray_intersect)", sj, m and m[2])
             add(f"{where}, {name}: shadow rays from those hits ({r['n_shadow']:,}), any hit", oj, m and m[1])
             rate = lambda n: lambda t: f"{n / t / 1e6:.1f} Mrays/s"  # noqa: E731
             rows.append((f"{where}, {name}: camera rays, rate", rate(r["n"])(hj), rate(r["n"])(m[0]) if m else "", ""))
+            rows.append((f"{where}, {name}: camera rays with the surface, rate", rate(r["n"])(sj),
+                         rate(r["n"])(m[2]) if m else "", ""))
     if "path" in args.rows:
         pb = _load_path_bench()
         variant = peer.variant if use_mi else None

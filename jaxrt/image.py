@@ -153,7 +153,9 @@ def write_png(path: str | os.PathLike, image: Float[np.ndarray, "H W 3"], exposu
     path = Path(path)
     rgb8 = to_srgb8(image, exposure)
     with atomic_path(path) as tmp:
-        Image.fromarray(rgb8, mode="RGB").save(tmp, format="PNG")
+        # zlib level 1: a 1024² render encodes in ~0.15 s instead of ~0.25 s at PIL's default 6, for
+        # a file ~10 % larger (a display copy beside the EXR; the time is part of every render's wait)
+        Image.fromarray(rgb8, mode="RGB").save(tmp, format="PNG", compress_level=1)
     return path
 
 

@@ -841,19 +841,41 @@ def visible_points(scene, key, samples: int = 1, pass_index=None, table=None):
     in their pixels are `subpixel_positions`', else independent uniform jitter. The vp dict's `foot`
     is the pixel footprint at the visible point (path length times `pixel_angle`). table: the emitter
     table of the next-event estimate (`emitter_table`; made there when None)."""
+    pi = None if pass_index is None else jnp.asarray(pass_index)[None]
+    out = visible_point_batch(scene, key[None], samples, pi, table)
+    return jax.tree.map(lambda x: x[0], out)
+
+
+def visible_point_batch(scene, keys, samples: int = 1, pass_index=None, table=None):
+    """`visible_points` of several passes at once, one per key of `keys` (B,) (and pass index of
+    `pass_index` (B,), if given): every output gains a leading axis of B, and pass b's are those of
+    `visible_points(scene, keys[b], samples, pass_index[b])` (the same random streams), traced as one
+    batch of B·S camera paths, one traversal launch a bounce for all of them."""
     st, cam, mats = scene.settings, _sg(scene.camera), _sg(scene.materials)
     geo = _sg(scene.geometry)
     scene = _sg(scene)
     D = st.max_depth
-    S = cam.num_pixels * samples
+    B = keys.shape[0]
+    S1 = cam.num_pixels * samples
+    S = B * S1  # rows: pass b's are b·S1 ... (b + 1)·S1 − 1
     models = _models(mats)
     al = scene.area_lights
     has_tri = al is not None and al.count > 0
     env = getattr(scene, "environment", None)
-    kcam, kpath, knee = jax.random.split(key, 3)
-    sub = None if pass_index is None else subpixel_positions(scene, pass_index, samples)
-    o, d = camera.generate_rays(cam, samples, jax.random.bits(kcam, (), jnp.uint32), True, subpixel=sub)
-    d = normalize(d)
+    kcam, kpath, knee = jnp.moveaxis(jax.vmap(lambda k: jax.random.split(k, 3))(keys), 1, 0)
+
+    def rows(x):  # (B, S1, ...) -> (B·S1, ...)
+        return x.reshape((S,) + x.shape[2:])
+
+    def rays(kc, pi):
+        sub = None if pi is None else subpixel_positions(scene, pi, samples)
+        return camera.generate_rays(cam, samples, jax.random.bits(kc, (), jnp.uint32), True, subpixel=sub)
+
+    if pass_index is None:
+        o, d = jax.vmap(lambda kc: rays(kc, None))(kcam)
+    else:
+        o, d = jax.vmap(rays)(kcam, pass_index)
+    o, d = rows(o), normalize(rows(d))
     s0 = geo.surface(jnp.zeros(S, jnp.int32), jnp.zeros(S), jnp.zeros(S))
     vp = dict(surface=s0, p=jnp.zeros((S, 3)), ng=jnp.zeros((S, 3)), wo=jnp.zeros((S, 3)).at[:, 2].set(1.0),
               frame=(jnp.zeros((S, 3)),) * 3, beta=jnp.zeros((S, 3)), depth=jnp.zeros(S, jnp.int32),
@@ -865,7 +887,7 @@ def visible_points(scene, key, samples: int = 1, pass_index=None, table=None):
     dist = jnp.zeros(S)  # path length from the camera, through the delta bounces
     ang = pixel_angle(cam)
     for k in range(D + 1):  # static: D is small and the camera chain usually ends at the first hit
-        u = jax.random.uniform(jax.random.fold_in(kpath, k), (S, 3))
+        u = rows(jax.vmap(lambda kp: jax.random.uniform(jax.random.fold_in(kp, k), (S1, 3)))(kpath))
         hit = intersect_active(geo, o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0
@@ -892,12 +914,14 @@ def visible_points(scene, key, samples: int = 1, pass_index=None, table=None):
         beta = jnp.where(alive[:, None], beta * fac, 0.0)
         o, d = no, nd
     direct = emitted + vp["beta"] * _nee(scene, vp, models, knee, table)
-    return vp, jnp.where(jnp.isfinite(direct), direct, 0.0), first
+    per_pass = lambda x: x.reshape((B, S1) + x.shape[1:])  # noqa: E731
+    return jax.tree.map(per_pass, (vp, jnp.where(jnp.isfinite(direct), direct, 0.0), first))
 
 
-def _nee(scene, vp, models, key, table=None):
+def _nee(scene, vp, models, keys, table=None):
     """Direct light at the visible points: every point light and one sample of the emissive
     triangles or the environment (probability 1/2 each when both exist), light sampling only.
+    keys (B,): the passes' keys, whose rows the visible points are in turn (`visible_point_batch`).
     table: the emitter table (`emitter_table`; made here when None)."""
     geo, mats = scene.geometry, scene.materials
     s = vp["surface"]
@@ -911,7 +935,7 @@ def _nee(scene, vp, models, key, table=None):
     has_tri = al is not None and al.count > 0
     n_cls = int(has_tri) + int(env is not None)
     p_tri = (1.0 / n_cls) if has_tri else 0.0
-    u = jax.random.uniform(key, (S, 4))
+    u = jax.vmap(lambda k: jax.random.uniform(k, (S // keys.shape[0], 4)))(keys).reshape(S, 4)
     out = jnp.zeros((S, 3))
     rays_o, rays_d, rays_t, contrib = [], [], [], []
     nl = scene.lights.count
@@ -1025,10 +1049,14 @@ def _update(state: SPPMState, m, phi, direct) -> SPPMState:
                      state.photons, state.samples)
 
 
-def _pass(scene, state: SPPMState, with_first: bool = False, sources=None, dep: Deposits | None = None):
+def _pass(scene, state: SPPMState, with_first: bool = False, sources=None, dep: Deposits | None = None,
+          vis=None):
+    # dep, vis: this pass's deposits and (visible points, direct light, first hits) when traced
+    # beforehand (`_passes` batches them over passes off the CPU)
     kvp, kph, kgrid = pass_keys(scene, state.passes)
-    vp, direct, first = visible_points(scene, kvp, state.samples, state.passes,
-                                       table=None if sources is None else sources[1])
+    if vis is None:
+        vis = visible_points(scene, kvp, state.samples, state.passes, table=None if sources is None else sources[1])
+    vp, direct, first = vis
     levels = grid_levels(scene)
     state, cell = _radii(state, vp, levels)
     if dep is None:
@@ -1081,12 +1109,16 @@ def _passes(scene, state: SPPMState, count) -> SPPMState:
         return lax.fori_loop(0, count, lambda i, st: _pass(scene, st, sources=sources), state)
 
     def group(g, st):
-        # the next G passes' photons in one batch (their random streams are the passes' own, so the
-        # passes are those of one pass a call), then each pass's grid, gather and update in turn
-        keys = jax.vmap(lambda j: pass_keys(scene, st.passes + j)[1])(jnp.arange(G))
-        deps = trace_photon_batch(scene, keys, st.photons, sources=sources)
-        return lax.fori_loop(0, G, lambda j, s2: _pass(scene, s2, sources=sources,
-                                                       dep=jax.tree.map(lambda x: x[j], deps)), st)
+        # the next G passes' camera paths and photons, each in one batch (their random streams are
+        # the passes' own, so the passes are those of one pass a call), then each pass's grid,
+        # gather and update in turn
+        index = st.passes + jnp.arange(G)
+        keys = jax.vmap(lambda i: pass_keys(scene, i))(index)  # (G, 3): camera, photons, grid
+        vis = visible_point_batch(scene, keys[:, 0], st.samples, index, sources[1])
+        deps = trace_photon_batch(scene, keys[:, 1], st.photons, sources=sources)
+        pick = lambda j: (lambda x: x[j])  # noqa: E731
+        return lax.fori_loop(0, G, lambda j, s2: _pass(scene, s2, sources=sources, dep=jax.tree.map(pick(j), deps),
+                                                       vis=jax.tree.map(pick(j), vis)), st)
 
     # whole batches, then the rest one pass at a time (no photons traced for nothing)
     state = lax.fori_loop(0, count // G, group, state)

@@ -219,11 +219,11 @@ def test_unconditional_photon_bounces_equal_skipped_dead_bounces(monkeypatch):
     assert np.asarray(skipped.tau).max() > 0
 
 
-def test_batched_photon_passes_equal_one_pass_at_a_time(monkeypatch):
-    """Off the CPU `steps` traces several passes' photons in one batch (`photon_batch`); each pass
-    keeps its own random streams, so 5 passes (a batch of 3, then 2 one at a time) give the
-    statistics of 5 passes traced one at a time. Made on the CPU by telling
-    the integrator it is not on one."""
+def test_batched_passes_equal_one_pass_at_a_time(monkeypatch):
+    """Off the CPU `steps` traces several passes' camera paths and photons in one batch each
+    (`photon_batch`); each pass keeps its own random streams, so 5 passes (a batch of 3, then 2 one
+    at a time) give the statistics of 5 passes traced one at a time. Made on the CPU by telling the
+    integrator it is not on one."""
     monkeypatch.setattr(sppm, "_on_cpu", lambda: False)
     scene = R.load_scene(diffuse_scene(width=12, height=9, photons=600, camera_samples=2))
     state = sppm.start(scene)
@@ -238,7 +238,13 @@ def test_batched_photon_passes_equal_one_pass_at_a_time(monkeypatch):
         np.testing.assert_allclose(np.asarray(getattr(batched, name)), np.asarray(getattr(one, name)),
                                    rtol=1e-6, atol=1e-7, err_msg=name)
     assert np.asarray(one.tau).max() > 0
-    # the deposits of a batch are each pass's own
+    # the visible points and deposits of a batch are each pass's own
+    kvp = jax.vmap(lambda j: sppm.pass_keys(scene, j)[0])(jnp.arange(3))
+    vis = sppm.visible_point_batch(scene, kvp, 2, jnp.arange(3) + 4)
+    for b in range(3):
+        alone = sppm.visible_points(scene, kvp[b], 2, b + 4)
+        for x, y in zip(jax.tree.leaves(alone), jax.tree.leaves(jax.tree.map(lambda a: a[b], vis)), strict=True):
+            np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-6, atol=1e-7)
     keys = jax.vmap(lambda j: sppm.pass_keys(scene, j)[1])(jnp.arange(3))
     batch = sppm.trace_photon_batch(scene, keys, 600)
     for b in range(3):

@@ -67,7 +67,11 @@ Passes per call: `step(scene, state, count)` runs `count` passes in one compiled
 operations on the same random streams as `count` calls of one pass. A pass of a small frame is many
 small kernels (the bounces, the sort, the gather), a few milliseconds on a GPU, where a call per pass
 would add its dispatch and a synchronisation to each; renders run `passes_per_call` passes a call,
-about CALL_SECONDS of work (the viewer less, to answer its sliders).
+about CALL_SECONDS of work (the viewer less, to answer its sliders). Off the CPU the camera paths
+and photons of `photon_batch` passes are traced as one batch each (a pass's random streams do not
+depend on the statistics, only its grid and gather do), then each pass's grid, gather and update
+run in turn: one traversal launch a bounce for several passes, where one pass alone fills a
+fraction of a GPU (BENCHMARKS.md, "Photon mapping").
 
 Defaults: photons per pass = the pixel count, within [2^12, 2^20]; initial radius RADIUS_PIXELS = 1
 pixel footprint at each chain's first visible point (`initial_radius`); `[render] radius` sets one

@@ -224,7 +224,7 @@ struct Job {
   const float* tmax;
   const float* tri;
   int64_t n;
-  bool any_hit, refine;
+  bool any_hit, refine, points;
   int64_t coherent;  // 0: incoherent, 1: coherent, 2: per packet (see Packet16)
   int64_t packet;
   RTCScene scene;
@@ -232,6 +232,8 @@ struct Job {
   int32_t* best;
   float* u;
   float* v;
+  float* p;   // (n, 3) hit points, or null (points off)
+  float* ng;  // (n, 3) unit geometric normals, or null
   int64_t chunk;
   std::atomic<int64_t> next{0};
   std::atomic<int64_t> done{0};
@@ -246,7 +248,8 @@ struct Job {
 // u = (q x e2).n / n.n, v = (e1 x q).n / n.n with n = e1 x e2, clamped onto the triangle (the hit
 // is on it up to rounding). Kept as Embree's values where the double result is not finite or t
 // strays by more than 1 %.
-inline void Refine(const Job& J, int64_t i, int32_t best, float* t_io, float* u_io, float* v_io) {
+inline void Refine(const Job& J, int64_t i, int32_t best, float* t_io, float* u_io, float* v_io, double* ud,
+                   double* vd) {
   const float* T = J.tri + 9 * static_cast<int64_t>(best);
   const float* o = J.o + 3 * i;
   const float* d = J.d + 3 * i;
@@ -280,6 +283,33 @@ inline void Refine(const Job& J, int64_t i, int32_t best, float* t_io, float* u_
   }
   *u_io = static_cast<float>(u);
   *v_io = static_cast<float>(v);
+  *ud = u;
+  *vd = v;
+}
+
+// The hit point and the unit geometric normal of ray i's hit on triangle `best` at barycentrics
+// (u, v), in double and rounded once: p = v0 + u e1 + v e2 (the barycentric point, on the triangle,
+// as `jaxrt.shading.surface.make_surface` computes it in float32 from the corners: a few ulps
+// apart), ng = e1 x e2 / |e1 x e2| (the winding's normal; 0 for a degenerate triangle, as
+// `surface.normalize` gives). Returned with the hit, the shading code needs neither the corners'
+// gathers nor the passes that recompute p from them (BENCHMARKS.md, "Direct-light frames on the CPU").
+inline void Point(const Job& J, int64_t i, int32_t best, double u, double v) {
+  const float* T = J.tri + 9 * static_cast<int64_t>(best);
+  double e1[3], e2[3];
+  for (int k = 0; k < 3; ++k) {
+    e1[k] = static_cast<double>(T[3 + k]) - T[k];
+    e2[k] = static_cast<double>(T[6 + k]) - T[k];
+    J.p[3 * i + k] = static_cast<float>(T[k] + u * e1[k] + v * e2[k]);
+  }
+  const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]};
+  const double nn = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
+  const double s = nn > 1e-30 ? 1.0 / std::sqrt(nn) : 0.0;
+  for (int k = 0; k < 3; ++k) J.ng[3 * i + k] = static_cast<float>(n[k] * s);
+}
+
+inline void NoPoint(const Job& J, int64_t i) {
+  if (!J.points) return;
+  for (int k = 0; k < 3; ++k) J.p[3 * i + k] = J.ng[3 * i + k] = 0.0f;
 }
 
 // Embree's rays must be finite with tnear <= tfar (NaN or inverted intervals are jaxrt's inactive
@@ -301,6 +331,7 @@ inline void Miss(const Job& J, int64_t i) {
   J.best[i] = -1;
   J.u[i] = 0.0f;
   J.v[i] = 0.0f;
+  NoPoint(J, i);
 }
 
 // Closest hit of the rays [s, e) (e - s <= 16) in one packet.
@@ -362,6 +393,7 @@ void Packet16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
       J.t[i] = J.tmax[i];
       J.best[i] = hit ? 0 : -1;
       J.u[i] = J.v[i] = 0.0f;
+      NoPoint(J, i);
       continue;
     }
     const unsigned prim = rh.hit.geomID[k] == RTC_INVALID_GEOMETRY_ID ? RTC_INVALID_GEOMETRY_ID : rh.hit.primID[k];
@@ -371,7 +403,9 @@ void Packet16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
     }
     const int32_t b = static_cast<int32_t>(prim);
     float t = r.tfar[k], u = rh.hit.u[k], v = rh.hit.v[k];
-    if (J.refine) Refine(J, i, b, &t, &u, &v);
+    double ud = u, vd = v;
+    if (J.refine) Refine(J, i, b, &t, &u, &v, &ud, &vd);
+    if (J.points) Point(J, i, b, ud, vd);
     J.t[i] = t;
     J.best[i] = b;
     J.u[i] = u;
@@ -406,6 +440,7 @@ void Single(const Job& J, RTCIntersectContext* ctx, int64_t i) {
     J.t[i] = J.tmax[i];
     J.best[i] = r.tfar == -INFINITY ? 0 : -1;
     J.u[i] = J.v[i] = 0.0f;
+    NoPoint(J, i);
     return;
   }
   rtcIntersect1(J.scene, ctx, &rh);
@@ -415,7 +450,9 @@ void Single(const Job& J, RTCIntersectContext* ctx, int64_t i) {
   }
   const int32_t b = static_cast<int32_t>(rh.hit.primID);
   float t = r.tfar, u = rh.hit.u, v = rh.hit.v;
-  if (J.refine) Refine(J, i, b, &t, &u, &v);
+  double ud = u, vd = v;
+  if (J.refine) Refine(J, i, b, &t, &u, &v, &ud, &vd);
+  if (J.points) Point(J, i, b, ud, vd);
   J.t[i] = t;
   J.best[i] = b;
   J.u[i] = u;
@@ -451,13 +488,17 @@ int64_t Count(const ffi::AnyBuffer::Dimensions& dims) {
 ffi::Error Trace(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi::F32> d, ffi::Buffer<ffi::F32> tmin,
                  ffi::Buffer<ffi::F32> tmax, ffi::Buffer<ffi::F32> tri, ffi::ResultBuffer<ffi::F32> t,
                  ffi::ResultBuffer<ffi::S32> best, ffi::ResultBuffer<ffi::F32> u, ffi::ResultBuffer<ffi::F32> v,
-                 bool any_hit, bool refine, int64_t coherent, int64_t packet, int64_t quality, int64_t chunk,
+                 ffi::ResultBuffer<ffi::F32> p, ffi::ResultBuffer<ffi::F32> ng, bool any_hit, bool refine, int64_t coherent, int64_t packet, int64_t quality, int64_t chunk,
                  int64_t threads) {
   const int64_t n = Count(tmin.dimensions());
   const int64_t nf = Count(tri.dimensions()) / 9;
+  // p and ng: (n, 3) where points are asked for (closest hit), else empty
+  const int64_t np = Count(p->dimensions());
+  const bool points = np > 0;
   if (Count(o.dimensions()) != 3 * n || Count(d.dimensions()) != 3 * n || Count(tmax.dimensions()) != n ||
       Count(t->dimensions()) != n || Count(best->dimensions()) != n || Count(u->dimensions()) != n ||
-      Count(v->dimensions()) != n || Count(tri.dimensions()) != 9 * nf || nf < 1 || nf >= (int64_t{1} << 31) / 3 ||
+      Count(v->dimensions()) != n || (np != 0 && np != 3 * n) || Count(ng->dimensions()) != np ||
+      (points && any_hit) || Count(tri.dimensions()) != 9 * nf || nf < 1 || nf >= (int64_t{1} << 31) / 3 ||
       chunk < 1 || (packet != 1 && packet != 16) || coherent < 0 || coherent > 2 || quality < 0 || quality > 2) {
     return ffi::Error::InvalidArgument("jaxrt_embree_trace: inconsistent array shapes or attributes");
   }
@@ -483,6 +524,9 @@ ffi::Error Trace(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi:
   J.best = best->typed_data();
   J.u = u->typed_data();
   J.v = v->typed_data();
+  J.points = points;
+  J.p = points ? p->typed_data() : nullptr;
+  J.ng = points ? ng->typed_data() : nullptr;
   J.chunk = chunk;
   const int64_t chunks = (n + chunk - 1) / chunk;
   int64_t workers = threads > 0 ? threads : pool.num_threads();
@@ -522,6 +566,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtEmbreeTrace, Trace,
                                   .Ret<ffi::Buffer<ffi::S32>>()  // best (leaf order, -1 = miss)
                                   .Ret<ffi::Buffer<ffi::F32>>()  // u
                                   .Ret<ffi::Buffer<ffi::F32>>()  // v
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // hit points (N,3), or (0,3): not asked for
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // unit geometric normals, as the points
                                   .Attr<bool>("any_hit")
                                   .Attr<bool>("refine")
                                   .Attr<int64_t>("coherent")

@@ -42,6 +42,9 @@ from jaxrt.accel import traverse_cpu
 TARGET = "jaxrt_embree_trace"
 _SYMBOL = "JaxrtEmbreeTrace"
 LIBS = ("-lembree3",)
+# No errno from sqrt and no floating-point traps, so that the loops finishing the hits in double
+# (`Finish` in embree.cc) have no branches and vectorise; neither changes a result.
+FLAGS = ("-fno-math-errno", "-fno-trapping-math")
 CHUNK = 256  # rays per work item handed to a thread (16 packets of 16)
 # Embree's RTCBuildQuality: 0 low, 1 medium (its default: binned SAH), 2 high (spatial splits). The
 # tree is built once per mesh and traced every frame.
@@ -63,7 +66,7 @@ def _load() -> bool:
         return False  # Embree is not installed: the native kernel, silently (unless asked for by name)
     compiler = _compiler or os.environ.get("CXX") or "c++"
     try:
-        traverse_cpu.load_library("embree", _source(), compiler, TARGET, _SYMBOL, _state, LIBS)
+        traverse_cpu.load_library("embree", _source(), compiler, TARGET, _SYMBOL, _state, LIBS, FLAGS)
     except Exception as e:  # noqa: BLE001 -- any failure means: use the native kernel
         detail = getattr(e, "stderr", None) or str(e)
         warnings.warn(f"jaxrt: Embree is installed but the Embree traversal could not be built (compiler "

@@ -8,7 +8,9 @@ for jaxrt's own single-ray kernel, `jaxrt.accel.traverse_cpu`). BENCHMARKS.md ("
 
 Results keep `traverse_cpu.traverse`'s contract: the triangle index in leaf order (Embree's scene is
 built from the BVH's own triangle table, so its primID is that index), barycentrics of v1 and v2,
-t in units of |direction| and, with `refine`, t of the chosen triangle recomputed in double. Embree's
+t in units of |direction| and, with `refine`, t of the chosen triangle recomputed in double; with
+`points`, also each hit's point and unit geometric normal, computed in double from the triangle the
+kernel has at hand (`bvh.intersect_points`). Embree's
 triangle test rounds differently from the native kernel's, so t, u, v agree to a few ulps and of two
 triangles at the same distance to within an ulp either may be chosen, and the ends of [tmin, tmax] are
 decided with Embree's float32 t; its robust mode keeps the test watertight at edges, not exactly at

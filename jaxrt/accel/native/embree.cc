@@ -23,7 +23,8 @@
 // [tmin, tmax] with its own float32 t (tnear < t <= tfar; tnear is set one float below tmin, and
 // at least 0: a hit at exactly t = 0 does not count). t, u, v
 // of the chosen triangle are recomputed in double (traverse.cc does so for t), so the reported hits
-// agree to ~1e-7 relative whichever kernel traced the ray.
+// agree to ~1e-7 relative whichever kernel traced the ray; on request the hit point and the unit
+// geometric normal too (`Finish`), so that shading need not gather the corners again.
 //
 // Threads: chunks of consecutive rays (coherent image tiles) handed out by an atomic counter to the
 // caller and to tasks on XLA's intra-op thread pool, as in traverse.cc. Each chunk is traced in

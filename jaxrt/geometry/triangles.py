@@ -40,7 +40,8 @@ class TriangleGeometry(AbstractGeometry):
     def intersect_surface(self, origins, directions, tmin=0.0, tmax=jnp.inf):
         # the hit point and geometric normal come with the hit (`accel.intersect_points`: Embree
         # computes them from the triangle it has at hand), so the corners are not gathered here;
-        # equal to `surface`'s up to float32 rounding, not differentiable
+        # they are the BVH's triangles (built from `vertices`), equal to `surface`'s up to float32
+        # rounding, and not differentiable
         hit, p, ng = accel.intersect_points(self.tree, origins, directions, tmin=tmin, tmax=tmax)
         f = self.faces[jnp.maximum(hit.prim, 0)]  # (B, 3)
         u, v = hit.u, hit.v

@@ -2,6 +2,7 @@
 
     tree = accel.build(vertices, faces)                 # `BVH` pytree (host build, numpy)
     hit = accel.intersect(tree, origins, directions)    # closest hit: t, prim, u, v
+    hit, p, ng = accel.intersect_points(tree, origins, directions)   # and hit points, geometric normals
     blocked = accel.occluded(tree, origins, directions, tmax)
 
 Modules: `builder` (the LBVH topology, threading and layouts shared by every builder), `sah`
@@ -13,10 +14,10 @@ predicates shared by every traversal), `traverse_xla` (the portable stackless lo
 (the `BVH` pytree and the dispatch between back ends).
 """
 
-from jaxrt.accel.bvh import BVH, IMPLS, RENDER_TREE, BVHStats, Hit, build, intersect, node_visits, occluded, stats
+from jaxrt.accel.bvh import BVH, IMPLS, RENDER_TREE, BVHStats, Hit, build, intersect, intersect_points, node_visits, occluded, stats
 from jaxrt.accel.two_level import InstancedBVH
 
 __all__ = [
     "BVH", "BVHStats", "Hit", "IMPLS", "InstancedBVH", "RENDER_TREE",
-    "build", "intersect", "node_visits", "occluded", "stats",
+    "build", "intersect", "intersect_points", "node_visits", "occluded", "stats",
 ]

@@ -4,6 +4,7 @@
     hit = bvh.intersect(tree, origins, directions, tmin=0.0, tmax=jnp.inf)
     hit.t (N,), hit.prim (N,) int32, hit.u (N,), hit.v (N,)
     blocked = bvh.occluded(tree, origins, directions, tmax)   # (N,) bool
+    hit, p, ng = bvh.intersect_points(tree, origins, directions)   # also hit points, geometric normals
     bvh.stats(tree)  (or tree.stats)                     # node count, depth, SAH cost, leaf sizes
 
 `intersect` returns the closest hit with t in [tmin, tmax]: `prim` indexes the ORIGINAL face order
@@ -186,8 +187,23 @@ def _impl(impl: str | None) -> str:
     return impl
 
 
+def _points(tree, found, best, u, v):
+    """Hit points and unit geometric normals of the hits (found, best, u, v), from the leaf-order
+    triangle table in float32: `jaxrt.shading.surface.make_surface`'s arithmetic (the point from the
+    barycentrics, the normalised cross product of the edges), so a surface built from them is the
+    one built from the gathered corners; zeros on a miss."""
+    tri = tree.triangles[jnp.maximum(best, 0)]
+    v0, v1, v2 = tri[:, 0:3], tri[:, 3:6], tri[:, 6:9]
+    p = (1.0 - u - v)[:, None] * v0 + u[:, None] * v1 + v[:, None] * v2
+    n = jnp.cross(v1 - v0, v2 - v0)
+    n2 = n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1] + n[:, 2] * n[:, 2]
+    ok = n2 > 1e-30
+    ng = jnp.where(ok[:, None], n * lax.rsqrt(jnp.where(ok, n2, 1.0))[:, None], 0.0)
+    return jnp.where(found[:, None], p, 0.0), jnp.where(found[:, None], ng, 0.0)
+
+
 def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_iter, count_steps=False, impl=None,
-         refine=False):
+         refine=False, points=False):
     origins = lax.stop_gradient(jnp.asarray(origins, jnp.float32))
     directions = lax.stop_gradient(jnp.asarray(directions, jnp.float32))
     if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
@@ -197,10 +213,19 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
     tmax = jnp.broadcast_to(lax.stop_gradient(jnp.asarray(tmax, jnp.float32)), (n,))
     if n == 0:
         z = jnp.zeros(0, jnp.float32)
-        return jnp.zeros(0, bool), z, jnp.zeros(0, jnp.int32), z, z, jnp.zeros(0, jnp.int32)
+        z3 = ((jnp.zeros((0, 3), jnp.float32),) * 2) if points else ()
+        return jnp.zeros(0, bool), z, jnp.zeros(0, jnp.int32), z, z, jnp.zeros(0, jnp.int32), *z3
     arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
     if tree.rows is not None:
         arrays["rows"], arrays["skips"] = tree.rows, tree.skips
+
+    def with_points(out):
+        # the hit points and normals of the kernels that do not return them, from the table
+        if not points:
+            return out
+        found, t, best, u, v, steps = out
+        u, v = jnp.where(found, u, 0.0), jnp.where(found, v, 0.0)
+        return (found, t, best, u, v, steps, *_points(tree, found, best, u, v))
 
     def refined(out, o, d):
         # Once per ray: t of the chosen triangle in double-float, so grazing hits keep ~1e-7
@@ -208,7 +233,7 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         found, t, best, u, v, steps = out
         if refine:
             t = traverse_xla.refine_t(tree.triangles[jnp.maximum(best, 0)], o, d, t)
-        return found, t, best, u, v, steps
+        return with_points((found, t, best, u, v, steps))
 
     def xla(o, d, lo, hi):
         return refined(traverse_xla.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
@@ -225,12 +250,14 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
     def native(o, d, lo, hi):
         # the kernel refines t itself, in double, for hits only
         out = traverse_cpu.traverse(arrays, o, d, lo, hi, any_hit=any_hit, refine=refine)
-        return (*out, jnp.zeros(n, jnp.int32))
+        return with_points((*out, jnp.zeros(n, jnp.int32)))
 
     def embree(o, d, lo, hi):
-        # Embree's scene is built from the leaf-order triangle table: its primID is `best`
-        out = traverse_embree.traverse(tree.triangles, o, d, lo, hi, any_hit=any_hit, refine=refine)
-        return (*out, jnp.zeros(n, jnp.int32))
+        # Embree's scene is built from the leaf-order triangle table: its primID is `best`; the
+        # kernel has each hit's triangle at hand and returns its point and normal itself
+        out = traverse_embree.traverse(tree.triangles, o, d, lo, hi, any_hit=any_hit, refine=refine, points=points)
+        found, t, best, u, v, *pn = out
+        return (found, t, best, u, v, jnp.zeros(n, jnp.int32), *pn)
 
     impl = _impl(impl)
     args = (origins, directions, tmin, tmax)
@@ -300,6 +327,35 @@ def intersect(
     prim = jnp.where(found, tree.prim_ids[jnp.maximum(best, 0)], -1)
     t = jnp.clip(t, jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32))
     return Hit(t=jnp.where(found, t, jnp.inf), prim=prim, u=jnp.where(found, u, 0.0), v=jnp.where(found, v, 0.0))
+
+
+def intersect_points(
+    tree: BVH,
+    origins: Float[Array, "N 3"],
+    directions: Float[Array, "N 3"],
+    tmin: Float[Array, " N"] | float = 0.0,
+    tmax: Float[Array, " N"] | float = jnp.inf,
+    *,
+    lanes: int | None = None,
+    steps_per_iter: int | None = None,
+    impl: str | None = None,
+) -> tuple[Hit, Float[Array, "N 3"], Float[Array, "N 3"]]:
+    """`intersect`, and the hit point p and unit geometric normal ng of each hit (zeros on a miss).
+
+    p is the barycentric point (1-u-v)·v0 + u·v1 + v·v2 and ng = (v1-v0) × (v2-v0) normalised (the
+    winding's normal), as `jaxrt.shading.surface.make_surface` computes them from the corners:
+    Embree's kernel returns them with the hit, computed in double from the triangle it has at hand
+    and rounded once (within a few float32 ulps of the corners' float32 arithmetic), so a caller
+    needs no gathers of the corners; the other traversals compute them from the triangle table with
+    `make_surface`'s float32 arithmetic (the same values). Not differentiable (the traversal's
+    inputs are under stop_gradient): a differentiable surface comes from `prim`, u, v.
+    """
+    found, t, best, u, v, _, p, ng = _run(tree, origins, directions, tmin, tmax, any_hit=False, lanes=lanes,
+                                          steps_per_iter=steps_per_iter, impl=impl, refine=True, points=True)
+    prim = jnp.where(found, tree.prim_ids[jnp.maximum(best, 0)], -1)
+    t = jnp.clip(t, jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32))
+    hit = Hit(t=jnp.where(found, t, jnp.inf), prim=prim, u=jnp.where(found, u, 0.0), v=jnp.where(found, v, 0.0))
+    return hit, p, ng
 
 
 def occluded(

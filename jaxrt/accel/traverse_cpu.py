@@ -71,11 +71,12 @@ def _compile(src: bytes, compiler: str) -> Path:
     return compile_library("traverse", src, compiler)
 
 
-def compile_library(stem: str, src: bytes, compiler: str, libs: tuple[str, ...] = ()) -> Path:
-    """Path of the FFI library compiled from C++ `src` with `FLAGS` (and linked with `libs`, e.g.
-    ("-lembree3",)), compiled now unless cached under <cache folder>/native/<stem>-<key>.so, key a
+def compile_library(stem: str, src: bytes, compiler: str, libs: tuple[str, ...] = (),
+                    flags: tuple[str, ...] = ()) -> Path:
+    """Path of the FFI library compiled from C++ `src` with `FLAGS` and `flags` (and linked with `libs`,
+    e.g. ("-lembree3",)), compiled now unless cached under <cache folder>/native/<stem>-<key>.so, key a
     hash of the source, compiler, flags, libraries and jaxlib version. Raises OSError/CalledProcessError."""
-    key = hashlib.sha256(b"\0".join([src, compiler.encode(), " ".join(FLAGS + libs).encode(),
+    key = hashlib.sha256(b"\0".join([src, compiler.encode(), " ".join(FLAGS + flags + libs).encode(),
                                      jaxlib.__version__.encode(), os.uname().machine.encode()])).hexdigest()[:20]
     out = _cache_dir() / f"{stem}-{key}.so"
     if out.is_file():
@@ -87,7 +88,7 @@ def compile_library(stem: str, src: bytes, compiler: str, libs: tuple[str, ...] 
         fd, part = tempfile.mkstemp(prefix=out.stem + ".", suffix=".so.part", dir=out.parent)
         os.close(fd)
         try:
-            subprocess.run([compiler, *FLAGS, "-I", jax.ffi.include_dir(), str(cc), "-o", part, *libs],
+            subprocess.run([compiler, *FLAGS, *flags, "-I", jax.ffi.include_dir(), str(cc), "-o", part, *libs],
                            check=True, capture_output=True, text=True, timeout=300)
             os.replace(part, out)  # atomic: a concurrent compile of the same key renames the same bytes
         finally:
@@ -97,11 +98,11 @@ def compile_library(stem: str, src: bytes, compiler: str, libs: tuple[str, ...] 
 
 
 def load_library(stem: str, src: bytes, compiler: str, target: str, symbol: str, state: dict,
-                 libs: tuple[str, ...] = ()) -> None:
+                 libs: tuple[str, ...] = (), flags: tuple[str, ...] = ()) -> None:
     """Compile (unless cached, `compile_library`) and load the FFI library, registering its `symbol` as
     the CPU FFI target `target` once per process: `state["lib"]` keeps the registered library loaded,
     and a later load (after a test reset) reuses that registration. Raises on any failure."""
-    lib = ctypes.CDLL(str(compile_library(stem, src, compiler, libs)))
+    lib = ctypes.CDLL(str(compile_library(stem, src, compiler, libs, flags)))
     if "lib" not in state:
         jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
         state["lib"] = lib

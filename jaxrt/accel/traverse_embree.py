@@ -8,7 +8,9 @@ for jaxrt's own single-ray kernel, `jaxrt.accel.traverse_cpu`). BENCHMARKS.md ("
 
 Results keep `traverse_cpu.traverse`'s contract: the triangle index in leaf order (Embree's scene is
 built from the BVH's own triangle table, so its primID is that index), barycentrics of v1 and v2,
-t in units of |direction| and, with `refine`, t of the chosen triangle recomputed in double. Embree's
+t in units of |direction| and, with `refine`, t of the chosen triangle recomputed in double; with
+`points`, also each hit's point and unit geometric normal, computed in double from the triangle the
+kernel has at hand (`bvh.intersect_points`). Embree's
 triangle test rounds differently from the native kernel's, so t, u, v agree to a few ulps and of two
 triangles at the same distance to within an ulp either may be chosen, and the ends of [tmin, tmax] are
 decided with Embree's float32 t; its robust mode keeps the test watertight at edges, not exactly at
@@ -42,6 +44,9 @@ from jaxrt.accel import traverse_cpu
 TARGET = "jaxrt_embree_trace"
 _SYMBOL = "JaxrtEmbreeTrace"
 LIBS = ("-lembree3",)
+# No errno from sqrt and no floating-point traps, so that the loops finishing the hits in double
+# (`Finish` in embree.cc) have no branches and vectorise; neither changes a result.
+FLAGS = ("-fno-math-errno", "-fno-trapping-math")
 CHUNK = 256  # rays per work item handed to a thread (16 packets of 16)
 # Embree's RTCBuildQuality: 0 low, 1 medium (its default: binned SAH), 2 high (spatial splits). The
 # tree is built once per mesh and traced every frame.
@@ -63,7 +68,7 @@ def _load() -> bool:
         return False  # Embree is not installed: the native kernel, silently (unless asked for by name)
     compiler = _compiler or os.environ.get("CXX") or "c++"
     try:
-        traverse_cpu.load_library("embree", _source(), compiler, TARGET, _SYMBOL, _state, LIBS)
+        traverse_cpu.load_library("embree", _source(), compiler, TARGET, _SYMBOL, _state, LIBS, FLAGS)
     except Exception as e:  # noqa: BLE001 -- any failure means: use the native kernel
         detail = getattr(e, "stderr", None) or str(e)
         warnings.warn(f"jaxrt: Embree is installed but the Embree traversal could not be built (compiler "
@@ -100,9 +105,9 @@ def _reset_for_tests() -> None:
 
 def traverse(triangles: Float[Array, "F 9"], origins: Float[Array, "N 3"], directions: Float[Array, "N 3"],
              tmin: Float[Array, " N"], tmax: Float[Array, " N"], *, any_hit: bool, refine: bool = False,
-             coherent: str = "auto", packet: int = 16, threads: int = 0):
+             coherent: str = "auto", packet: int = 16, threads: int = 0, points: bool = False):
     """Trace N rays through Embree; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
-    `traverse_cpu.traverse`.
+    `traverse_cpu.traverse`, and with `points` (closest hit only) also (p, ng), each (N, 3).
 
     triangles: the BVH's (F,9) float32 leaf-order table; origins, directions (N,3) float32; tmin,
     tmax (N,) float32. Rays with a NaN, an infinite origin or direction, a zero direction or
@@ -112,20 +117,30 @@ def traverse(triangles: Float[Array, "F 9"], origins: Float[Array, "N 3"], direc
     share an octant); packet: 16 (packets of 16 rays) or 1 (one ray at a time); threads: worker
     threads (0: XLA's intra-op thread pool); these three only affect speed. Lowers for the CPU only; under vmap it runs once per batch
     element. Raises RuntimeError where the kernel is not `available()`.
+
+    points: also the hit point p = v0 + u·e1 + v·e2 and the unit geometric normal e1 × e2 / |e1 × e2|
+    of each hit (e1 = v1 − v0, e2 = v2 − v0, the winding's normal), computed in double from the
+    float32 corners and the double barycentrics of the refined hit and rounded once (the kernel has
+    the triangle at hand; the caller then gathers no corners); zeros on a miss.
     """
     modes = {"no": 0, "yes": 1, "auto": 2}
-    if packet not in (1, 16) or threads < 0 or coherent not in modes:
+    if packet not in (1, 16) or threads < 0 or coherent not in modes or (points and any_hit):
         raise ValueError(f"traverse_embree.traverse: packet must be 1 or 16, threads >= 0 and coherent one of "
-                         f"{tuple(modes)}; got {packet}, {threads}, {coherent!r}")
+                         f"{tuple(modes)}, and points only with closest hits; got {packet}, {threads}, "
+                         f"{coherent!r}, points={points}, any_hit={any_hit}")
     if not available():
         raise RuntimeError("jaxrt.accel.traverse_embree: the Embree kernel is not available")
     n = origins.shape[0]
     f32 = jax.ShapeDtypeStruct((n,), jnp.float32)
     i32 = jax.ShapeDtypeStruct((n,), jnp.int32)
-    call = jax.ffi.ffi_call(TARGET, (f32, i32, f32, f32), vmap_method="sequential")
-    t, best, u, v = call(jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32),
+    # p and ng are empty (0, 3) unless asked for: the kernel writes them only then
+    f3 = jax.ShapeDtypeStruct((n if points else 0, 3), jnp.float32)
+    call = jax.ffi.ffi_call(TARGET, (f32, i32, f32, f32, f3, f3), vmap_method="sequential")
+    t, best, u, v, p, ng = call(jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32),
                          jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32), triangles,
                          any_hit=bool(any_hit), refine=bool(refine), coherent=np.int64(modes[coherent]),
                          packet=np.int64(packet), quality=np.int64(QUALITY), chunk=np.int64(CHUNK),
                          threads=np.int64(threads))
+    if points:
+        return best >= 0, t, best, u, v, p, ng
     return best >= 0, t, best, u, v

@@ -48,6 +48,15 @@ class AbstractGeometry(eqx.Module):
         """World-space surface at barycentrics (u, v) of faces `prim` (differentiable in the vertex
         data); a miss (-1) reads face 0: mask misses yourself."""
 
+    def intersect_surface(self, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"],
+                          tmin: Float[Array, " N"] | float = 0.0,
+                          tmax: Float[Array, " N"] | float = float("inf")) -> tuple[Hit, Surface]:
+        """`intersect` and the `surface` of its hits, for passes that are not differentiated (the
+        surface may come from the traversal's own hit points and geometric normals, which are not
+        differentiable: `TriangleGeometry`). Misses: mask them yourself."""
+        hit = self.intersect(origins, directions, tmin, tmax)
+        return hit, self.surface(hit.prim, hit.u, hit.v)
+
     @abc.abstractmethod
     def triangles(self, prim: Int[Array, " B"]) -> tuple[Float[Array, "B 3"], Float[Array, "B 3"], Float[Array, "B 3"]]:
         """World-space corners (v0, v1, v2) of faces `prim` (e.g. for sampling points on emitters)."""

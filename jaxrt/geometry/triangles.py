@@ -9,7 +9,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxrt import accel
 from jaxrt.geometry.base import AbstractGeometry
-from jaxrt.shading.surface import Surface, interpolate, make_surface
+from jaxrt.shading.surface import Surface, interpolate, make_surface, surface_at
 
 
 class TriangleGeometry(AbstractGeometry):
@@ -36,6 +36,19 @@ class TriangleGeometry(AbstractGeometry):
     def occluded(self, origins, directions, tmax, *, from_end=False):
         # from the light: coherent origins (see `jaxrt.accel.occluded`)
         return accel.occluded(self.tree, origins, directions, tmax, from_end=from_end)
+
+    def intersect_surface(self, origins, directions, tmin=0.0, tmax=jnp.inf):
+        # the hit point and geometric normal come with the hit (`accel.intersect_points`: Embree
+        # computes them from the triangle it has at hand), so the corners are not gathered here;
+        # they are the BVH's triangles (built from `vertices`), equal to `surface`'s up to float32
+        # rounding, and not differentiable
+        hit, p, ng = accel.intersect_points(self.tree, origins, directions, tmin=tmin, tmax=tmax)
+        f = self.faces[jnp.maximum(hit.prim, 0)]  # (B, 3)
+        u, v = hit.u, hit.v
+        uv = None if self.uvs is None else interpolate(self.uvs, f, u, v)
+        s = surface_at(p, ng, interpolate(self.normals, f, u, v), interpolate(self.tangents, f, u, v),
+                       self.face_material(hit.prim), uv)
+        return hit, s
 
     def triangles(self, prim):
         f = self.faces[jnp.maximum(prim, 0)]

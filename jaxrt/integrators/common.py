@@ -24,6 +24,13 @@ def intersect_active(geometry, origins: Float[Array, "B 3"], directions: Float[A
     return geometry.intersect(origins, directions, 0.0, jnp.where(active, jnp.inf, -1.0))
 
 
+def intersect_surface_active(geometry, origins: Float[Array, "B 3"], directions: Float[Array, "B 3"],
+                             active: Bool[Array, " B"]):
+    """`intersect_active` and the surface at the hits (`geometry.intersect_surface`: not
+    differentiable; for the passes under stop_gradient)."""
+    return geometry.intersect_surface(origins, directions, 0.0, jnp.where(active, jnp.inf, -1.0))
+
+
 def _rotl(x, r: int):
     return (x << np.uint32(r)) | (x >> np.uint32(32 - r))
 

@@ -65,7 +65,7 @@ from jaxtyping import Array, Bool, Float, Int
 import brdfs
 from jaxrt import camera
 from jaxrt import lights as _lights
-from jaxrt.integrators.common import intersect_active, sample_order_arrays
+from jaxrt.integrators.common import intersect_surface_active, sample_order_arrays
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading import shadows as _shadows
 from jaxrt.shading.direct import local_radiance
@@ -176,11 +176,12 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
 
     def body(carry):
         k, (o, d, act, pix, parent, branch, weight), buf, img, rec = carry
-        hit = intersect_active(geo, o, d, act)
+        # the surface from the traversal's hit points and normals (the pass is under stop_gradient;
+        # on the CPU Embree returns them, and the corners are not gathered again)
+        hit, s = intersect_surface_active(geo, o, d, act)
         prim = jnp.where(act, hit.prim, -1)
         found = prim >= 0
         u, v, t = (jnp.where(found, x, 0.0) for x in (hit.u, hit.v, hit.t))
-        s = geo.surface(prim, u, v)
         ng, ns, _ = oriented(s, d)
         eps = offset_scale(s.p)
         # shadow rays, one per (slot, light)

@@ -127,8 +127,15 @@ def make_surface(v0, v1, v2, ns, tangent, material, u, v, uv=None) -> Surface:
     w = (1.0 - u - v)[:, None]
     p = w * v0 + u[:, None] * v1 + v[:, None] * v2
     ng = normalize(jnp.cross(v1 - v0, v2 - v0))
+    return surface_at(p, ng, ns, tangent, material, uv)
+
+
+def surface_at(p, ng, ns, tangent, material, uv=None) -> Surface:
+    """The `Surface` at points p (B, 3) with unit geometric normals ng, the interpolated
+    (unnormalised) shading normal `ns` and tangent (`make_surface` once it has p and ng; the
+    traversal may return them: `jaxrt.accel.intersect_points`). uv None gives zeros."""
     ns = normalize(ns)
     ns = jnp.where((dot(ns, ns) > 0.5)[:, None], ns, ng)
     if uv is None:
-        uv = jnp.zeros(u.shape + (2,), p.dtype)
+        uv = jnp.zeros(p.shape[:1] + (2,), p.dtype)
     return Surface(p, ng, ns, tangent, material, uv)

@@ -353,3 +353,47 @@ def test_build_rejects_bad_input():
         bvh.build(v, np.array([[0, 1, 3]]))
     with pytest.raises(InputError, match="no triangles"):
         bvh.build(v, np.zeros((0, 3), np.int32))
+
+
+@pytest.mark.parametrize("impl", IMPLS + ("pallas-interpret",))
+def test_intersect_points_are_the_hits_surface_points(impl):
+    """`intersect_points`: the hits of `intersect`, and each hit's point and unit geometric normal.
+    Against float64 (the barycentric point at the returned (u, v), the normalised cross product of
+    the float32 corners' edges) for every traversal; for the traversals that compute them in JAX,
+    also against `shading.surface.make_surface` on the gathered corners, the values the renderer
+    used before (Embree's are computed in double in its kernel: within float32 rounding of those)."""
+    from jaxrt.shading.surface import make_surface
+
+    m = icosphere_mesh(3)
+    verts = np.float32(m.vertices * 3.0 + np.array([1.5, -2.0, 0.25]))  # not centred, not unit
+    tree = bvh.build(verts, m.faces)
+    n = 240 if impl == "pallas-interpret" else 1200
+    o, d, lo, hi = ray_mix(mesh.Mesh.from_arrays(verts, m.faces, name="s"), n, seed=5)
+    hit, p, ng = jax.jit(lambda *a: bvh.intersect_points(*a, impl=impl))(tree, o, d, lo, hi)
+    ref = jax.jit(lambda *a: bvh.intersect(*a, impl=impl))(tree, o, d, lo, hi)
+    for a, b in zip(hit, ref):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    prim, p, ng = np.asarray(hit.prim), np.asarray(p), np.asarray(ng)
+    found = prim >= 0
+    assert 0.3 < found.mean() < 0.95
+    assert np.all(p[~found] == 0) and np.all(ng[~found] == 0)
+    tri = verts.astype(np.float64)[m.faces[prim[found]]]
+    u, v = (np.asarray(x, np.float64)[found][:, None] for x in (hit.u, hit.v))
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    p64 = tri[:, 0] + u * e1 + v * e2
+    n64 = np.cross(e1, e2)
+    n64 /= np.linalg.norm(n64, axis=1, keepdims=True)
+    scale = np.abs(verts).max()
+    assert np.abs(p[found] - p64).max() <= 2e-7 * scale, np.abs(p[found] - p64).max() / scale
+    assert np.abs(ng[found] - n64).max() <= 1e-6, np.abs(ng[found] - n64).max()
+    # the renderer's float32 surface of the same (prim, u, v)
+    f = jnp.asarray(m.faces)[jnp.maximum(hit.prim, 0)]
+    vj = jnp.asarray(verts)
+    s = jax.jit(lambda f, u, v: make_surface(vj[f[:, 0]], vj[f[:, 1]], vj[f[:, 2]], vj[f[:, 0]], vj[f[:, 0]],
+                                             f[:, 0], u, v))(f, hit.u, hit.v)
+    dp = np.abs(p[found] - np.asarray(s.p)[found]).max()
+    dn = np.abs(ng[found] - np.asarray(s.ng)[found]).max()
+    if impl == "embree":
+        assert dp <= 4 * 2.0**-24 * scale and dn <= 4 * 2.0**-24, (dp, dn)
+    else:  # the same float32 arithmetic, up to an ulp (XLA contracts a·b + c into FMAs per program)
+        assert dp <= 2.0**-23 * scale and dn <= 2.0**-23, (dp, dn)

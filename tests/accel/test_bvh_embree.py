@@ -109,6 +109,47 @@ def test_matches_native_kernel(bunny, leaf_size):
         traverse_embree.traverse(tree.triangles, o, d, lo, hi, any_hit=False, packet=8)
 
 
+@pytest.mark.data
+def test_points_are_the_float64_hit_points(bunny):
+    """points=True: the same hits, plus each hit's point and unit geometric normal, computed in
+    double in the kernel: against float64 (the ray's line through the triangle's plane, Moller-Trumbore
+    written here; the normalised cross product of the float32 corners' edges), in every mode."""
+    tree = bvh.build(bunny.vertices, bunny.faces)
+    o, d, lo, hi = ray_mix(bunny, 3000, seed=3)
+    ref = _embree(tree, o, d, lo, hi, any_hit=False, refine=True)
+    out = _embree(tree, o, d, lo, hi, any_hit=False, refine=True, points=True)
+    for a, b in zip(ref, out[:5]):
+        np.testing.assert_array_equal(a, b)
+    f, _, b, _, _, p, ng = out
+    assert p.shape == ng.shape == (len(o), 3) and 0.3 < f.mean() < 0.95
+    assert np.all(p[~f] == 0) and np.all(ng[~f] == 0)
+    tri = np.asarray(tree.triangles, np.float64)[b[f]]
+    o64, d64 = o[f].astype(np.float64), d[f].astype(np.float64)
+    e1, e2, s0 = tri[:, 3:6] - tri[:, 0:3], tri[:, 6:9] - tri[:, 0:3], o64 - tri[:, 0:3]
+    q = np.cross(d64, e2)
+    det = np.sum(e1 * q, 1)
+    u64, v64 = np.sum(s0 * q, 1) / det, np.sum(d64 * np.cross(s0, e1), 1) / det
+    p64 = tri[:, 0:3] + u64[:, None] * e1 + v64[:, None] * e2
+    n64 = np.cross(e1, e2)
+    n64 /= np.linalg.norm(n64, axis=1, keepdims=True)
+    cos = np.abs(np.sum(n64 * d64, 1)) / np.linalg.norm(d64, axis=1)
+    steep = cos > 0.05  # nearly parallel rays: the plane's point is ill-conditioned, the kernel clamps
+    assert steep.mean() > 0.6
+    scale = np.abs(bunny.vertices).max()
+    err = np.abs(p[f] - p64).max(1)[steep]
+    assert err.max() <= 2.0**-23 * scale, err.max() / scale  # rounded once: within an ulp
+    assert np.abs(ng[f] - n64).max() <= 2.0**-24 * 2, np.abs(ng[f] - n64).max()
+    # every hit point lies in its triangle's plane to float32 rounding, grazing rays included
+    off = np.abs(np.sum((p[f] - tri[:, 0:3]) * n64, 1))
+    assert off.max() <= 2.0**-22 * scale, off.max() / scale
+    for kw in ({"packet": 1}, {"coherent": "no"}, {"coherent": "yes"}, {"threads": 3}):
+        other = _embree(tree, o, d, lo, hi, any_hit=False, refine=True, points=True, **kw)
+        np.testing.assert_array_equal(other[5], p, err_msg=str(kw))
+        np.testing.assert_array_equal(other[6], ng, err_msg=str(kw))
+    with pytest.raises(ValueError, match="points"):
+        traverse_embree.traverse(tree.triangles, o, d, lo, hi, any_hit=True, points=True)
+
+
 def test_t_limits_are_inclusive_and_inactive_rays_miss():
     v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
     f = np.array([[0, 1, 2], [0, 2, 3]])

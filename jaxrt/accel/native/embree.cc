@@ -23,7 +23,8 @@
 // [tmin, tmax] with its own float32 t (tnear < t <= tfar; tnear is set one float below tmin, and
 // at least 0: a hit at exactly t = 0 does not count). t, u, v
 // of the chosen triangle are recomputed in double (traverse.cc does so for t), so the reported hits
-// agree to ~1e-7 relative whichever kernel traced the ray.
+// agree to ~1e-7 relative whichever kernel traced the ray; on request the hit point and the unit
+// geometric normal too (`Finish`), so that shading need not gather the corners again.
 //
 // Threads: chunks of consecutive rays (coherent image tiles) handed out by an atomic counter to the
 // caller and to tasks on XLA's intra-op thread pool, as in traverse.cc. Each chunk is traced in
@@ -224,7 +225,7 @@ struct Job {
   const float* tmax;
   const float* tri;
   int64_t n;
-  bool any_hit, refine;
+  bool any_hit, refine, points;
   int64_t coherent;  // 0: incoherent, 1: coherent, 2: per packet (see Packet16)
   int64_t packet;
   RTCScene scene;
@@ -232,6 +233,8 @@ struct Job {
   int32_t* best;
   float* u;
   float* v;
+  float* p;   // (n, 3) hit points, or null (points off)
+  float* ng;  // (n, 3) unit geometric normals, or null
   int64_t chunk;
   std::atomic<int64_t> next{0};
   std::atomic<int64_t> done{0};
@@ -239,47 +242,123 @@ struct Job {
   std::condition_variable cv;
 };
 
-// t, u, v of ray i's line through the plane of triangle `best`, in double: differences of floats and
-// their products are exact or nearly so in double, so the float32 test's errors go (traverse.cc's
-// RefineT does the same for t; Embree's float32 (u, v) stray by up to ~1e-4 of the triangle on rays
-// nearly parallel to it). u, v solve q = u e1 + v e2 for the hit point q relative to v0:
-// u = (q x e2).n / n.n, v = (e1 x q).n / n.n with n = e1 x e2, clamped onto the triangle (the hit
-// is on it up to rounding). Kept as Embree's values where the double result is not finite or t
-// strays by more than 1 %.
-inline void Refine(const Job& J, int64_t i, int32_t best, float* t_io, float* u_io, float* v_io) {
-  const float* T = J.tri + 9 * static_cast<int64_t>(best);
-  const float* o = J.o + 3 * i;
-  const float* d = J.d + 3 * i;
-  double e1[3], e2[3], a[3];
-  for (int k = 0; k < 3; ++k) {
-    e1[k] = static_cast<double>(T[3 + k]) - T[k];
-    e2[k] = static_cast<double>(T[6 + k]) - T[k];
-    a[k] = static_cast<double>(T[k]) - o[k];
+// The closest hits of one packet (at most 16), finished in double. With `refine`: t, u, v of each
+// ray's line through the plane of its triangle: differences of floats and their products are exact
+// or nearly so in double, so the float32 test's errors go (traverse.cc's RefineT does the same for
+// t; Embree's float32 (u, v) stray by up to ~1e-4 of the triangle on rays nearly parallel to it).
+// u, v solve q = u e1 + v e2 for the hit point q relative to v0: u = (q x e2).n / n.n,
+// v = (e1 x q).n / n.n with n = e1 x e2, clamped onto the triangle (the hit is on it up to
+// rounding). Embree's t is kept where the double t is not finite or strays by more than 1 %, its
+// (u, v) also where the double ones are not finite. With `points`: the hit point and the unit
+// geometric normal at the (double) barycentrics, rounded once: p = v0 + u e1 + v e2 (the
+// barycentric point, on the triangle, as `jaxrt.shading.surface.make_surface` computes it in float32
+// from the corners: a few ulps apart), ng = n / |n| (the winding's normal; 0 for a degenerate
+// triangle, as `surface.normalize` gives). Returned with the hit, the shading code needs neither the
+// corners' gathers nor the passes that recompute p from them (BENCHMARKS.md, "Direct-light frames
+// on the CPU").
+//
+// Every lane is loaded first and then computed by loops over the lanes without branches: the
+// triangles' cache misses overlap, and the compiler vectorises the loops (clones for AVX-512 and
+// AVX2, chosen when the library is loaded; IEEE arithmetic without contraction, so every clone
+// gives the same bits; traverse_embree.FLAGS lets the compiler make the quotients unconditionally).
+// One hit at a time, the refinement took a quarter of a dragon camera-ray call.
+struct Hits {
+  int m = 0;  // lanes in use
+  int64_t ray[16];
+  int32_t tri[16];
+  float t[16], u[16], v[16];
+};
+
+__attribute__((target_clones("avx512f", "avx2", "default"))) void Finish(const Job& J, Hits& H) {
+  const int m = H.m;
+  const bool refine = J.refine;
+  alignas(64) double T[9][16], o[3][16], d[3][16];
+  for (int k = 0; k < m; ++k) {
+    const float* tk = J.tri + 9 * static_cast<int64_t>(H.tri[k]);
+    for (int c = 0; c < 9; ++c) T[c][k] = tk[c];
+    for (int c = 0; c < 3; ++c) {
+      o[c][k] = J.o[3 * H.ray[k] + c];
+      d[c][k] = J.d[3 * H.ray[k] + c];
+    }
   }
-  const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]};
-  const double num = n[0] * a[0] + n[1] * a[1] + n[2] * a[2];
-  const double den = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
-  const double nn = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
-  const double td = num / den;
-  const float t32 = *t_io;
-  const float t = static_cast<float>(td);
-  if (!(den != 0 && nn > 0 && std::isfinite(t) && std::fabs(t - t32) <= 1e-2f * std::fabs(t32) + 1e-30f)) return;
-  *t_io = t;
-  const double q[3] = {td * d[0] - a[0], td * d[1] - a[1], td * d[2] - a[2]};
-  const double qe2[3] = {q[1] * e2[2] - q[2] * e2[1], q[2] * e2[0] - q[0] * e2[2], q[0] * e2[1] - q[1] * e2[0]};
-  const double e1q[3] = {e1[1] * q[2] - e1[2] * q[1], e1[2] * q[0] - e1[0] * q[2], e1[0] * q[1] - e1[1] * q[0]};
-  double u = (qe2[0] * n[0] + qe2[1] * n[1] + qe2[2] * n[2]) / nn;
-  double v = (e1q[0] * n[0] + e1q[1] * n[1] + e1q[2] * n[2]) / nn;
-  if (!(std::isfinite(u) && std::isfinite(v))) return;
-  u = std::max(u, 0.0);
-  v = std::max(v, 0.0);
-  if (u + v > 1.0) {
-    const double s = u + v;
-    u /= s;
-    v /= s;
+  alignas(64) double ud[16], vd[16], n[3][16], nn[16], e1[3][16], e2[3][16];
+  for (int k = 0; k < m; ++k) {
+    e1[0][k] = T[3][k] - T[0][k];
+    e1[1][k] = T[4][k] - T[1][k];
+    e1[2][k] = T[5][k] - T[2][k];
+    e2[0][k] = T[6][k] - T[0][k];
+    e2[1][k] = T[7][k] - T[1][k];
+    e2[2][k] = T[8][k] - T[2][k];
+    const double a[3] = {T[0][k] - o[0][k], T[1][k] - o[1][k], T[2][k] - o[2][k]};
+    n[0][k] = e1[1][k] * e2[2][k] - e1[2][k] * e2[1][k];
+    n[1][k] = e1[2][k] * e2[0][k] - e1[0][k] * e2[2][k];
+    n[2][k] = e1[0][k] * e2[1][k] - e1[1][k] * e2[0][k];
+    const double num = n[0][k] * a[0] + n[1][k] * a[1] + n[2][k] * a[2];
+    const double den = n[0][k] * d[0][k] + n[1][k] * d[1][k] + n[2][k] * d[2][k];
+    nn[k] = n[0][k] * n[0][k] + n[1][k] * n[1][k] + n[2][k] * n[2][k];
+    const double td = num / den;
+    const float t32 = H.t[k];
+    const float t = static_cast<float>(td);
+    // (fabs(x) < inf is false for NaN and infinities: std::isfinite without a branch)
+    // (& rather than &&, and both quotients below made: no branches in the loop)
+    const bool ok = refine & (den != 0) & (nn[k] > 0) & (std::fabs(t) < INFINITY) &
+                    (std::fabs(t - t32) <= 1e-2f * std::fabs(t32) + 1e-30f);
+    const double q[3] = {td * d[0][k] - a[0], td * d[1][k] - a[1], td * d[2][k] - a[2]};
+    const double qe2[3] = {q[1] * e2[2][k] - q[2] * e2[1][k], q[2] * e2[0][k] - q[0] * e2[2][k],
+                           q[0] * e2[1][k] - q[1] * e2[0][k]};
+    const double e1q[3] = {e1[1][k] * q[2] - e1[2][k] * q[1], e1[2][k] * q[0] - e1[0][k] * q[2],
+                           e1[0][k] * q[1] - e1[1][k] * q[0]};
+    double u = (qe2[0] * n[0][k] + qe2[1] * n[1][k] + qe2[2] * n[2][k]) / nn[k];
+    double v = (e1q[0] * n[0][k] + e1q[1] * n[1][k] + e1q[2] * n[2][k]) / nn[k];
+    const bool ok_uv = ok & (std::fabs(u) < INFINITY) & (std::fabs(v) < INFINITY);
+    u = std::max(u, 0.0);
+    v = std::max(v, 0.0);
+    const double sum = u + v;
+    const bool over = sum > 1.0;
+    const double us = u / sum, vs = v / sum;
+    u = over ? us : u;
+    v = over ? vs : v;
+    H.t[k] = ok ? t : t32;
+    ud[k] = ok_uv ? u : static_cast<double>(H.u[k]);
+    vd[k] = ok_uv ? v : static_cast<double>(H.v[k]);
+    H.u[k] = static_cast<float>(ud[k]);
+    H.v[k] = static_cast<float>(vd[k]);
   }
-  *u_io = static_cast<float>(u);
-  *v_io = static_cast<float>(v);
+  if (!J.points) return;
+  alignas(64) float p[3][16], g[3][16];
+  for (int k = 0; k < m; ++k) {
+    const double r = 1.0 / std::sqrt(nn[k]);
+    const double s = nn[k] > 1e-30 ? r : 0.0;
+    p[0][k] = static_cast<float>(T[0][k] + ud[k] * e1[0][k] + vd[k] * e2[0][k]);
+    p[1][k] = static_cast<float>(T[1][k] + ud[k] * e1[1][k] + vd[k] * e2[1][k]);
+    p[2][k] = static_cast<float>(T[2][k] + ud[k] * e1[2][k] + vd[k] * e2[2][k]);
+    g[0][k] = static_cast<float>(n[0][k] * s);
+    g[1][k] = static_cast<float>(n[1][k] * s);
+    g[2][k] = static_cast<float>(n[2][k] * s);
+  }
+  for (int k = 0; k < m; ++k) {
+    for (int c = 0; c < 3; ++c) {
+      J.p[3 * H.ray[k] + c] = p[c][k];
+      J.ng[3 * H.ray[k] + c] = g[c][k];
+    }
+  }
+}
+
+// Writes the finished hits of H to the outputs.
+inline void Store(const Job& J, Hits& H) {
+  if (J.refine || J.points) Finish(J, H);
+  for (int k = 0; k < H.m; ++k) {
+    const int64_t i = H.ray[k];
+    J.t[i] = H.t[k];
+    J.best[i] = H.tri[k];
+    J.u[i] = H.u[k];
+    J.v[i] = H.v[k];
+  }
+}
+
+inline void NoPoint(const Job& J, int64_t i) {
+  if (!J.points) return;
+  for (int k = 0; k < 3; ++k) J.p[3 * i + k] = J.ng[3 * i + k] = 0.0f;
 }
 
 // Embree's rays must be finite with tnear <= tfar (NaN or inverted intervals are jaxrt's inactive
@@ -301,6 +380,7 @@ inline void Miss(const Job& J, int64_t i) {
   J.best[i] = -1;
   J.u[i] = 0.0f;
   J.v[i] = 0.0f;
+  NoPoint(J, i);
 }
 
 // Closest hit of the rays [s, e) (e - s <= 16) in one packet.
@@ -350,6 +430,7 @@ void Packet16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
   } else {
     rtcIntersect16(valid, J.scene, ctx, &rh);
   }
+  Hits H;
   for (int64_t i = s; i < e; ++i) {
     const int k = static_cast<int>(i - s);
     if (!valid[k]) {
@@ -362,6 +443,7 @@ void Packet16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
       J.t[i] = J.tmax[i];
       J.best[i] = hit ? 0 : -1;
       J.u[i] = J.v[i] = 0.0f;
+      NoPoint(J, i);
       continue;
     }
     const unsigned prim = rh.hit.geomID[k] == RTC_INVALID_GEOMETRY_ID ? RTC_INVALID_GEOMETRY_ID : rh.hit.primID[k];
@@ -369,14 +451,14 @@ void Packet16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
       Miss(J, i);
       continue;
     }
-    const int32_t b = static_cast<int32_t>(prim);
-    float t = r.tfar[k], u = rh.hit.u[k], v = rh.hit.v[k];
-    if (J.refine) Refine(J, i, b, &t, &u, &v);
-    J.t[i] = t;
-    J.best[i] = b;
-    J.u[i] = u;
-    J.v[i] = v;
+    H.ray[H.m] = i;
+    H.tri[H.m] = static_cast<int32_t>(prim);
+    H.t[H.m] = r.tfar[k];
+    H.u[H.m] = rh.hit.u[k];
+    H.v[H.m] = rh.hit.v[k];
+    ++H.m;
   }
+  Store(J, H);
 }
 
 // One ray at a time (rtcIntersect1 / rtcOccluded1): the A/B reference for the packets.
@@ -406,6 +488,7 @@ void Single(const Job& J, RTCIntersectContext* ctx, int64_t i) {
     J.t[i] = J.tmax[i];
     J.best[i] = r.tfar == -INFINITY ? 0 : -1;
     J.u[i] = J.v[i] = 0.0f;
+    NoPoint(J, i);
     return;
   }
   rtcIntersect1(J.scene, ctx, &rh);
@@ -413,13 +496,14 @@ void Single(const Job& J, RTCIntersectContext* ctx, int64_t i) {
     Miss(J, i);
     return;
   }
-  const int32_t b = static_cast<int32_t>(rh.hit.primID);
-  float t = r.tfar, u = rh.hit.u, v = rh.hit.v;
-  if (J.refine) Refine(J, i, b, &t, &u, &v);
-  J.t[i] = t;
-  J.best[i] = b;
-  J.u[i] = u;
-  J.v[i] = v;
+  Hits H;
+  H.m = 1;
+  H.ray[0] = i;
+  H.tri[0] = static_cast<int32_t>(rh.hit.primID);
+  H.t[0] = r.tfar;
+  H.u[0] = rh.hit.u;
+  H.v[0] = rh.hit.v;
+  Store(J, H);
 }
 
 void Work(Job& J) {
@@ -451,13 +535,17 @@ int64_t Count(const ffi::AnyBuffer::Dimensions& dims) {
 ffi::Error Trace(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi::F32> d, ffi::Buffer<ffi::F32> tmin,
                  ffi::Buffer<ffi::F32> tmax, ffi::Buffer<ffi::F32> tri, ffi::ResultBuffer<ffi::F32> t,
                  ffi::ResultBuffer<ffi::S32> best, ffi::ResultBuffer<ffi::F32> u, ffi::ResultBuffer<ffi::F32> v,
-                 bool any_hit, bool refine, int64_t coherent, int64_t packet, int64_t quality, int64_t chunk,
+                 ffi::ResultBuffer<ffi::F32> p, ffi::ResultBuffer<ffi::F32> ng, bool any_hit, bool refine, int64_t coherent, int64_t packet, int64_t quality, int64_t chunk,
                  int64_t threads) {
   const int64_t n = Count(tmin.dimensions());
   const int64_t nf = Count(tri.dimensions()) / 9;
+  // p and ng: (n, 3) where points are asked for (closest hit), else empty
+  const int64_t np = Count(p->dimensions());
+  const bool points = np > 0;
   if (Count(o.dimensions()) != 3 * n || Count(d.dimensions()) != 3 * n || Count(tmax.dimensions()) != n ||
       Count(t->dimensions()) != n || Count(best->dimensions()) != n || Count(u->dimensions()) != n ||
-      Count(v->dimensions()) != n || Count(tri.dimensions()) != 9 * nf || nf < 1 || nf >= (int64_t{1} << 31) / 3 ||
+      Count(v->dimensions()) != n || (np != 0 && np != 3 * n) || Count(ng->dimensions()) != np ||
+      (points && any_hit) || Count(tri.dimensions()) != 9 * nf || nf < 1 || nf >= (int64_t{1} << 31) / 3 ||
       chunk < 1 || (packet != 1 && packet != 16) || coherent < 0 || coherent > 2 || quality < 0 || quality > 2) {
     return ffi::Error::InvalidArgument("jaxrt_embree_trace: inconsistent array shapes or attributes");
   }
@@ -483,6 +571,9 @@ ffi::Error Trace(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi:
   J.best = best->typed_data();
   J.u = u->typed_data();
   J.v = v->typed_data();
+  J.points = points;
+  J.p = points ? p->typed_data() : nullptr;
+  J.ng = points ? ng->typed_data() : nullptr;
   J.chunk = chunk;
   const int64_t chunks = (n + chunk - 1) / chunk;
   int64_t workers = threads > 0 ? threads : pool.num_threads();
@@ -522,6 +613,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtEmbreeTrace, Trace,
                                   .Ret<ffi::Buffer<ffi::S32>>()  // best (leaf order, -1 = miss)
                                   .Ret<ffi::Buffer<ffi::F32>>()  // u
                                   .Ret<ffi::Buffer<ffi::F32>>()  // v
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // hit points (N,3), or (0,3): not asked for
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // unit geometric normals, as the points
                                   .Attr<bool>("any_hit")
                                   .Attr<bool>("refine")
                                   .Attr<int64_t>("coherent")

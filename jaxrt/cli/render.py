@@ -302,11 +302,21 @@ def run(args: argparse.Namespace) -> int:
         import jax
 
         t0 = time.perf_counter()
-        scn = _scene.build(spec)
-        times["scene"] = time.perf_counter() - t0
         cpu = jax.devices()[0].platform == "cpu"
+        max_rays = CPU_TILE_RAYS if cpu else None
+        ahead = []
+
+        def on_shapes(shapes):  # the frame compiles while the BVH is built (`render_tiles.compile_ahead`)
+            ahead.append(render_tiles.compile_ahead(shapes, memory=memory, aovs=args.aovs, max_tile_rays=max_rays,
+                                                    reserve=reserve, devices=devices))
+
+        scn = _scene.build(spec, on_shapes=on_shapes)
+        times["scene"] = time.perf_counter() - t0
+        for t in ahead:
+            if t is not None:
+                t.join()  # the render then finds the program compiled (never compiles it twice)
         out = render_tiles.render(scn, memory=memory, aovs=args.aovs, progress=bar if bar is not None else False,
-                                  max_tile_rays=CPU_TILE_RAYS if cpu else None, reserve=reserve,
+                                  max_tile_rays=max_rays, reserve=reserve,
                                   budget_source="--memory" if memory is not None else None,
                                   should_stop=should_stop, devices=devices, devices_source="--devices")
         times["render"] = time.perf_counter() - t0 - times["scene"]

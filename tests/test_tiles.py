@@ -480,3 +480,32 @@ def test_ctrl_c_during_compilation_exits_130_at_once(tmp_path):
     proc, err = _start_render(tmp_path)
     rc, took = _interrupt_when(proc, err, b"compiling", timeout=240)
     _assert_interrupted(rc, took, err, tmp_path)
+
+
+@pytest.mark.parametrize("traversal,expect", [("auto", ["traverse_cpu", "traverse_embree"]),
+                                              ("cpu", ["traverse_cpu"]), ("xla", [])])
+def test_the_cli_builds_the_native_kernels_in_threads_of_their_own(monkeypatch, traversal, expect):
+    """`cli.render.start_kernels` (called by `jaxrt render` and `jaxrt fit` after their input checks)
+    loads each native kernel the traversal may use in a background thread of its own, at once."""
+    from jaxrt.accel import traverse_cpu, traverse_embree
+    from jaxrt.cli import render as cli_render
+
+    calls, gate = [], threading.Barrier(len(expect) or 1, timeout=60)
+
+    def recorder(name):
+        def available():
+            calls.append((name, threading.current_thread().name))
+            gate.wait()  # both are in flight together: neither waits for the other to finish
+            return True
+        return available
+
+    monkeypatch.setattr(traverse_cpu, "available", recorder("traverse_cpu"))
+    monkeypatch.setattr(traverse_embree, "available", recorder("traverse_embree"))
+    monkeypatch.setattr(cli_render, "_kernels", [])
+    monkeypatch.setenv("JAXRT_TRAVERSAL", traversal)
+    cli_render.start_kernels()
+    for t in cli_render._kernels:
+        t.join(60)
+    assert sorted(calls) == [(n, f"jaxrt-{n}") for n in expect]
+    cli_render.start_kernels()  # once per process
+    assert len(calls) == len(expect)

@@ -541,7 +541,8 @@ def compile_ahead(shapes, *, memory: int | str | None = None, aovs: bool = False
     """Start compiling, in a thread, the program that `render(scene, ...)` with these arguments will
     run, from `shapes`: the scene before its BVH is built (`jaxrt.scene.build`'s on_shapes, whose
     tree arrays are `jax.ShapeDtypeStruct`s). Returns the thread (join it before rendering), or None
-    where nothing is compiled ahead (photon mapping, several devices).
+    for photon mapping (its pass program is compiled by `check_passes`). On several devices the thread
+    only plans: their program takes the scene replicated over them (`_devices.replicate`).
 
     XLA compiles with the GIL released, so the host's BVH build runs beside it (Wald 2007's binned
     SAH build of the full dragon takes seconds, as long as the frame's compilation on a small CPU).
@@ -551,7 +552,7 @@ def compile_ahead(shapes, *, memory: int | str | None = None, aovs: bool = False
     the render compiles its own program, and the one compiled here is unused. Errors are left to the
     render to raise and report.
     """
-    if shapes.settings.integrator == "sppm":  # its pass program is compiled by `check_passes`
+    if shapes.settings.integrator == "sppm":
         return None
     post, shapes = shapes.glare, shapes.without_glare()
 
@@ -559,7 +560,7 @@ def compile_ahead(shapes, *, memory: int | str | None = None, aovs: bool = False
         try:
             p = plan(shapes, memory=memory, aovs=aovs, max_tile_rays=max_tile_rays,
                      reserve=_reserve(reserve, shapes, post), devices=devices)
-            if not p.devices:  # several devices compile for a replicated scene (`_devices.replicate`)
+            if not p.devices:
                 compile_plan(shapes, p, aovs)
         except Exception:  # noqa: BLE001 -- see the docstring
             pass

@@ -249,7 +249,8 @@ _CLI_RENDER = """
         if event == "/jax/core/compile/backend_compile_duration":
             events.append([kw.get("fun_name"), threading.current_thread().name])
     monitoring.register_event_duration_secs_listener(on_compile)
-    monitoring.register_event_listener(lambda e, **k: hits.__setitem__(0, hits[0] + (e == "/jax/compilation_cache/cache_hits")))
+    monitoring.register_event_listener(
+        lambda e, **k: hits.__setitem__(0, hits[0] + (e == "/jax/compilation_cache/cache_hits")))
     os.chdir({work!r})
     assert main(["render", "spheres", "--width", "24", "--height", "16", "-o", "a.exr", "--png", "a.png", "-q"]) == 0
     print(json.dumps(dict(events=events, hits=hits[0], exr=hashlib.sha256(open("a.exr", "rb").read()).hexdigest(),

@@ -182,8 +182,9 @@ def build(spec: SceneSpec, *, on_shapes: Callable[[Scene], Any] | None = None) -
         faces = np.asarray(whole.faces, np.int32)
         if not np.all(np.isfinite(verts)):
             raise InputError(f"{spec.source}: scene geometry contains non-finite vertices")
-        tree = accel.bvh.shapes(len(faces), leaf_size=accel.RENDER_TREE.get("leaf_size", 1))
-        if tree is not None and on_shapes is not None:
+        leaf = accel.RENDER_TREE.get("leaf_size", 1)
+        tree = None if on_shapes is None else accel.bvh.shapes(len(faces), leaf_size=leaf)
+        if tree is not None:
             pending = verts, faces  # the tree is built last, after `on_shapes` has the other arrays
         else:
             tree = _cache.build_bvh(verts, faces, **accel.RENDER_TREE)

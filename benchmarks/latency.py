@@ -18,7 +18,8 @@ untimed and with a cache folder of its own, the scene file at the fit size and a
 work folder; then `jaxrt fit target.exr --scene scene.toml ...` is the timed command. Each case runs with
 JAXRT_CACHE_DIR set to a new empty folder (cold), then again with the same folder (warm), so the
 figures show what a second process reuses, whether or not the commands use `jaxrt.cache` yet.
-The native CPU kernel's library ($XDG_CACHE_HOME/jaxrt, compiled once per machine) is not reset.
+The native CPU kernels' libraries live in the cache folder too (<JAXRT_CACHE_DIR>/native), so a cold CPU
+process also compiles them (two C++ compilations, `jaxrt.cli.render.start_kernels`), as a first-time user's does.
 `--preview-wiring` runs a prelude in each process that calls `jaxrt.cache.enable_compilation_cache()`
 and routes `jaxrt.geometry.mesh.load` / `jaxrt.accel.bvh.build` through `jaxrt.cache.load_mesh` / `build_bvh`: the
 figures the caches give once the CLI and the scene builder call them. The table's last column is

@@ -82,6 +82,7 @@ import dataclasses
 import functools
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -139,8 +140,14 @@ def default_budget(device=None, scene=None) -> tuple[int, str]:
     return ram // 2, f"half of the {format_bytes(ram)} of RAM"
 
 
+def _leaf_bytes(x) -> int:
+    if isinstance(x, jax.ShapeDtypeStruct):  # a scene of shapes (`jaxrt.scene.build`'s on_shapes): as its array
+        return math.prod(x.shape) * x.dtype.itemsize
+    return int(x.nbytes) if hasattr(x, "nbytes") else 0
+
+
 def _tree_bytes(tree) -> int:
-    return sum(int(x.nbytes) for x in jax.tree.leaves(tree) if hasattr(x, "nbytes"))
+    return sum(_leaf_bytes(x) for x in jax.tree.leaves(tree))
 
 
 def tile_cost(scene, aovs: bool = False) -> tuple[int, int]:
@@ -482,9 +489,9 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
         img, aov = out if aovs else (out, None)
         img = np.asarray(glare.apply(img, post))
         return (img, aov) if aovs else img
-    reserve = max(int(reserve), glare.work_bytes(scene.camera.height, scene.camera.width, post))
-    p = use_plan or plan(scene, memory=memory, aovs=aovs, max_tile_rays=max_tile_rays, reserve=reserve,
-                         budget_source=budget_source, devices=devices, devices_source=devices_source)
+    p = use_plan or plan(scene, memory=memory, aovs=aovs, max_tile_rays=max_tile_rays,
+                         reserve=_reserve(reserve, scene, post), budget_source=budget_source, devices=devices,
+                         devices_source=devices_source)
     bar, own = progress, False
     if progress is True:
         from tqdm import tqdm
@@ -522,6 +529,45 @@ def render(scene, *, memory: int | str | None = None, aovs: bool = False, progre
     finally:
         if own:
             bar.close()
+
+
+def _reserve(reserve: int, scene, post) -> int:
+    # the glare post-process runs after the tiles, as the writers do: room for the larger of the two
+    return max(int(reserve), glare.work_bytes(scene.camera.height, scene.camera.width, post))
+
+
+def compile_ahead(shapes, *, memory: int | str | None = None, aovs: bool = False, max_tile_rays: int | None = None,
+                  reserve: int = 0, devices: Any = None) -> threading.Thread | None:
+    """Start compiling, in a thread, the program that `render(scene, ...)` with these arguments will
+    run, from `shapes`: the scene before its BVH is built (`jaxrt.scene.build`'s on_shapes, whose
+    tree arrays are `jax.ShapeDtypeStruct`s). Returns the thread (join it before rendering), or None
+    for photon mapping (its pass program is compiled by `check_passes`). On several devices the thread
+    only plans: their program takes the scene replicated over them (`_devices.replicate`).
+
+    XLA compiles with the GIL released, so the host's BVH build runs beside it (Wald 2007's binned
+    SAH build of the full dragon takes seconds, as long as the frame's compilation on a small CPU).
+    The render then plans and compiles as always: a scene of the same shapes finds the compiled
+    program (`jaxrt.programs.cached_jit` keeps it per shapes), so nothing compiles twice and the
+    images are those of a render without this. Where the built scene differs in a shape after all,
+    the render compiles its own program, and the one compiled here is unused. Errors are left to the
+    render to raise and report.
+    """
+    if shapes.settings.integrator == "sppm":
+        return None
+    post, shapes = shapes.glare, shapes.without_glare()
+
+    def work():
+        try:
+            p = plan(shapes, memory=memory, aovs=aovs, max_tile_rays=max_tile_rays,
+                     reserve=_reserve(reserve, shapes, post), devices=devices)
+            if not p.devices:
+                compile_plan(shapes, p, aovs)
+        except Exception:  # noqa: BLE001 -- see the docstring
+            pass
+
+    t = threading.Thread(target=work, name="jaxrt-compile", daemon=True)
+    t.start()
+    return t
 
 
 def check_passes(scene, *, memory: int | str | None = None, aovs: bool = False, reserve: int = 0,

@@ -238,3 +238,40 @@ def test_cli_fit_compiles_its_trace_once_and_a_second_process_compiles_nothing(t
     assert second["fit"]["compiled"] == 0 and second["again"]["requests"] == 0, second
     assert second["a"] == first["a"] and second["b"] == first["b"]
     assert first["a"]["eta"] == np.float32(1.5) and first["b"]["eta"] == np.float32(1.8)  # the fixed values were used
+
+
+_CLI_RENDER = """
+    import hashlib, json, os, sys, threading
+    from jax import monitoring
+    from jaxrt.cli import main
+    events, hits = [], [0]
+    def on_compile(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            events.append([kw.get("fun_name"), threading.current_thread().name])
+    monitoring.register_event_duration_secs_listener(on_compile)
+    monitoring.register_event_listener(
+        lambda e, **k: hits.__setitem__(0, hits[0] + (e == "/jax/compilation_cache/cache_hits")))
+    os.chdir({work!r})
+    assert main(["render", "spheres", "--width", "24", "--height", "16", "-o", "a.exr", "--png", "a.png", "-q"]) == 0
+    print(json.dumps(dict(events=events, hits=hits[0], exr=hashlib.sha256(open("a.exr", "rb").read()).hexdigest(),
+                          png=hashlib.sha256(open("a.png", "rb").read()).hexdigest())))
+"""
+
+
+@pytest.mark.slow  # three fresh processes, two of them compiling a frame: about a minute on 2 cores
+def test_cli_render_compiles_its_frame_once_beside_the_tree_build_and_a_second_process_compiles_nothing(tmp_path):
+    """`jaxrt render`: the frame program is compiled once, in the thread that compiles it while the
+    BVH is built (`render_tiles.compile_ahead`); a second process with the same cache compiles nothing
+    (the request is a persistent-cache hit); with JAXRT_CACHE=off the same one compilation; the EXR
+    and PNG are byte-identical in all three."""
+    work = tmp_path / "work"
+    work.mkdir()
+    d = tmp_path / "cache"
+    first = _py(_CLI_RENDER.format(work=str(work)), d)
+    second = _py(_CLI_RENDER.format(work=str(work)), d)
+    off = _py(_CLI_RENDER.format(work=str(work)), tmp_path / "off", JAXRT_CACHE="off")
+    assert first["events"] == [["jit(call)", "jaxrt-compile"]] and first["hits"] == 0, first["events"]
+    assert second["events"] == [["jit(call)", "jaxrt-compile"]] and second["hits"] == 1, second["events"]
+    assert off["events"] == [["jit(_frame)", "jaxrt-compile"]] and off["hits"] == 0, off["events"]
+    assert first["exr"] == second["exr"] == off["exr"] and first["png"] == second["png"] == off["png"]
+    assert list((d / "native").glob("traverse-*.so"))  # the kernel the frame calls was built in this folder

@@ -349,6 +349,59 @@ def test_a_render_that_fits_runs_the_compiled_frame_without_compiling(whitted):
         np.testing.assert_array_equal(aovs[k], ref_aovs[k])
 
 
+
+@pytest.mark.parametrize("max_rays", [None, 40])  # one frame; tiles of at most 40 ray samples
+def test_compile_ahead_compiles_the_render_program_while_the_tree_builds(max_rays):
+    """`render_tiles.compile_ahead` on the scene `scene.build` hands to on_shapes (its BVH arrays
+    shapes only) compiles, in its own thread, the program the render of the built scene then runs:
+    the render compiles nothing more, the render program is compiled once as without
+    `compile_ahead` (a scene of other, unused shapes), and the image is that of the frame program
+    compiled from the built scene."""
+    from jax import monitoring
+
+    events, active = [], [True]
+    programs = ("jit(call)", "jit(_frame)", "jit(_tile)")  # a stored program's, or jax.jit's with the cache off
+
+    def listen(event, duration, **kw):
+        if active[0] and event == "/jax/core/compile/backend_compile_duration":
+            events.append((threading.current_thread().name, kw.get("fun_name") in programs))
+
+    def job(w, h, ahead):
+        threads, n0 = [], len(events)
+        on_shapes = (lambda s: threads.append(render_tiles.compile_ahead(s, max_tile_rays=max_rays))) if ahead else None
+        sc = S.build(S.parse(whitted_doc(w=w, h=h, spp=1)), on_shapes=on_shapes)  # shapes no other test compiles
+        for t in threads:
+            t.join()
+        n1 = len(events)
+        img = render_tiles.render(sc, max_tile_rays=max_rays)
+        return sc, img, threads, events[n0:n1], events[n1:]
+
+    monitoring.register_event_duration_secs_listener(listen)
+    try:
+        _, _, _, plain_build, plain_render = job(14, 11, ahead=False)
+        sc, img, threads, built, rendered = job(13, 11, ahead=True)
+    finally:
+        active[0] = False
+    assert len(threads) == 1 and rendered == [], (built, rendered)
+    assert [e for e in built if e[1]] == [("jaxrt-compile", True)], built
+    assert sum(e[1] for e in plain_build + plain_render) == 1, (plain_build, plain_render)
+    p = render_tiles.plan(sc, max_tile_rays=max_rays)
+    assert (p.shape is None) == (max_rays is None)
+    ref = np.asarray(jax.jit(integrators.REGISTRY["whitted"][0])(sc))  # compiled from the built scene
+    if max_rays is None:
+        np.testing.assert_array_equal(img, ref)
+    else:  # tiles round as the tile program does (`integrators.tile`'s docstring)
+        np.testing.assert_allclose(img, ref, rtol=2e-6, atol=1e-7)
+
+
+def test_compile_ahead_leaves_photon_mapping_to_its_pass_check():
+    doc = whitted_doc(w=8, h=8, spp=1)
+    doc["render"] = {**doc.get("render", {}), "integrator": "sppm"}
+    threads = []
+    S.build(S.parse(doc), on_shapes=lambda s: threads.append(render_tiles.compile_ahead(s)))
+    assert threads == [None]
+
+
 # ---- Ctrl-C ---------------------------------------------------------------------------------------
 
 SCENE_TOML = """
@@ -427,3 +480,32 @@ def test_ctrl_c_during_compilation_exits_130_at_once(tmp_path):
     proc, err = _start_render(tmp_path)
     rc, took = _interrupt_when(proc, err, b"compiling", timeout=240)
     _assert_interrupted(rc, took, err, tmp_path)
+
+
+@pytest.mark.parametrize("traversal,expect", [("auto", ["traverse_cpu", "traverse_embree"]),
+                                              ("cpu", ["traverse_cpu"]), ("xla", [])])
+def test_the_cli_builds_the_native_kernels_in_threads_of_their_own(monkeypatch, traversal, expect):
+    """`cli.render.start_kernels` (called by `jaxrt render` and `jaxrt fit` after their input checks)
+    loads each native kernel the traversal may use in a background thread of its own, at once."""
+    from jaxrt.accel import traverse_cpu, traverse_embree
+    from jaxrt.cli import render as cli_render
+
+    calls, gate = [], threading.Barrier(len(expect) or 1, timeout=60)
+
+    def recorder(name):
+        def available():
+            calls.append((name, threading.current_thread().name))
+            gate.wait()  # both are in flight together: neither waits for the other to finish
+            return True
+        return available
+
+    monkeypatch.setattr(traverse_cpu, "available", recorder("traverse_cpu"))
+    monkeypatch.setattr(traverse_embree, "available", recorder("traverse_embree"))
+    monkeypatch.setattr(cli_render, "_kernels", [])
+    monkeypatch.setenv("JAXRT_TRAVERSAL", traversal)
+    cli_render.start_kernels()
+    for t in cli_render._kernels:
+        t.join(60)
+    assert sorted(calls) == [(n, f"jaxrt-{n}") for n in expect]
+    cli_render.start_kernels()  # once per process
+    assert len(calls) == len(expect)

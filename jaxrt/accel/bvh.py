@@ -39,7 +39,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxrt.accel.builder import build_arrays
+from jaxrt.accel.builder import NUM_RAY_CLASSES, build_arrays
 from jaxrt.accel.sah import DEFAULT as SAH_DEFAULT
 from jaxrt.accel.sah import SahSettings
 from jaxrt import _config
@@ -139,6 +139,28 @@ def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, 
 
 
 _pack_tables = jax.jit(traverse_pallas.pack_tables)
+
+
+def shapes(num_faces: int, *, leaf_size: int = 1) -> BVH | None:
+    """The `BVH` that `build` returns for `num_faces` triangles, as `jax.ShapeDtypeStruct`s (shapes and
+    dtypes only), or None where they cannot be known before the build.
+
+    With leaf_size 1 every builder makes a full binary tree with one triangle per leaf (a node is
+    split while it holds more than `leaf_size`; each split has two non-empty children), so it has
+    num_faces leaves and 2·num_faces − 1 nodes whatever the split positions. That is enough to
+    compile the programs that take the tree while it is being built (`jaxrt.scene.build`'s
+    `on_shapes`). Larger leaves give a node count that depends on the splits: None.
+    """
+    if leaf_size != 1 or num_faces < 1:
+        return None
+    nn = 2 * int(num_faces) - 1
+    s = jax.ShapeDtypeStruct
+    arrays = dict(node_box=s((nn, 6), jnp.float32), node_leaf=s((nn, 2), jnp.int32),
+                  links=s((NUM_RAY_CLASSES * nn, 2), jnp.int32), triangles=s((num_faces, 9), jnp.float32))
+    rows = skips = None
+    if jax.default_backend() == "gpu":  # as `build`
+        rows, skips = jax.eval_shape(_pack_tables, **arrays)
+    return BVH(**arrays, prim_ids=s((num_faces,), jnp.int32), rows=rows, skips=skips, leaf_size=leaf_size)
 
 
 def stats(tree: BVH) -> BVHStats:

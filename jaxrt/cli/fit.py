@@ -191,11 +191,12 @@ def run(args: argparse.Namespace) -> int:
     from fitting import setup as fit_setup
 
     check_common(args)
-    from jaxrt.cli.render import start_backend
+    from jaxrt.cli.render import start_backend, start_kernels
 
     start_backend()  # the runtime starts while the targets and scene files are read
     if args.demo:
         outs = check_outputs((args.out, ".json", "--out"), (args.plot or "fit_demo.png", ".png", "--plot"))
+        start_kernels()
         return _demo(args, outs)
     outs = check_outputs((args.out, ".json", "--out"), (args.plot, ".png", "--plot"))
     if not args.targets:
@@ -210,6 +211,7 @@ def run(args: argparse.Namespace) -> int:
     if len(scenes) == 1:
         scenes = scenes * len(args.targets)
     targets = _read_targets(args.targets)
+    start_kernels()  # the scene's trace needs them; they compile while the scene loads
     setup = fit_setup.prepare(scenes, model, object=args.object, confine=args.confine or None,
                               progress=not args.quiet)
     expect = setup.mask.shape[1:]

@@ -220,6 +220,48 @@ def start_backend() -> None:
     atexit.register(t.join)
 
 
+_kernels: list[threading.Thread] = []
+
+
+def start_kernels() -> None:
+    """On a CPU, compile and load the native traversal kernels (`jaxrt.accel.traverse_cpu`, and
+    `traverse_embree` where Embree is installed) now, each in a background thread of its own, once
+    per process. Their C++ compilation (the first process of a cache folder only: they are kept
+    in <cache folder>/native) runs in a compiler process, about 5-10 s each on a 2-core CPU; started
+    here, after the command's input checks, the two run beside each other and beside the mesh load
+    and the BVH build instead of one after the other inside the first program's tracing, which
+    needs them. Later `available()` calls wait for these. Errors are theirs to report (a warning,
+    then the slower traversal), as without this. The process waits for the threads before it exits,
+    so it never leaves a compiler running or a half-written library behind."""
+    if _kernels:
+        return
+    from jaxrt import _config
+
+    traversal = _config.config().traversal
+    if traversal not in ("auto", "cpu", "embree"):
+        return
+    names = ("traverse_cpu",) if traversal == "cpu" else ("traverse_cpu", "traverse_embree")
+
+    def build(name):
+        try:
+            import importlib
+
+            import jax
+
+            if jax.default_backend() == "cpu":  # a GPU process lowers its programs for the GPU
+                importlib.import_module(f"jaxrt.accel.{name}").available()
+        except Exception:  # noqa: BLE001 -- see the docstring
+            pass
+
+    import atexit
+
+    for name in names:
+        t = threading.Thread(target=build, args=(name,), name=f"jaxrt-{name}", daemon=True)
+        _kernels.append(t)
+        t.start()
+        atexit.register(t.join)
+
+
 def write_outputs(tmp, exr, png, img, extra, exposure: float) -> None:
     """The EXR and the PNG, each into its temporary path, at the same time: they are independent, and
     their compression (OpenEXR's ZIP, Pillow's zlib) runs in C with the GIL released for much of it."""
@@ -282,6 +324,7 @@ def run(args: argparse.Namespace) -> int:
     if exr is None and png is None:
         exr = outs.add(f"{path.stem}.exr", ".exr", "output")
         png = outs.add(f"{path.stem}.png", ".png", "output")
+    start_kernels()
 
     from jaxrt import image, render_tiles
 
@@ -302,11 +345,21 @@ def run(args: argparse.Namespace) -> int:
         import jax
 
         t0 = time.perf_counter()
-        scn = _scene.build(spec)
-        times["scene"] = time.perf_counter() - t0
         cpu = jax.devices()[0].platform == "cpu"
+        max_rays = CPU_TILE_RAYS if cpu else None
+        ahead = []
+
+        def on_shapes(shapes):  # the frame compiles while the BVH is built (`render_tiles.compile_ahead`)
+            ahead.append(render_tiles.compile_ahead(shapes, memory=memory, aovs=args.aovs, max_tile_rays=max_rays,
+                                                    reserve=reserve, devices=devices))
+
+        scn = _scene.build(spec, on_shapes=on_shapes)
+        times["scene"] = time.perf_counter() - t0
+        for t in ahead:
+            if t is not None:
+                t.join()  # the render then finds the program compiled (never compiles it twice)
         out = render_tiles.render(scn, memory=memory, aovs=args.aovs, progress=bar if bar is not None else False,
-                                  max_tile_rays=CPU_TILE_RAYS if cpu else None, reserve=reserve,
+                                  max_tile_rays=max_rays, reserve=reserve,
                                   budget_source="--memory" if memory is not None else None,
                                   should_stop=should_stop, devices=devices, devices_source="--devices")
         times["render"] = time.perf_counter() - t0 - times["scene"]

@@ -8,7 +8,7 @@ import dataclasses
 import math
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import jax
@@ -115,8 +115,15 @@ def check_extent(vertices: np.ndarray, where: str) -> None:
 
 
 
-def build(spec: SceneSpec) -> Scene:
-    """Turn a validated spec into the `Scene` pytree (loads meshes, builds the BVH)."""
+def build(spec: SceneSpec, *, on_shapes: Callable[[Scene], Any] | None = None) -> Scene:
+    """Turn a validated spec into the `Scene` pytree (loads meshes, builds the BVH).
+
+    on_shapes: called once, before the BVH is built, with the scene whose tree arrays are only
+    `jax.ShapeDtypeStruct`s (`jaxrt.accel.bvh.shapes`; every other array is the scene's own), so a
+    caller can compile the scene's programs, which need only shapes, while the tree is built on the
+    host (the full dragon's SAH build takes seconds). Not called where the tree's shapes cannot be
+    known first (instanced scenes, leaves of more than one triangle).
+    """
     # materials grouped by model, in order of first appearance
     mat_names = tuple(spec.materials)
     models: list[str] = []
@@ -158,6 +165,7 @@ def build(spec: SceneSpec) -> Scene:
     )
 
     cache: dict = {}
+    pending = None
     if spec.instances:
         geometry = build_instanced(spec, mat_names, cache)
     else:
@@ -174,7 +182,12 @@ def build(spec: SceneSpec) -> Scene:
         faces = np.asarray(whole.faces, np.int32)
         if not np.all(np.isfinite(verts)):
             raise InputError(f"{spec.source}: scene geometry contains non-finite vertices")
-        tree = _cache.build_bvh(verts, faces, **accel.RENDER_TREE)
+        leaf = accel.RENDER_TREE.get("leaf_size", 1)
+        tree = None if on_shapes is None else accel.bvh.shapes(len(faces), leaf_size=leaf)
+        if tree is not None:
+            pending = verts, faces  # the tree is built last, after `on_shapes` has the other arrays
+        else:
+            tree = _cache.build_bvh(verts, faces, **accel.RENDER_TREE)
         geometry = TriangleGeometry(
             vertices=_put(verts),
             normals=_put(np.asarray(whole.normals, np.float32)),
@@ -245,8 +258,13 @@ def build(spec: SceneSpec) -> Scene:
         photon_aim=r.photon_aim if r.photon_aim is not None else integrators.sppm.default_photon_aim(
             any(brdfs.get(spec.materials[n].model).delta or spec.materials[n].delta > 0 for n in mat_names)),
     )
-    return Scene(geometry, materials, lights, camera, settings, source=spec.source, area_lights=area_lights,
-                 environment=environment, glare=spec.glare)
+    scene = Scene(geometry, materials, lights, camera, settings, source=spec.source, area_lights=area_lights,
+                  environment=environment, glare=spec.glare)
+    if pending is not None:
+        on_shapes(scene)
+        tree = _cache.build_bvh(*pending, **accel.RENDER_TREE)
+        scene = dataclasses.replace(scene, geometry=dataclasses.replace(scene.geometry, tree=tree))
+    return scene
 
 
 

@@ -308,3 +308,37 @@ def test_occluded_from_end_matches_brute_force(data_dir, monkeypatch):
     assert 0.2 < ref.mean() < 0.8  # both outcomes occur
     assert np.array_equal(got[~tie], ref[~tie]) and tie.mean() < 0.1
     assert np.array_equal(got[~tie], fwd[~tie])
+
+
+def _same_triangle(n):
+    """n copies of one triangle: every centroid and Morton code equal, nothing to split on."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    return v, np.zeros((n, 3), np.int64) + np.arange(3)
+
+
+@pytest.mark.parametrize("builder,layout", [("lbvh", "bfs"), ("sah", "bfs"), ("sah", "dfs"), ("lbvh", "dfs")])
+@pytest.mark.parametrize("case", ["soup", "one", "two", "same", "sphere"])
+def test_shapes_before_the_build_are_the_built_trees(builder, layout, case):
+    """`bvh.shapes(F)` (what `jaxrt.scene.build` compiles against while the tree is built) has every
+    array's shape and dtype of the tree `bvh.build` then makes, whatever the splits: random soup with
+    duplicates, one and two triangles, many copies of one triangle (no split position separates
+    them), a subdivided sphere."""
+    if case == "soup":
+        v, f = soup(300)
+    elif case == "sphere":
+        m = trimesh.creation.icosphere(3)
+        v, f = np.asarray(m.vertices, np.float32), np.asarray(m.faces)
+    elif case == "same":
+        v, f = _same_triangle(37)
+    else:
+        v, f = soup(1 if case == "one" else 2)
+    tree = bvh.build(v, f, leaf_size=1, builder=builder, layout=layout)
+    want = jax.tree.structure(tree), [(x.shape, x.dtype) for x in jax.tree.leaves(tree)]
+    shaped = bvh.shapes(len(f))
+    assert all(isinstance(x, jax.ShapeDtypeStruct) for x in jax.tree.leaves(shaped))
+    assert (jax.tree.structure(shaped), [(x.shape, x.dtype) for x in jax.tree.leaves(shaped)]) == want
+    assert np.asarray(tree.node_leaf)[:, 1].max() == 1  # one triangle per leaf: the premise of shapes()
+
+
+def test_shapes_are_unknown_for_larger_leaves():
+    assert bvh.shapes(100, leaf_size=4) is None and bvh.shapes(0) is None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -211,3 +212,36 @@ def test_tiny_sphere_keeps_exact_normals():
     assert np.all(np.isfinite(n))
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, rtol=1e-6)
     np.testing.assert_allclose(np.asarray(sph.vertices, np.float64), n * 1e-12, rtol=1e-5)
+
+
+def test_on_shapes_sees_the_scene_before_its_tree_and_changes_nothing():
+    """`build(spec, on_shapes=f)` calls f once, before the BVH is built, with the scene whose tree
+    arrays are shapes only (the built tree's shapes and dtypes) and every other array the built
+    scene's own; the scene it returns is the one `build(spec)` returns, bit for bit."""
+    import jax
+
+    spec = S.parse(lab_dict())
+    seen = []
+    got = S.build(spec, on_shapes=seen.append)
+    ref = S.build(spec)
+    assert len(seen) == 1
+    shaped = seen[0]
+    tree = shaped.geometry.tree
+    assert all(isinstance(x, jax.ShapeDtypeStruct) for x in jax.tree.leaves(tree))
+    assert jax.tree.structure(shaped) == jax.tree.structure(ref)
+    for a, b in zip(jax.tree.leaves(shaped), jax.tree.leaves(ref), strict=True):
+        assert (a.shape, a.dtype) == (b.shape, b.dtype)
+    assert jax.tree.structure(got) == jax.tree.structure(ref)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(ref), strict=True):
+        assert not isinstance(a, jax.ShapeDtypeStruct)
+        assert a.dtype == b.dtype and np.array_equal(np.asarray(a), np.asarray(b))
+    for a, b in zip(jax.tree.leaves(dataclasses.replace(shaped.geometry, tree=None)),
+                    jax.tree.leaves(dataclasses.replace(got.geometry, tree=None)), strict=True):
+        assert a is b  # the arrays beside the tree are placed once, not again after the build
+
+
+def test_on_shapes_is_not_called_for_instanced_scenes():
+    seen = []  # a two-level tree's shapes depend on its instances' builds: nothing to call it with
+    S.build(S.parse(S.find_scene("instances"), overrides={"camera.width": 8, "camera.height": 8}),
+            on_shapes=seen.append)
+    assert seen == []

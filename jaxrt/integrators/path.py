@@ -63,7 +63,7 @@ from jax import lax
 from jaxtyping import Array, Float, Int
 
 import brdfs
-from jaxrt import camera, envmap
+from jaxrt import accel, camera, envmap
 from jaxrt import lights as _lights
 from jaxrt.integrators.common import (emitter_table, fold_in_uniforms, intersect_active, power_heuristic,
                                       sample_area_light)
@@ -130,16 +130,29 @@ def _stored(tree, alive):
     return lax.cond(jnp.any(alive), lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
 
 
+def _keyed(geo):
+    """The geometry with Embree's key of its triangle table where its rays go through Embree on the
+    CPU (`accel.with_table_key`; made here, from the triangles this pass traces), and whether it is
+    keyed. A keyed Embree call does not hash the table, so chunks need not amortise that."""
+    tree = getattr(geo, "tree", None)
+    if jax.default_backend() != "cpu" or not isinstance(tree, accel.BVH):
+        return geo, False
+    tree = accel.with_table_key(tree)
+    if tree.table_key is None:
+        return geo, False
+    return eqx.tree_at(lambda g: g.tree, geo, tree), True
+
+
 def _chunk_size(n: int, triangles: int) -> int:
     """Paths traced together (one `lax.map` step) of a pass of n paths.
 
     On the CPU a bounce is ~50 XLA ops that each stream every path's state through memory: in chunks
     of CPU_CHUNK paths that state stays in cache (the Cornell box at 256², 16 spp: ~20 % less CPU
-    time per pass; BENCHMARKS.md, "Path tracing on the CPU: chunks and stored samples"). The Embree
-    kernel hashes its triangle table on every call (`jaxrt.accel.traverse_embree`), so a chunk keeps
-    at least as many paths as there are triangles (the 871k-triangle dragon's 31 MB take 2-4 ms a
-    call: chunks of 4096 made its pass 2.3x slower). The n paths go in equal chunks, the fewest that
-    respect both bounds. Elsewhere (GPUs) every path at once."""
+    time per pass; BENCHMARKS.md, "Path tracing on the CPU: chunks and stored samples"). A traversal
+    call that hashes its triangle table (Embree without a key, `_keyed`) keeps a chunk at least
+    `triangles` paths (the 871k-triangle dragon's 31 MB take 2-4 ms a call: chunks of 4096 made its
+    pass 2.3x slower); pass 0 where the calls are keyed. The n paths go in equal chunks, the fewest
+    that respect both bounds. Elsewhere (GPUs) every path at once."""
     if jax.default_backend() != "cpu":
         return n
     m = max(1, n // max(CPU_CHUNK, triangles))
@@ -179,7 +192,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         samples with a window); with `aovs` a pair (radiance, first-hit dict).
     """
     st, cam, mats = scene.settings, _sg(scene.camera), scene.materials
-    geo = _sg(scene.geometry)
+    geo, keyed = _keyed(_sg(scene.geometry))
     D = st.max_depth
     spp = st.spp
     npix, nsamp = (cam.num_pixels, spp) if window is None else (window.num_pixels, window.spp)
@@ -375,7 +388,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         return carry[6], carry[7]
 
     xs = (o0, d0, alive0, jax.random.key_data(path_keys))
-    L, first = _in_chunks(lambda x: trace(*x), xs, B, _chunk_size(B, geo.triangle_count))
+    L, first = _in_chunks(lambda x: trace(*x), xs, B, _chunk_size(B, 0 if keyed else geo.triangle_count))
     L = jnp.where(jnp.isfinite(L), L, 0.0).reshape(npix, nsamp, 3)
     if aovs:
         return L, first

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrt import envmap, scene
+from jaxrt import accel, envmap, scene
 from jaxrt.integrators import path
 from jaxrt.errors import InputError
 from jaxrt.shading import direct
@@ -112,6 +112,38 @@ def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(chunked), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert float(jnp.mean(whole[0])) > 0
+
+
+def test_chunked_pass_traces_an_edited_mesh(furnace, monkeypatch):
+    # On the CPU with Embree the pass keys Embree's scene by the triangle table it traces
+    # (`path._keyed`), which lets large meshes go in chunks too. The key is made in the pass from
+    # the scene it is given: after a render of the sphere, the same compiled pass on the scene with
+    # its triangles moved (eqx.tree_at) must trace the moved mesh, whose first hits are checked
+    # against jaxrt's own XLA traversal of the moved mesh (independent of Embree's scene cache).
+    monkeypatch.setattr(path, "CPU_CHUNK", 1500)
+    f = jax.jit(lambda s: path.samples(s, 0, jitter=True, aovs=True))
+    L0, first0 = f(furnace)
+    geo = furnace.geometry
+    v = geo.vertices * jnp.float32([1.0, 1.0, 0.5])  # squash z: the camera on +z meets it farther
+    tri = geo.tree.triangles * jnp.tile(jnp.float32([1.0, 1.0, 0.5]), 3)
+    moved = eqx.tree_at(lambda s: (s.geometry.vertices, s.geometry.tree.triangles), furnace, (v, tri))
+    L1, first1 = f(moved)
+    assert f._cache_size() == 1
+    o = jnp.broadcast_to(furnace.camera.position, first1["d"].shape)
+    # (a tree built for the moved mesh: the moved table's old boxes would not bound it)
+    ref = accel.intersect(accel.build(np.asarray(v), np.asarray(geo.faces)), o, first1["d"], impl="xla")
+    prim, t = np.asarray(first1["prim"]), np.asarray(first1["t"])
+    same = prim == np.asarray(ref.prim)
+    assert same.mean() > 0.999  # up to ties at edges between Embree and the XLA loop
+    hit = same & (prim >= 0)
+    assert hit.sum() > 1000
+    np.testing.assert_allclose(t[hit], np.asarray(ref.t)[hit], rtol=1e-5)
+    # the sphere's front at z = 1 before, 0.5 after: the camera at z = 4 sees it 0.5 farther
+    both = hit & (np.asarray(first0["prim"]) >= 0)
+    assert np.median(t[both] - np.asarray(first0["t"])[both]) > 0.4
+    if jax.default_backend() == "cpu" and accel.uses_embree():
+        n = 16 * 16 * furnace.settings.spp
+        assert path._chunk_size(n, 0) < n  # the pass ran in chunks
 
 
 # --------------------------------------------------------------------------- gradients

@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 from jaxrt.accel import traverse_cpu, traverse_embree  # noqa: E402
 from jaxrt.integrators import path as P  # noqa: E402
 
-TARGETS = (traverse_embree.TARGET, traverse_cpu.TARGET)
+TARGETS = (traverse_embree.TARGET, traverse_embree.KEY_TARGET, traverse_embree.KEYED_TARGET, traverse_cpu.TARGET)
 
 
 def _path_bench():

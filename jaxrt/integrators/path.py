@@ -130,6 +130,18 @@ def _stored(tree, alive):
     return lax.cond(jnp.any(alive), lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
 
 
+def _where_present(present, fn, *args):
+    """fn(*args) where `present` (some path of the chunk continues on a surface of the model fn
+    evaluates), zeros otherwise, on the CPU. A scene with several BSDF models evaluates each on
+    every path and selects per path; where a chunk's paths all meet one model, the others' work is
+    skipped (zeros are never selected: they belong to paths that do not continue). On GPUs a
+    conditional waits for the device: fn(*args) there, as where `present` is None (one model)."""
+    if present is None or jax.default_backend() != "cpu":
+        return fn(*args)
+    return lax.cond(present, fn, lambda *a: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(fn, *a)),
+                    *args)
+
+
 def _keyed(geo):
     """The geometry with Embree's key of its triangle table where its rays go through Embree on the
     CPU (`accel.with_table_key`; made here, from the triangles this pass traces), and whether it is
@@ -262,13 +274,16 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         q = _sg(delta)
         params = {kk: _params(mats, s, kk) for kk, _ in models}
         sel = {kk: mats.model_id[s.material] == kk for kk, _ in models}
+        present = {kk: jnp.any(sel[kk] & cont) if len(models) > 1 else None for kk, _ in models}
 
         def eval_f(wi_l, wo_l, extra_dims=0):
             f = jnp.zeros(wi_l.shape)
             pdf = jnp.zeros(wi_l.shape[:-1])
             for kk, model in models:
-                fk, pk = at_hits(params[kk], lambda p, model=model: (model.eval(p, wi_l, wo_l),
-                                                                   model.pdf(_sg(p), wo_l, wi_l)), extra_dims)
+                fk, pk = _where_present(
+                    present[kk], lambda p, wi_l, wo_l, model=model: at_hits(
+                        p, lambda p: (model.eval(p, wi_l, wo_l), model.pdf(_sg(p), wo_l, wi_l)), extra_dims),
+                    params[kk], wi_l, wo_l)
                 m = sel[kk].reshape((-1,) + (1,) * extra_dims)
                 f = jnp.where(m[..., None], fk, f)
                 pdf = jnp.where(m, pk, pdf)
@@ -327,7 +342,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         wi_s = jnp.zeros((B, 3)).at[:, 2].set(1.0)
         pdf_s = jnp.zeros(B)
         for kk, model in models:
-            wk, _, pk = at_hits(params[kk], lambda p, model=model: model.sample(_sg(p), _sg(wo), u[:, 5:7]))
+            wk, pk = _where_present(present[kk], lambda p, wo, u, model=model: at_hits(
+                p, lambda p: model.sample(_sg(p), _sg(wo), u)[::2]), params[kk], wo, u[:, 5:7])
             wi_s = jnp.where(sel[kk][:, None], wk, wi_s)
             pdf_s = jnp.where(sel[kk], pk, pdf_s)
         wi_s, pdf_s = _stored((wi_s, pdf_s), alive)

@@ -146,6 +146,39 @@ def test_chunked_pass_traces_an_edited_mesh(furnace, monkeypatch):
         assert path._chunk_size(n, 0) < n  # the pass ran in chunks
 
 
+def test_skipping_a_model_absent_from_a_chunk_changes_nothing(furnace, monkeypatch):
+    # With several BSDF models, the CPU pass skips a model's evaluation and sampling in a chunk none
+    # of whose continuing paths meets it (`path._where_present`). The same compiled pass with the
+    # skip's predicate forced true (a traced flag: one program, so no other fusion or rounding)
+    # must give the same radiance bit for bit: the zeros of a skipped model are never selected.
+    monkeypatch.setattr(path, "CPU_CHUNK", 1500)
+    geo = furnace.geometry
+    y = np.asarray(jnp.stack(geo.triangles(jnp.arange(geo.triangle_count)))[..., 1].mean(0))
+    m = np.where(y > 0, furnace.materials.index("glossy"), furnace.materials.index("white")).astype(np.int32)
+    sc = eqx.tree_at(lambda s: s.geometry.material, furnace, jnp.asarray(m))
+    orig = path._where_present
+
+    def run(s, force):
+        monkeypatch.setattr(path, "_where_present",
+                            lambda p, fn, *a: orig(None if p is None else p | force, fn, *a))
+        return path.samples(s, 0, jitter=True, aovs=True)
+
+    f = jax.jit(run)
+    (a, first), (b, _) = f(sc, jnp.bool_(False)), f(sc, jnp.bool_(True))
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert f._cache_size() == 1
+    # the scene has chunks whose camera rays meet one model only, and chunks that meet both
+    n = a.shape[0] * a.shape[1]
+    chunk = path._chunk_size(n, 0)
+    prim = np.asarray(first["prim"])
+    mat = np.where(prim >= 0, m[np.maximum(prim, 0)], -1)
+    pad = -(-n // chunk) * chunk - n
+    kinds = [set(c[c >= 0].tolist()) for c in np.pad(mat, (0, pad), constant_values=-1).reshape(-1, chunk)]
+    if jax.default_backend() == "cpu":
+        assert any(len(k) == 1 for k in kinds) and any(len(k) == 2 for k in kinds)
+    assert float(jnp.mean(a)) > 0
+
+
 # --------------------------------------------------------------------------- gradients
 
 

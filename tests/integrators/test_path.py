@@ -682,3 +682,29 @@ def test_envmap_row_search_matches_numpy_searchsorted():
         got = np.asarray(jax.jit(envmap._count_le)(jnp.asarray(cdf), jnp.asarray(row, jnp.int32), jnp.asarray(u)))
         ref = np.array([np.searchsorted(cdf[r], x, side="right") for r, x in zip(row, u)])
         np.testing.assert_array_equal(got, ref)
+
+
+def test_envmap_atan2_and_acos_within_a_few_ulps_of_float64():
+    # the environment map's written-out atan2 and acos (`envmap._atan2`, `_acos`) against numpy in
+    # float64: every octant, ratios near the tan(π/8) switch, huge and tiny components, signed
+    # zeros, and cosines at ±1 and next to them
+    rng = np.random.default_rng(7)
+    n = 200_000
+    y = rng.standard_normal(n) * np.exp(rng.uniform(-30, 30, n))
+    x = rng.standard_normal(n) * np.exp(rng.uniform(-30, 30, n))
+    near = rng.uniform(0.40, 0.43, 1000) * rng.choice([-1, 1], 1000)
+    y = np.concatenate([y, near, [0.0, -0.0, 0.0, -0.0, 1.0, -1.0, 2.0, -2.0, 3.0, 1e-38]])
+    x = np.concatenate([x, np.ones(1000), [1.0, 1.0, -1.0, -1.0, 0.0, 0.0, -0.0, -2.0, 3.0, -1.0]])
+    y32, x32 = y.astype(np.float32), x.astype(np.float32)
+    got = np.asarray(jax.jit(envmap._atan2)(jnp.asarray(y32), jnp.asarray(x32)), np.float64)
+    ref = np.arctan2(y32.astype(np.float64), x32.astype(np.float64))
+    ulp = np.spacing(np.abs(ref).astype(np.float32)).astype(np.float64)
+    assert np.max(np.abs(got - ref) / ulp) < 4.0
+    np.testing.assert_array_equal(np.signbit(got[-10:]), np.signbit(ref[-10:]))
+    c = np.concatenate([rng.uniform(-1, 1, n), [1.0, -1.0, 0.0, -0.0, 1 - 2**-24, -1 + 2**-24, 0.5, -0.5]])
+    c32 = c.astype(np.float32)
+    got = np.asarray(jax.jit(envmap._acos)(jnp.asarray(c32)), np.float64)
+    ref = np.arccos(c32.astype(np.float64))
+    ulp = np.spacing(np.maximum(np.abs(ref), 1e-30).astype(np.float32)).astype(np.float64)
+    assert np.max(np.abs(got - ref) / ulp) < 4.0
+    assert got[-8] == 0.0 and abs(got[-7] - np.pi) < 3e-7

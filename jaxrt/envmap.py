@@ -159,7 +159,7 @@ def _atan2(y, x):
     the larger |component| in [0, 1], above tan(π/8) moved by (a - 1)/(a + 1) and π/4, an odd
     polynomial of degree 9, then the octant. XLA:CPU calls a scalar routine for atan2 and acos, one
     element at a time on one thread (~25-40 ns each against ~2-3 ns here, vectorised): a path
-    tracer calls it for every escaped ray and environment pdf. Signed zeros and infinities of the
+    tracer calls it for every escaped ray and environment pdf. Used on the CPU only (`_to_uv`). Signed zeros and infinities of the
     larger component as atan2's; atan2(±0, ±0) = ±0 or ±π by x's sign."""
     ax, ay = jnp.abs(x), jnp.abs(y)
     hi, lo = jnp.maximum(ax, ay), jnp.minimum(ax, ay)
@@ -183,10 +183,12 @@ def _acos(c):
 
 def _to_uv(env: EnvMap, d):
     dx, dy, dz = _rotate(env.rotation, d, transpose=False)
-    u = _atan2(dx, -dz) * (0.5 / math.pi)
+    # the polynomials on the CPU only: a GPU's atan2 and acos are fast and accurate already
+    cpu = jax.default_backend() == "cpu"
+    u = (_atan2 if cpu else jnp.arctan2)(dx, -dz) * (0.5 / math.pi)
     u = u - jnp.floor(u)
     cos_t = jnp.clip(dy, -1.0, 1.0)
-    v = _acos(cos_t) / math.pi
+    v = (_acos if cpu else jnp.arccos)(cos_t) / math.pi
     return u, v, jnp.sqrt(jnp.maximum(1.0 - cos_t * cos_t, 0.0))
 
 

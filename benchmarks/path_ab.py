@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 from jaxrt.accel import traverse_cpu, traverse_embree  # noqa: E402
 from jaxrt.integrators import path as P  # noqa: E402
 
-TARGETS = (traverse_embree.TARGET, traverse_cpu.TARGET)
+TARGETS = (traverse_embree.TARGET, traverse_embree.KEY_TARGET, traverse_embree.KEYED_TARGET, traverse_cpu.TARGET)
 
 
 def _path_bench():
@@ -89,7 +89,9 @@ def main(argv=None) -> int:
     old = export.deserialize(Path(args.before).read_bytes())
     fns = {k: jax.jit(e.call).lower(arrs, jnp.uint32(0)).compile() for k, e in (("before", old), ("after", new))}
     a, b = (np.asarray(fns[k](arrs, jnp.uint32(0))) for k in ("before", "after"))
-    same = "equal" if np.array_equal(a, b) else f"max |diff| {np.abs(a - b).max():.3g}, {np.mean(a != b):.4f} differ"
+    diff = np.abs(a - b)
+    same = "equal" if np.array_equal(a, b) else (f"max |diff| {diff.max():.3g}, {np.mean(a != b):.4f} differ, "
+                                                 f"{np.mean(diff > 1e-4):.4f} by more than 1e-4")
     print(f"pixels: {same}; means {a.mean():.7g} / {b.mean():.7g}; after finite: {bool(np.isfinite(b).all())}")
     times = {k: [] for k in fns}
     load0 = os.getloadavg()[0]

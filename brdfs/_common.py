@@ -167,7 +167,13 @@ def rgb(x: Float[Array, "..."]) -> Float[Array, "... 1"]:
 
 def lum(x: Float[Array, "... 3"]) -> Float[Array, "..."]:
     """Channel mean of an RGB parameter; used only to choose lobe-selection probabilities."""
-    return jnp.mean(x, axis=-1)
+    x = jnp.asarray(x)
+    if x.shape[-1:] != (3,):
+        return jnp.mean(x, axis=-1)
+    # written out, as `dot`: a reduction over an axis of 3 that XLA:CPU does not fuse into its
+    # consumers (inside a conditional) runs as a slow library (YNNPACK) fusion; the same sum, in the
+    # same order, and jnp.mean's division
+    return (x[..., 0] + x[..., 1] + x[..., 2]) / 3.0
 
 
 def rho_lobe_prob(p) -> Float[Array, "..."]:

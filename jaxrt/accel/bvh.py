@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int, UInt32
 
 from jaxrt.accel.builder import NUM_RAY_CLASSES, build_arrays
 from jaxrt.accel.sah import DEFAULT as SAH_DEFAULT
@@ -65,6 +65,8 @@ class BVH(eqx.Module):
                                 (111 MB for the full dragon), else per call by the kernel.
     skips     (6*nn,) int32     the same kernel's links: per class and node, miss link << 5 | depth of
                                 its node (`traverse_pallas.pack_skips`); None when rows is None
+    table_key (2,) uint32       Embree's key of `triangles` (`with_table_key`), made inside the traced
+                                program that traces the tree, or None (every Embree call hashes the table)
     leaf_size: static, the largest leaf
     """
 
@@ -76,6 +78,7 @@ class BVH(eqx.Module):
     rows: Float[Array, "nn 16"] | None
     skips: Int[Array, " nn6"] | None
     leaf_size: int = eqx.field(static=True)
+    table_key: UInt32[Array, "2"] | None = None
 
     @property
     def stats(self) -> "BVHStats":
@@ -277,7 +280,8 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
     def embree(o, d, lo, hi):
         # Embree's scene is built from the leaf-order triangle table: its primID is `best`; the
         # kernel has each hit's triangle at hand and returns its point and normal itself
-        out = traverse_embree.traverse(tree.triangles, o, d, lo, hi, any_hit=any_hit, refine=refine, points=points)
+        out = traverse_embree.traverse(tree.triangles, o, d, lo, hi, any_hit=any_hit, refine=refine, points=points,
+                                       key=tree.table_key)
         found, t, best, u, v, *pn = out
         return (found, t, best, u, v, jnp.zeros(n, jnp.int32), *pn)
 
@@ -313,6 +317,30 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
     # native kernel for the CPU, the portable XLA loop elsewhere (decided at lowering, so one
     # jitted function serves all).
     return lax.platform_dependent(*args, cuda=pallas, cpu=cpu, default=xla)
+
+
+def uses_embree(impl: str | None = None) -> bool:
+    """Whether `intersect` and `occluded` with this impl (None: JAXRT_TRAVERSAL) trace through Embree
+    in a function lowered for the default backend."""
+    impl = _impl(impl)
+    on_cpu = impl == "embree" or (impl == "auto" and jax.default_backend() == "cpu")
+    return on_cpu and traverse_embree.available()
+
+
+def with_table_key(tree: BVH, impl: str | None = None) -> BVH:
+    """The tree with Embree's key of its triangle table (`traverse_embree.table_key`) where its ray
+    queries go through Embree (`uses_embree`), else the tree unchanged.
+
+    Embree's kernel finds its scene by a hash of the table; without a key every call computes it
+    (one pass over the table: ~2-4 ms for the 871k-triangle dragon), with one the calls skip it. Call
+    this inside the traced function that traces the tree, on the tree it traces: the key is computed
+    there from the same triangles, so it follows any edit of them made before (`eqx.tree_at` on the
+    scene). A tree whose triangles are replaced after this call carries a stale key: don't keep
+    keyed trees (the kernel's spot check of 64 rows catches most such tables, not all)."""
+    if not uses_embree(impl):
+        return tree
+    return eqx.tree_at(lambda t: t.table_key, tree, traverse_embree.table_key(tree.triangles),
+                       is_leaf=lambda x: x is None)
 
 
 def intersect(

@@ -16,7 +16,10 @@ triangles at the same distance to within an ulp either may be chosen, and the en
 decided with Embree's float32 t; its robust mode keeps the test watertight at edges, not exactly at
 vertices (a ray through a vertex exactly slips through about 1 % of the time; `native/embree.cc`). Embree's tree is built on the first call that sees a triangle table and kept in the
 process (a few tables, keyed by a hash of the table's bytes that every call computes): a frame never
-rebuilds it, a changed mesh never reuses a stale one. Instanced scenes (`jaxrt.accel.two_level`) keep
+rebuilds it, a changed mesh never reuses a stale one. A program that traces one table many times
+(the path tracer: two calls per bounce and chunk) hashes it once instead: `table_key` makes the key
+from the table inside the program and `traverse(key=...)` passes it beside the same table (the key
+cannot go stale as long as both are made from the same traced value). Instanced scenes (`jaxrt.accel.two_level`) keep
 their own traversal.
 
 No build step at install: `available()` compiles the shipped source as `traverse_cpu` does (cached,
@@ -37,12 +40,15 @@ from importlib import resources
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, UInt32
 
 from jaxrt.accel import traverse_cpu
 
 TARGET = "jaxrt_embree_trace"
 _SYMBOL = "JaxrtEmbreeTrace"
+# the keyed calls (`table_key`, `traverse(key=...)`): the same library, two more targets
+KEY_TARGET, _KEY_SYMBOL = "jaxrt_embree_table_key", "JaxrtEmbreeTableKey"
+KEYED_TARGET, _KEYED_SYMBOL = "jaxrt_embree_trace_keyed", "JaxrtEmbreeTraceKeyed"
 LIBS = ("-lembree3",)
 # No errno from sqrt and no floating-point traps, so that the loops finishing the hits in double
 # (`Finish` in embree.cc) have no branches and vectorise; neither changes a result.
@@ -69,6 +75,10 @@ def _load() -> bool:
     compiler = _compiler or os.environ.get("CXX") or "c++"
     try:
         traverse_cpu.load_library("embree", _source(), compiler, TARGET, _SYMBOL, _state, LIBS, FLAGS)
+        if not _state.get("keyed"):
+            for target, symbol in ((KEY_TARGET, _KEY_SYMBOL), (KEYED_TARGET, _KEYED_SYMBOL)):
+                jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(_state["lib"], symbol)), platform="cpu")
+            _state["keyed"] = True
     except Exception as e:  # noqa: BLE001 -- any failure means: use the native kernel
         detail = getattr(e, "stderr", None) or str(e)
         warnings.warn(f"jaxrt: Embree is installed but the Embree traversal could not be built (compiler "
@@ -105,7 +115,8 @@ def _reset_for_tests() -> None:
 
 def traverse(triangles: Float[Array, "F 9"], origins: Float[Array, "N 3"], directions: Float[Array, "N 3"],
              tmin: Float[Array, " N"], tmax: Float[Array, " N"], *, any_hit: bool, refine: bool = False,
-             coherent: str = "auto", packet: int = 16, threads: int = 0, points: bool = False):
+             coherent: str = "auto", packet: int = 16, threads: int = 0, points: bool = False,
+             key: UInt32[Array, "2"] | None = None):
     """Trace N rays through Embree; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `traverse_cpu.traverse`, and with `points` (closest hit only) also (p, ng), each (N, 3).
 
@@ -116,7 +127,9 @@ def traverse(triangles: Float[Array, "F 9"], origins: Float[Array, "N 3"], direc
     single rays as they diverge: bounced rays) or "auto" (per packet: "yes" where its rays' directions
     share an octant); packet: 16 (packets of 16 rays) or 1 (one ray at a time); threads: worker
     threads (0: XLA's intra-op thread pool); these three only affect speed. Lowers for the CPU only; under vmap it runs once per batch
-    element. Raises RuntimeError where the kernel is not `available()`.
+    element. key: `table_key(triangles)` of this same table, made in the same program (then the call
+    does not hash the table; see the module docstring), or None. Raises RuntimeError where the kernel
+    is not `available()`.
 
     points: also the hit point p = v0 + u·e1 + v·e2 and the unit geometric normal e1 × e2 / |e1 × e2|
     of each hit (e1 = v1 − v0, e2 = v2 − v0, the winding's normal), computed in double from the
@@ -135,12 +148,25 @@ def traverse(triangles: Float[Array, "F 9"], origins: Float[Array, "N 3"], direc
     i32 = jax.ShapeDtypeStruct((n,), jnp.int32)
     # p and ng are empty (0, 3) unless asked for: the kernel writes them only then
     f3 = jax.ShapeDtypeStruct((n if points else 0, 3), jnp.float32)
-    call = jax.ffi.ffi_call(TARGET, (f32, i32, f32, f32, f3, f3), vmap_method="sequential")
+    call = jax.ffi.ffi_call(TARGET if key is None else KEYED_TARGET, (f32, i32, f32, f32, f3, f3),
+                            vmap_method="sequential")
+    keys = () if key is None else (key,)
     t, best, u, v, p, ng = call(jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32),
-                         jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32), triangles,
-                         any_hit=bool(any_hit), refine=bool(refine), coherent=np.int64(modes[coherent]),
-                         packet=np.int64(packet), quality=np.int64(QUALITY), chunk=np.int64(CHUNK),
-                         threads=np.int64(threads))
+                                jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32), triangles, *keys,
+                                any_hit=bool(any_hit), refine=bool(refine), coherent=np.int64(modes[coherent]),
+                                packet=np.int64(packet), quality=np.int64(QUALITY), chunk=np.int64(CHUNK),
+                                threads=np.int64(threads))
     if points:
         return best >= 0, t, best, u, v, p, ng
     return best >= 0, t, best, u, v
+
+
+def table_key(triangles: Float[Array, "F 9"]) -> UInt32[Array, "2"]:
+    """The 64-bit content hash of a (F, 9) float32 triangle table as two uint32 words (low first),
+    computed by the kernel in the running program, which also builds (or finds) Embree's scene of the
+    table. Pass it to `traverse(key=...)` beside the same table: those calls then skip hashing the
+    table. Raises RuntimeError where the kernel is not `available()`."""
+    if not available():
+        raise RuntimeError("jaxrt.accel.traverse_embree: the Embree kernel is not available")
+    call = jax.ffi.ffi_call(KEY_TARGET, jax.ShapeDtypeStruct((2,), jnp.uint32), vmap_method="sequential")
+    return call(triangles, quality=np.int64(QUALITY))

@@ -63,7 +63,7 @@ from jax import lax
 from jaxtyping import Array, Float, Int
 
 import brdfs
-from jaxrt import camera, envmap
+from jaxrt import accel, camera, envmap
 from jaxrt import lights as _lights
 from jaxrt.integrators.common import (emitter_table, fold_in_uniforms, intersect_active, power_heuristic,
                                       sample_area_light)
@@ -135,16 +135,41 @@ def _stored(tree, alive):
     return lax.cond(jnp.any(alive), lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
 
 
+def _where_present(present, fn, *args):
+    """fn(*args) where `present` (some path of the chunk continues on a surface of the model fn
+    evaluates), zeros otherwise, on the CPU. A scene with several BSDF models evaluates each on
+    every path and selects per path; where a chunk's paths all meet one model, the others' work is
+    skipped (zeros are never selected: they belong to paths that do not continue). On GPUs a
+    conditional waits for the device: fn(*args) there, as where `present` is None (one model)."""
+    if present is None or jax.default_backend() != "cpu":
+        return fn(*args)
+    return lax.cond(present, fn, lambda *a: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(fn, *a)),
+                    *args)
+
+
+def _keyed(geo):
+    """The geometry with Embree's key of its triangle table where its rays go through Embree on the
+    CPU (`accel.with_table_key`; made here, from the triangles this pass traces), and whether it is
+    keyed. A keyed Embree call does not hash the table, so chunks need not amortise that."""
+    tree = getattr(geo, "tree", None)
+    if jax.default_backend() != "cpu" or not isinstance(tree, accel.BVH):
+        return geo, False
+    tree = accel.with_table_key(tree)
+    if tree.table_key is None:
+        return geo, False
+    return eqx.tree_at(lambda g: g.tree, geo, tree), True
+
+
 def _chunk_size(n: int, triangles: int) -> int:
     """Paths traced together (one `lax.map` step) of a pass of n paths.
 
     On the CPU a bounce is ~50 XLA ops that each stream every path's state through memory: in chunks
     of CPU_CHUNK paths that state stays in cache (the Cornell box at 256², 16 spp: ~20 % less CPU
-    time per pass; BENCHMARKS.md, "Path tracing on the CPU: chunks and stored samples"). The Embree
-    kernel hashes its triangle table on every call (`jaxrt.accel.traverse_embree`), so a chunk keeps
-    at least as many paths as there are triangles (the 871k-triangle dragon's 31 MB take 2-4 ms a
-    call: chunks of 4096 made its pass 2.3x slower). The n paths go in equal chunks, the fewest that
-    respect both bounds. Elsewhere (GPUs) every path at once."""
+    time per pass; BENCHMARKS.md, "Path tracing on the CPU: chunks and stored samples"). A traversal
+    call that hashes its triangle table (Embree without a key, `_keyed`) keeps a chunk at least
+    `triangles` paths (the 871k-triangle dragon's 31 MB take 2-4 ms a call: chunks of 4096 made its
+    pass 2.3x slower); pass 0 where the calls are keyed. The n paths go in equal chunks, the fewest
+    that respect both bounds. Elsewhere (GPUs) every path at once."""
     if jax.default_backend() != "cpu":
         return n
     m = max(1, n // max(CPU_CHUNK, triangles))
@@ -184,7 +209,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         samples with a window); with `aovs` a pair (radiance, first-hit dict).
     """
     st, cam, mats = scene.settings, _sg(scene.camera), scene.materials
-    geo = _sg(scene.geometry)
+    geo, keyed = _keyed(_sg(scene.geometry))
     D = st.max_depth
     spp = st.spp
     npix, nsamp = (cam.num_pixels, spp) if window is None else (window.num_pixels, window.spp)
@@ -254,13 +279,16 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         q = _sg(delta)
         params = {kk: _params(mats, s, kk) for kk, _ in models}
         sel = {kk: mats.model_id[s.material] == kk for kk, _ in models}
+        present = {kk: jnp.any(sel[kk] & cont) if len(models) > 1 else None for kk, _ in models}
 
         def eval_f(wi_l, wo_l, extra_dims=0):
             f = jnp.zeros(wi_l.shape)
             pdf = jnp.zeros(wi_l.shape[:-1])
             for kk, model in models:
-                fk, pk = at_hits(params[kk], lambda p, model=model: (model.eval(p, wi_l, wo_l),
-                                                                   model.pdf(_sg(p), wo_l, wi_l)), extra_dims)
+                fk, pk = _where_present(
+                    present[kk], lambda p, wi_l, wo_l, model=model: at_hits(
+                        p, lambda p: (model.eval(p, wi_l, wo_l), model.pdf(_sg(p), wo_l, wi_l)), extra_dims),
+                    params[kk], wi_l, wo_l)
                 m = sel[kk].reshape((-1,) + (1,) * extra_dims)
                 f = jnp.where(m[..., None], fk, f)
                 pdf = jnp.where(m, pk, pdf)
@@ -319,7 +347,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         wi_s = jnp.zeros((B, 3)).at[:, 2].set(1.0)
         pdf_s = jnp.zeros(B)
         for kk, model in models:
-            wk, _, pk = at_hits(params[kk], lambda p, model=model: model.sample(_sg(p), _sg(wo), u[:, 5:7]))
+            wk, pk = _where_present(present[kk], lambda p, wo, u, model=model: at_hits(
+                p, lambda p: model.sample(_sg(p), _sg(wo), u)[::2]), params[kk], wo, u[:, 5:7])
             wi_s = jnp.where(sel[kk][:, None], wk, wi_s)
             pdf_s = jnp.where(sel[kk], pk, pdf_s)
         wi_s, pdf_s = _stored((wi_s, pdf_s), alive)
@@ -391,7 +420,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         return carry[6], carry[7]
 
     xs = (o0, d0, alive0, jax.random.key_data(path_keys))
-    L, first = _in_chunks(lambda x: trace(*x), xs, B, _chunk_size(B, geo.triangle_count))
+    L, first = _in_chunks(lambda x: trace(*x), xs, B, _chunk_size(B, 0 if keyed else geo.triangle_count))
     L = jnp.where(jnp.isfinite(L), L, 0.0).reshape(npix, nsamp, 3)
     if aovs:
         return L, first

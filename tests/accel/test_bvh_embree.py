@@ -222,6 +222,57 @@ def test_a_change_in_the_last_piece_of_a_large_table_is_seen():
     assert int(hit.prim[0]) == int(np.asarray(tree.prim_ids)[-1])
 
 
+def test_keyed_calls_follow_an_edit_of_the_table():
+    """A key made inside the program from the table it traces (`bvh.with_table_key`) follows an
+    `eqx.tree_at` edit of the triangles made before the call (a build-time key would not): the
+    stretched sphere's hits, same compiled program; and keyed hits equal the per-call-hash ones."""
+    s = trimesh.creation.icosphere(subdivisions=3)
+    tree = bvh.build(s.vertices, s.faces)
+    o = np.float32([[0.11, 0.07, 5], [-0.13, 0.05, -5], [0.3, 0.2, 5]])  # off the poles' vertices
+    d = np.float32([[0, 0, -1], [0, 0, 1], [0, 0, -1]])
+
+    def hits(tr, o, d):
+        keyed = bvh.with_table_key(tr, impl="embree")
+        assert keyed.table_key is not None
+        h = bvh.intersect(keyed, o, d, impl="embree")
+        return h, bvh.occluded(keyed, o, d, 4.4, impl="embree"), bvh.intersect(tr, o, d, impl="embree")
+
+    f = jax.jit(hits)
+    h0, occ0, plain0 = f(tree, o, d)
+    np.testing.assert_allclose(np.asarray(h0.t)[:2], 4.0, rtol=1e-2)  # the unit sphere, polygonised
+    np.testing.assert_array_equal(np.asarray(occ0), True)
+    for a, b in zip(h0, plain0, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    tri = np.asarray(tree.triangles).copy()
+    tri[:, 2::3] *= 2.0  # stretch z: the poles move to +-2
+    moved = eqx.tree_at(lambda t: t.triangles, tree, jnp.asarray(tri))
+    h1, occ1, plain1 = f(moved, o, d)
+    np.testing.assert_allclose(np.asarray(h1.t)[:2], 3.0, rtol=1e-2)
+    np.testing.assert_array_equal(np.asarray(occ1), True)
+    for a, b in zip(h1, plain1, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # the same against jaxrt's own XLA traversal of the moved table (independent of Embree)
+    ref = bvh.intersect(moved, o, d, impl="xla")
+    np.testing.assert_array_equal(np.asarray(h1.prim), np.asarray(ref.prim))
+    np.testing.assert_allclose(np.asarray(h1.t), np.asarray(ref.t), rtol=1e-6)
+    assert f._cache_size() == 1
+
+
+def test_a_key_of_another_table_is_caught():
+    """A keyed call whose key belongs to another table (a keyed tree edited afterwards) finds that
+    the scene's corners differ from its table in the spot check and hashes the table instead."""
+    s = trimesh.creation.icosphere(subdivisions=3)
+    tree = bvh.build(s.vertices, s.faces)
+    o, d = np.float32([[0, 0, 5]]), np.float32([[0, 0, -1]])
+    lo, hi = np.zeros(1, np.float32), np.full(1, np.inf, np.float32)
+    stale = traverse_embree.table_key(tree.triangles)
+    tri = np.asarray(tree.triangles).copy()
+    tri[:, 2::3] *= 2.0
+    found, t, *_ = traverse_embree.traverse(jnp.asarray(tri), o, d, lo, hi, any_hit=False, refine=True, key=stale)
+    assert bool(found[0])
+    np.testing.assert_allclose(np.asarray(t), 3.0, rtol=1e-3)
+
+
 @pytest.mark.data
 def test_direct_frame_equals_native_kernel_frame(data_dir, monkeypatch):
     """The shipped bunny scene rendered with Embree and with the native kernel: the same image up to

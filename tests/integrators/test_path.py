@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrt import envmap, scene
+from jaxrt import accel, envmap, scene
 from jaxrt.integrators import path
 from jaxrt.errors import InputError
 from jaxrt.shading import direct
@@ -127,6 +127,71 @@ def test_unconditional_bounces_equal_skipped_dead_bounces(furnace, monkeypatch):
     for a, b in zip(jax.tree.leaves(skipped), jax.tree.leaves(always), strict=True):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-5, atol=1e-6)
     assert float(jnp.mean(skipped[0])) > 0
+
+
+def test_chunked_pass_traces_an_edited_mesh(furnace, monkeypatch):
+    # On the CPU with Embree the pass keys Embree's scene by the triangle table it traces
+    # (`path._keyed`), which lets large meshes go in chunks too. The key is made in the pass from
+    # the scene it is given: after a render of the sphere, the same compiled pass on the scene with
+    # its triangles moved (eqx.tree_at) must trace the moved mesh, whose first hits are checked
+    # against jaxrt's own XLA traversal of the moved mesh (independent of Embree's scene cache).
+    monkeypatch.setattr(path, "CPU_CHUNK", 1500)
+    f = jax.jit(lambda s: path.samples(s, 0, jitter=True, aovs=True))
+    L0, first0 = f(furnace)
+    geo = furnace.geometry
+    v = geo.vertices * jnp.float32([1.0, 1.0, 0.5])  # squash z: the camera on +z meets it farther
+    tri = geo.tree.triangles * jnp.tile(jnp.float32([1.0, 1.0, 0.5]), 3)
+    moved = eqx.tree_at(lambda s: (s.geometry.vertices, s.geometry.tree.triangles), furnace, (v, tri))
+    L1, first1 = f(moved)
+    assert f._cache_size() == 1
+    o = jnp.broadcast_to(furnace.camera.position, first1["d"].shape)
+    # (a tree built for the moved mesh: the moved table's old boxes would not bound it)
+    ref = accel.intersect(accel.build(np.asarray(v), np.asarray(geo.faces)), o, first1["d"], impl="xla")
+    prim, t = np.asarray(first1["prim"]), np.asarray(first1["t"])
+    same = prim == np.asarray(ref.prim)
+    assert same.mean() > 0.999  # up to ties at edges between Embree and the XLA loop
+    hit = same & (prim >= 0)
+    assert hit.sum() > 1000
+    np.testing.assert_allclose(t[hit], np.asarray(ref.t)[hit], rtol=1e-5)
+    # the sphere's front at z = 1 before, 0.5 after: the camera at z = 4 sees it 0.5 farther
+    both = hit & (np.asarray(first0["prim"]) >= 0)
+    assert np.median(t[both] - np.asarray(first0["t"])[both]) > 0.4
+    if jax.default_backend() == "cpu" and accel.uses_embree():
+        n = 16 * 16 * furnace.settings.spp
+        assert path._chunk_size(n, 0) < n  # the pass ran in chunks
+
+
+def test_skipping_a_model_absent_from_a_chunk_changes_nothing(furnace, monkeypatch):
+    # With several BSDF models, the CPU pass skips a model's evaluation and sampling in a chunk none
+    # of whose continuing paths meets it (`path._where_present`). The same compiled pass with the
+    # skip's predicate forced true (a traced flag: one program, so no other fusion or rounding)
+    # must give the same radiance bit for bit: the zeros of a skipped model are never selected.
+    monkeypatch.setattr(path, "CPU_CHUNK", 1500)
+    geo = furnace.geometry
+    y = np.asarray(jnp.stack(geo.triangles(jnp.arange(geo.triangle_count)))[..., 1].mean(0))
+    m = np.where(y > 0, furnace.materials.index("glossy"), furnace.materials.index("white")).astype(np.int32)
+    sc = eqx.tree_at(lambda s: s.geometry.material, furnace, jnp.asarray(m))
+    orig = path._where_present
+
+    def run(s, force):
+        monkeypatch.setattr(path, "_where_present",
+                            lambda p, fn, *a: orig(None if p is None else p | force, fn, *a))
+        return path.samples(s, 0, jitter=True, aovs=True)
+
+    f = jax.jit(run)
+    (a, first), (b, _) = f(sc, jnp.bool_(False)), f(sc, jnp.bool_(True))
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert f._cache_size() == 1
+    # the scene has chunks whose camera rays meet one model only, and chunks that meet both
+    n = a.shape[0] * a.shape[1]
+    chunk = path._chunk_size(n, 0)
+    prim = np.asarray(first["prim"])
+    mat = np.where(prim >= 0, m[np.maximum(prim, 0)], -1)
+    pad = -(-n // chunk) * chunk - n
+    kinds = [set(c[c >= 0].tolist()) for c in np.pad(mat, (0, pad), constant_values=-1).reshape(-1, chunk)]
+    if jax.default_backend() == "cpu":
+        assert any(len(k) == 1 for k in kinds) and any(len(k) == 2 for k in kinds)
+    assert float(jnp.mean(a)) > 0
 
 
 # --------------------------------------------------------------------------- gradients
@@ -635,3 +700,29 @@ def test_envmap_row_search_matches_numpy_searchsorted(loop, monkeypatch):
         got = np.asarray(jax.jit(envmap._count_le)(jnp.asarray(cdf), jnp.asarray(row, jnp.int32), jnp.asarray(u)))
         ref = np.array([np.searchsorted(cdf[r], x, side="right") for r, x in zip(row, u)])
         np.testing.assert_array_equal(got, ref)
+
+
+def test_envmap_atan2_and_acos_within_a_few_ulps_of_float64():
+    # the environment map's written-out atan2 and acos (`envmap._atan2`, `_acos`) against numpy in
+    # float64: every octant, ratios near the tan(π/8) switch, huge and tiny components, signed
+    # zeros, and cosines at ±1 and next to them
+    rng = np.random.default_rng(7)
+    n = 200_000
+    y = rng.standard_normal(n) * np.exp(rng.uniform(-30, 30, n))
+    x = rng.standard_normal(n) * np.exp(rng.uniform(-30, 30, n))
+    near = rng.uniform(0.40, 0.43, 1000) * rng.choice([-1, 1], 1000)
+    y = np.concatenate([y, near, [0.0, -0.0, 0.0, -0.0, 1.0, -1.0, 2.0, -2.0, 3.0, 1e-38]])
+    x = np.concatenate([x, np.ones(1000), [1.0, 1.0, -1.0, -1.0, 0.0, 0.0, -0.0, -2.0, 3.0, -1.0]])
+    y32, x32 = y.astype(np.float32), x.astype(np.float32)
+    got = np.asarray(jax.jit(envmap._atan2)(jnp.asarray(y32), jnp.asarray(x32)), np.float64)
+    ref = np.arctan2(y32.astype(np.float64), x32.astype(np.float64))
+    ulp = np.spacing(np.abs(ref).astype(np.float32)).astype(np.float64)
+    assert np.max(np.abs(got - ref) / ulp) < 4.0
+    np.testing.assert_array_equal(np.signbit(got[-10:]), np.signbit(ref[-10:]))
+    c = np.concatenate([rng.uniform(-1, 1, n), [1.0, -1.0, 0.0, -0.0, 1 - 2**-24, -1 + 2**-24, 0.5, -0.5]])
+    c32 = c.astype(np.float32)
+    got = np.asarray(jax.jit(envmap._acos)(jnp.asarray(c32)), np.float64)
+    ref = np.arccos(c32.astype(np.float64))
+    ulp = np.spacing(np.maximum(np.abs(ref), 1e-30).astype(np.float32)).astype(np.float64)
+    assert np.max(np.abs(got - ref) / ulp) < 4.0
+    assert got[-8] == 0.0 and abs(got[-7] - np.pi) < 3e-7

@@ -59,6 +59,7 @@ struct Scene {
   RTCScene scene = nullptr;
   uint64_t hash = 0;
   int64_t nf = 0;
+  const float* corners = nullptr;  // Embree's copy of the table (owned by the geometry the scene holds)
   ~Scene() {
     if (scene) rtcReleaseScene(scene);
   }
@@ -200,6 +201,7 @@ std::shared_ptr<Scene> GetScene(const float* tri, int64_t nf, uint64_t h, int qu
     return nullptr;
   }
   std::memcpy(v, tri, static_cast<size_t>(nf) * 9 * sizeof(float));
+  s->corners = v;
   for (int64_t k = 0; k < 3 * nf; ++k) idx[k] = static_cast<unsigned>(k);
   rtcCommitGeometry(g);
   rtcAttachGeometryByID(s->scene, g, 0);
@@ -532,28 +534,28 @@ int64_t Count(const ffi::AnyBuffer::Dimensions& dims) {
   return c;
 }
 
-ffi::Error Trace(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi::F32> d, ffi::Buffer<ffi::F32> tmin,
-                 ffi::Buffer<ffi::F32> tmax, ffi::Buffer<ffi::F32> tri, ffi::ResultBuffer<ffi::F32> t,
-                 ffi::ResultBuffer<ffi::S32> best, ffi::ResultBuffer<ffi::F32> u, ffi::ResultBuffer<ffi::F32> v,
-                 ffi::ResultBuffer<ffi::F32> p, ffi::ResultBuffer<ffi::F32> ng, bool any_hit, bool refine, int64_t coherent, int64_t packet, int64_t quality, int64_t chunk,
-                 int64_t threads) {
-  const int64_t n = Count(tmin.dimensions());
-  const int64_t nf = Count(tri.dimensions()) / 9;
+bool CheckShapes(ffi::Buffer<ffi::F32>& o, ffi::Buffer<ffi::F32>& d, ffi::Buffer<ffi::F32>& tmax, int64_t n,
+                 ffi::Buffer<ffi::F32>& tri, int64_t nf, ffi::ResultBuffer<ffi::F32>& t, ffi::ResultBuffer<ffi::S32>& best,
+                 ffi::ResultBuffer<ffi::F32>& u, ffi::ResultBuffer<ffi::F32>& v, ffi::ResultBuffer<ffi::F32>& p,
+                 ffi::ResultBuffer<ffi::F32>& ng, bool any_hit, int64_t coherent, int64_t packet, int64_t quality,
+                 int64_t chunk) {
   // p and ng: (n, 3) where points are asked for (closest hit), else empty
   const int64_t np = Count(p->dimensions());
-  const bool points = np > 0;
-  if (Count(o.dimensions()) != 3 * n || Count(d.dimensions()) != 3 * n || Count(tmax.dimensions()) != n ||
-      Count(t->dimensions()) != n || Count(best->dimensions()) != n || Count(u->dimensions()) != n ||
-      Count(v->dimensions()) != n || (np != 0 && np != 3 * n) || Count(ng->dimensions()) != np ||
-      (points && any_hit) || Count(tri.dimensions()) != 9 * nf || nf < 1 || nf >= (int64_t{1} << 31) / 3 ||
-      chunk < 1 || (packet != 1 && packet != 16) || coherent < 0 || coherent > 2 || quality < 0 || quality > 2) {
-    return ffi::Error::InvalidArgument("jaxrt_embree_trace: inconsistent array shapes or attributes");
-  }
-  if (n == 0) return ffi::Error::Success();
-  std::string err;
-  const uint64_t h = TableHash(pool, threads <= 0 && pool.num_threads() > 0, tri.typed_data(), nf);
-  std::shared_ptr<Scene> scene = GetScene(tri.typed_data(), nf, h, static_cast<int>(quality), &err);
-  if (!scene) return ffi::Error::Internal("jaxrt_embree_trace: " + err);
+  return Count(o.dimensions()) == 3 * n && Count(d.dimensions()) == 3 * n && Count(tmax.dimensions()) == n &&
+         Count(t->dimensions()) == n && Count(best->dimensions()) == n && Count(u->dimensions()) == n &&
+         Count(v->dimensions()) == n && (np == 0 || np == 3 * n) && Count(ng->dimensions()) == np &&
+         !(np > 0 && any_hit) && Count(tri.dimensions()) == 9 * nf && nf >= 1 &&
+         nf < (int64_t{1} << 31) / 3 && chunk >= 1 && (packet == 1 || packet == 16) && coherent >= 0 &&
+         coherent <= 2 && quality >= 0 && quality <= 2;
+}
+
+// The rays traced through `scene` on the caller and the pool (or `threads` threads of their own).
+void Run(ffi::ThreadPool& pool, std::shared_ptr<Scene> scene, ffi::Buffer<ffi::F32>& o, ffi::Buffer<ffi::F32>& d,
+         ffi::Buffer<ffi::F32>& tmin, ffi::Buffer<ffi::F32>& tmax, ffi::Buffer<ffi::F32>& tri,
+         ffi::ResultBuffer<ffi::F32>& t, ffi::ResultBuffer<ffi::S32>& best, ffi::ResultBuffer<ffi::F32>& u,
+         ffi::ResultBuffer<ffi::F32>& v, ffi::ResultBuffer<ffi::F32>& p, ffi::ResultBuffer<ffi::F32>& ng, int64_t n,
+         bool any_hit, bool refine, int64_t coherent, int64_t packet, int64_t chunk, int64_t threads) {
+  const bool points = Count(p->dimensions()) > 0;
   auto job = std::make_shared<Job>();
   Job& J = *job;
   J.o = o.typed_data();
@@ -596,6 +598,107 @@ ffi::Error Trace(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi:
     J.cv.wait(lock, [&] { return J.done.load() == J.n; });
   }
   for (auto& th : own) th.join();
+}
+
+ffi::Error Trace(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi::F32> d, ffi::Buffer<ffi::F32> tmin,
+                 ffi::Buffer<ffi::F32> tmax, ffi::Buffer<ffi::F32> tri, ffi::ResultBuffer<ffi::F32> t,
+                 ffi::ResultBuffer<ffi::S32> best, ffi::ResultBuffer<ffi::F32> u, ffi::ResultBuffer<ffi::F32> v,
+                 ffi::ResultBuffer<ffi::F32> p, ffi::ResultBuffer<ffi::F32> ng, bool any_hit, bool refine,
+                 int64_t coherent, int64_t packet, int64_t quality, int64_t chunk, int64_t threads) {
+  const int64_t n = Count(tmin.dimensions());
+  const int64_t nf = Count(tri.dimensions()) / 9;
+  if (!CheckShapes(o, d, tmax, n, tri, nf, t, best, u, v, p, ng, any_hit, coherent, packet, quality, chunk)) {
+    return ffi::Error::InvalidArgument("jaxrt_embree_trace: inconsistent array shapes or attributes");
+  }
+  if (n == 0) return ffi::Error::Success();
+  std::string err;
+  const uint64_t h = TableHash(pool, threads <= 0 && pool.num_threads() > 0, tri.typed_data(), nf);
+  std::shared_ptr<Scene> scene = GetScene(tri.typed_data(), nf, h, static_cast<int>(quality), &err);
+  if (!scene) return ffi::Error::Internal("jaxrt_embree_trace: " + err);
+  Run(pool, scene, o, d, tmin, tmax, tri, t, best, u, v, p, ng, n, any_hit, refine, coherent, packet, chunk, threads);
+  return ffi::Error::Success();
+}
+
+// ---------------------------------------------------------------------------------------------
+// Keyed calls: the table's hash made once by `TableKey` (a call of its own in the same program,
+// taking the same table), then passed to every `TraceKeyed` call beside the table. A path tracer
+// traces one table some hundred times a pass (two calls per bounce and chunk); hashing it every
+// time (~2-4 ms for the dragon's 31 MB) cost more than the rays of a small chunk. The key is the
+// content hash of the very array the keyed call receives, so it follows any edit of the table the
+// way the per-call hash does, provided both come from the same value of the program (what
+// `traverse_embree.table_key` and `bvh.with_table_key` arrange). As a guard against a key carried
+// past an edit of its table, a keyed call compares 64 rows of the table spread over it (and the
+// first and last) with the scene's copy and hashes the whole table where they differ.
+
+uint64_t FromKey(const uint32_t* k) { return static_cast<uint64_t>(k[0]) | static_cast<uint64_t>(k[1]) << 32; }
+
+bool SpotCheck(const Scene& s, const float* tri, int64_t nf) {
+  if (!s.corners || s.nf != nf) return false;
+  constexpr int64_t kRows = 64;
+  const int64_t step = std::max<int64_t>(1, nf / kRows);
+  auto same = [&](int64_t r) { return std::memcmp(s.corners + 9 * r, tri + 9 * r, 9 * sizeof(float)) == 0; };
+  for (int64_t r = 0; r < nf; r += step) {
+    if (!same(r)) return false;
+  }
+  return same(nf - 1);
+}
+
+// The kept scene with hash h and a table that passes the spot check, or nullptr.
+std::shared_ptr<Scene> FindScene(const float* tri, int64_t nf, uint64_t h) {
+  std::lock_guard<std::mutex> lock(g_mu);
+  for (auto it = g_scenes.begin(); it != g_scenes.end(); ++it) {
+    if ((*it)->hash == h && (*it)->nf == nf) {
+      auto s = *it;
+      if (!SpotCheck(*s, tri, nf)) return nullptr;
+      g_scenes.erase(it);
+      g_scenes.push_front(s);
+      return s;
+    }
+  }
+  return nullptr;
+}
+
+ffi::Error TableKey(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> tri, ffi::ResultBuffer<ffi::U32> key,
+                    int64_t quality) {
+  const int64_t nf = Count(tri.dimensions()) / 9;
+  if (Count(tri.dimensions()) != 9 * nf || nf < 1 || nf >= (int64_t{1} << 31) / 3 || Count(key->dimensions()) != 2 ||
+      quality < 0 || quality > 2) {
+    return ffi::Error::InvalidArgument("jaxrt_embree_table_key: inconsistent array shapes or attributes");
+  }
+  const uint64_t h = TableHash(pool, pool.num_threads() > 0, tri.typed_data(), nf);
+  std::string err;
+  // built here, once, rather than by the first ray query
+  if (!GetScene(tri.typed_data(), nf, h, static_cast<int>(quality), &err)) {
+    return ffi::Error::Internal("jaxrt_embree_table_key: " + err);
+  }
+  key->typed_data()[0] = static_cast<uint32_t>(h);
+  key->typed_data()[1] = static_cast<uint32_t>(h >> 32);
+  return ffi::Error::Success();
+}
+
+ffi::Error TraceKeyed(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi::F32> d,
+                      ffi::Buffer<ffi::F32> tmin, ffi::Buffer<ffi::F32> tmax, ffi::Buffer<ffi::F32> tri,
+                      ffi::Buffer<ffi::U32> key, ffi::ResultBuffer<ffi::F32> t, ffi::ResultBuffer<ffi::S32> best,
+                      ffi::ResultBuffer<ffi::F32> u, ffi::ResultBuffer<ffi::F32> v, ffi::ResultBuffer<ffi::F32> p,
+                      ffi::ResultBuffer<ffi::F32> ng, bool any_hit, bool refine, int64_t coherent, int64_t packet,
+                      int64_t quality, int64_t chunk, int64_t threads) {
+  const int64_t n = Count(tmin.dimensions());
+  const int64_t nf = Count(tri.dimensions()) / 9;
+  if (!CheckShapes(o, d, tmax, n, tri, nf, t, best, u, v, p, ng, any_hit, coherent, packet, quality, chunk) ||
+      Count(key.dimensions()) != 2) {
+    return ffi::Error::InvalidArgument("jaxrt_embree_trace_keyed: inconsistent array shapes or attributes");
+  }
+  if (n == 0) return ffi::Error::Success();
+  std::shared_ptr<Scene> scene = FindScene(tri.typed_data(), nf, FromKey(key.typed_data()));
+  if (!scene) {
+    // evicted by other tables since the key was made, or the key does not belong to this table:
+    // the scene of the table's own hash
+    std::string err;
+    const uint64_t h = TableHash(pool, threads <= 0 && pool.num_threads() > 0, tri.typed_data(), nf);
+    scene = GetScene(tri.typed_data(), nf, h, static_cast<int>(quality), &err);
+    if (!scene) return ffi::Error::Internal("jaxrt_embree_trace_keyed: " + err);
+  }
+  Run(pool, scene, o, d, tmin, tmax, tri, t, best, u, v, p, ng, n, any_hit, refine, coherent, packet, chunk, threads);
   return ffi::Error::Success();
 }
 
@@ -609,6 +712,36 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtEmbreeTrace, Trace,
                                   .Arg<ffi::Buffer<ffi::F32>>()  // tmin (N,)
                                   .Arg<ffi::Buffer<ffi::F32>>()  // tmax (N,)
                                   .Arg<ffi::Buffer<ffi::F32>>()  // triangles (F,9), leaf order
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // t
+                                  .Ret<ffi::Buffer<ffi::S32>>()  // best (leaf order, -1 = miss)
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // u
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // v
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // hit points (N,3), or (0,3): not asked for
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // unit geometric normals, as the points
+                                  .Attr<bool>("any_hit")
+                                  .Attr<bool>("refine")
+                                  .Attr<int64_t>("coherent")
+                                  .Attr<int64_t>("packet")
+                                  .Attr<int64_t>("quality")
+                                  .Attr<int64_t>("chunk")
+                                  .Attr<int64_t>("threads"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtEmbreeTableKey, TableKey,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // triangles (F,9), leaf order
+                                  .Ret<ffi::Buffer<ffi::U32>>()  // key (2,): the table's hash, low word first
+                                  .Attr<int64_t>("quality"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtEmbreeTraceKeyed, TraceKeyed,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // origins (N,3)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // directions (N,3)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // tmin (N,)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // tmax (N,)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // triangles (F,9), leaf order
+                                  .Arg<ffi::Buffer<ffi::U32>>()  // key (2,) of these triangles (TableKey)
                                   .Ret<ffi::Buffer<ffi::F32>>()  // t
                                   .Ret<ffi::Buffer<ffi::S32>>()  // best (leaf order, -1 = miss)
                                   .Ret<ffi::Buffer<ffi::F32>>()  // u

@@ -91,7 +91,7 @@ for s in "$@"; do
                       --reference .gpudata/caustic_ref.npz --bias-seeds 0 ;;
         picture-dragon) # README's caustics_dragon picture, path tracing and SPPM at equal time on the GPU
                   stage picture-dragon 150 python3 benchmarks/sppm.py --picture "$OUT/caustics_dragon.png" \
-                      --scene caustics_dragon --size 192 --seconds 20 ;;
+                      --scene caustics_dragon --size 192 --seconds 12 ;;
         latency-goals) # the latency rows with goals on a GPU: cold, 3 warm processes, the worker's later jobs
                   stage latency-goals 300 python3 benchmarks/latency.py --no-mitsuba --worker --warm-runs 3 \
                       --json "$OUT/latency.json" --cases render-dragon render-spheres fit-cli sweep-frame ;;

@@ -203,6 +203,7 @@ def test_passes_in_one_call_equal_separate_calls():
     assert sppm.steps._cache_size() - before <= 1
 
 
+@pytest.mark.slow  # two SPPM programs compiled at max_depth 8: ~30-50 s
 def test_unconditional_photon_bounces_equal_skipped_dead_bounces(monkeypatch):
     """On a GPU every photon bounce runs (no `lax.cond` skipping a bounce whose photons are all
     dead): dead photons must then deposit nothing. Made here by telling the photon tracer it is not
@@ -219,6 +220,7 @@ def test_unconditional_photon_bounces_equal_skipped_dead_bounces(monkeypatch):
     assert np.asarray(skipped.tau).max() > 0
 
 
+@pytest.mark.slow  # four SPPM programs compiled (one pass a batch, three, and the batches alone): ~1 min
 def test_batched_passes_equal_one_pass_at_a_time(monkeypatch):
     """Off the CPU `steps` traces several passes' camera paths and photons in one batch each
     (`photon_batch`); each pass keeps its own random streams, so 5 passes (a batch of 3, then 2 one

@@ -17,6 +17,13 @@ from jaxrt.accel import Hit
 from jaxrt.shading.surface import dot, normalize
 
 
+def on_cpu() -> bool:
+    """Whether the integrators' programs are made for the CPU: there a conditional that skips dead
+    work pays off and loops keep XLA:CPU from fusing a chain into each consumer; on a GPU each
+    conditional or loop step is a host round trip, so the integrators take branch-free forms."""
+    return jax.default_backend() == "cpu"
+
+
 def intersect_active(geometry, origins: Float[Array, "B 3"], directions: Float[Array, "B 3"],
                      active: Bool[Array, " B"]) -> Hit:
     """Closest hits of a batch of ray slots of which only `active` ones exist: inactive slots get an

@@ -67,6 +67,7 @@ from jaxrt import accel, camera, envmap
 from jaxrt import lights as _lights
 from jaxrt.integrators.common import (emitter_table, fold_in_uniforms, intersect_active, power_heuristic,
                                       sample_area_light)
+from jaxrt.integrators.common import on_cpu as _on_cpu  # a name of this module's: tests patch it
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, hit_params, glass_split, is_glass
 from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented, to_local
@@ -114,11 +115,6 @@ def _path_keys(kpath, window: camera.Window, spp: int, width: int):
     k_hi = jax.vmap(jax.random.fold_in)(k_lo, hi)
     data = jnp.where((hi == 0)[:, None], jax.random.key_data(k_lo), jax.random.key_data(k_hi))
     return jax.random.wrap_key_data(data, impl=jax.random.key_impl(kpath))
-
-
-def _on_cpu() -> bool:
-    # whether the program is made for the CPU (where conditionals that skip dead work pay off)
-    return jax.default_backend() == "cpu"
 
 
 def _stored(tree, alive):

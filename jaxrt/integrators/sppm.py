@@ -103,6 +103,7 @@ from jaxrt import lights as _lights
 from jaxrt.errors import InputError
 from jaxrt.integrators.common import (SEARCH, emitter_table, intersect_active, sample_area_light,
                                       sample_emitter_point)
+from jaxrt.integrators.common import on_cpu as _on_cpu  # a name of this module's: tests patch it
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, glass_split, hit_params, is_glass
 from jaxrt.shading.surface import (dot, from_local, local_frame, mirror_dir, normalize, offset_scale, oriented,
@@ -567,11 +568,6 @@ class Deposits(eqx.Module):
     power: Float[Array, "N 3"]
     bounce: Int[Array, " N"]
     valid: Array
-
-
-def _on_cpu() -> bool:
-    # whether the program is made for the CPU (where conditionals that skip dead work pay off)
-    return jax.default_backend() == "cpu"
 
 
 def _share_rows(x, share):

@@ -134,6 +134,24 @@ for s in "$@"; do
         peers)    stage peers 110 python3 benchmarks/peers.py --size 1024 --no-mitsuba ;;
         peers-mitsuba)  # the same rows with Mitsuba's cuda_ad_rgb in the same run (needs .mitsuba/ carried)
                   stage peers-mitsuba 170 python3 benchmarks/peers.py --size 1024 --repeats 5 ;;
+        cli-profile-dragon)  # where a warm `jaxrt render dragon` 1024² process spends its time: a cold run fills
+                  # a cache folder, then two warm runs under cProfile (cumulative and own-time tables)
+                  d=$(mktemp -d); c=$(mktemp -d)
+                  ( cd "$d" && export JAXRT_CACHE_DIR=$c JAXRT_WORKER=off && stage cli-dragon-cold 90 python3 -m jaxrt.cli render dragon --width 1024 --height 1024 )
+                  for i in 1 2; do
+                      ( cd "$d" && export JAXRT_CACHE_DIR=$c JAXRT_WORKER=off && stage "cli-dragon-warm$i" 60 python3 -X importtime -m cProfile -o "$d/warm$i.prof" -m jaxrt.cli render dragon --width 1024 --height 1024 2>"$d/imports$i.txt" )
+                  done
+                  python3 - "$d/warm2.prof" >>"$LOG" 2>&1 <<'PY'
+import pstats, sys
+s = pstats.Stats(sys.argv[1]); s.sort_stats("cumulative").print_stats(45); s.sort_stats("tottime").print_stats(25)
+PY
+                  sort -t'|' -k2 -n -r "$d/imports2.txt" | head -25 >>"$LOG" ;;
+        caustic-sweep-carried)  # SPPM's visible points per pixel (k) and photons per pass (p) against the carried reference
+                  for cfg in "4 65536" "16 65536" "32 65536" "16 16384" "64 16384" "16 262144"; do
+                      read -r k p <<< "$cfg"
+                      stage "caustic-sweep-k$k-p$p" 75 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2 \
+                          --reference .gpudata/caustic_ref.npz --camera-samples "$k" --photons "$p" --bias-seeds 0
+                  done ;;
         profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac

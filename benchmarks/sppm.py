@@ -638,7 +638,21 @@ def main() -> None:
     ap.add_argument("--picture", metavar="OUT.png", help="only write the path-vs-SPPM picture at equal time")
     ap.add_argument("--seconds", type=float, default=40.0, help="rendering time of each half of --picture")
     ap.add_argument("--scene", default="caustics", help="the shipped scene of --picture (caustics, caustics_dragon)")
+    ap.add_argument("--alpha", type=float, default=None,
+                    help="study: SPPM's radius reduction α (module constant `sppm.ALPHA`, default %g) for this run; "
+                         "use a cache folder of its own (JAXRT_CACHE_DIR): stored programs are keyed by source, not "
+                         "by this value" % sppm.ALPHA)
+    ap.add_argument("--radius-pixels", type=float, default=None,
+                    help="study: the default initial radius in pixel footprints (`sppm.RADIUS_PIXELS`, default %g); "
+                         "same caveat as --alpha" % sppm.RADIUS_PIXELS)
     a = ap.parse_args()
+    for flag, name, lo, hi in (("--alpha", "ALPHA", 0.0, 1.0), ("--radius-pixels", "RADIUS_PIXELS", 0.0, 64.0)):
+        v = getattr(a, name.lower() if name == "ALPHA" else "radius_pixels")
+        if v is not None:
+            if not lo < v <= hi:
+                _fail(f"{flag} {v}: must be in ({lo:g}, {hi:g}]")
+            setattr(sppm, name, v)
+            print(f"# study: sppm.{name} = {v:g}")
     if a.picture:
         picture(a.picture, a.seconds, a.size or 128, a.scene)
     elif a.make_reference:

@@ -71,7 +71,7 @@ def _arrays_equal(a: dict, b: dict) -> None:
 
 
 def _entries(d: Path) -> list[Path]:
-    return sorted((d / "arrays").glob("*.npz")) if (d / "arrays").is_dir() else []
+    return sorted((d / "arrays").glob("*" + cache._SUFFIX)) if (d / "arrays").is_dir() else []
 
 
 def _delta(before: cache.CacheStats) -> dict:
@@ -177,13 +177,24 @@ def test_miss_then_hit_is_bit_identical(cdir):
     assert i.array_bytes == sum(p.stat().st_size for p in _entries(cdir)) and i.bound == 2 << 30
 
 
-def test_entries_are_npz_without_pickle(cdir):
+def _records(path: Path) -> list[np.ndarray]:
+    """The .npy records of an entry file, read with numpy's own reader (never pickle)."""
+    out = []
+    with open(path, "rb") as fh:
+        while fh.peek(1):
+            out.append(np.lib.format.read_array(fh, allow_pickle=False))
+    return out
+
+
+def test_entries_are_npy_records_without_pickle(cdir):
+    built = _build([])()
     cache.cached_arrays("test", {"k": 1}, _build([]))
     (path,) = _entries(cdir)
-    with np.load(path, allow_pickle=False) as z:
-        assert set(z.files) == {"f", "i", "b", "empty", "scalar", "__meta__"}
-        meta = json.loads(z["__meta__"].tobytes())
+    meta, *arrays = _records(path)
+    meta = json.loads(meta.tobytes())
     assert meta["format"] == cache.FORMAT_VERSION and len(meta["sha256"]) == 64
+    assert sorted(meta["arrays"]) == ["b", "empty", "f", "i", "scalar"]
+    _arrays_equal(dict(zip(meta["arrays"], arrays)), built)
     with pytest.raises(TypeError, match="object"):
         cache.cached_arrays("test", {"k": 2}, lambda: {"o": np.array([None, 1], dtype=object)})
     with pytest.raises(ValueError, match="kind"):
@@ -198,7 +209,9 @@ def _corrupt(path: Path, how: str, cdir: Path) -> None:
         path.write_bytes(raw[: len(raw) // 2])
     elif how == "empty":
         path.write_bytes(b"")
-    elif how == "flipped":  # one byte inside the float payload: zip's CRC or the entry's sha256 catches it
+    elif how == "trailing":  # a whole entry with bytes after its last record
+        path.write_bytes(raw + b"\0" * 64)
+    elif how == "flipped":  # one byte inside the float payload: the entry's sha256 catches it
         b = bytearray(raw)
         b[len(b) // 3] ^= 0xFF
         path.write_bytes(bytes(b))
@@ -209,15 +222,16 @@ def _corrupt(path: Path, how: str, cdir: Path) -> None:
         cache.cached_arrays("test", {"k": "other"}, _build(calls, seed=5))
         other = [p for p in _entries(cdir) if p != path][0]
         os.replace(other, path)
-    elif how == "checksum":  # a valid zip whose arrays no longer match the recorded sha256
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {n: z[n] for n in z.files}
-        arrays["f"] = arrays["f"] + np.float32(1)
+    elif how == "checksum":  # valid records whose arrays no longer match the recorded sha256
+        meta, *arrays = _records(path)
+        names = json.loads(meta.tobytes())["arrays"]
+        arrays[names.index("f")] = arrays[names.index("f")] + np.float32(1)
         with open(path, "wb") as fh:
-            np.savez(fh, **arrays)
+            for a in [meta, *arrays]:
+                np.lib.format.write_array(fh, a, allow_pickle=False)
 
 
-@pytest.mark.parametrize("how", ["truncated", "empty", "flipped", "garbage", "stale", "checksum"])
+@pytest.mark.parametrize("how", ["truncated", "empty", "trailing", "flipped", "garbage", "stale", "checksum"])
 def test_bad_entries_are_rebuilt_with_one_warning(cdir, how):
     key = {"k": 1}
     calls: list = []
@@ -258,10 +272,11 @@ def test_unwritable_folder_degrades_with_one_warning(tmp_path, monkeypatch):
 
 
 def test_full_disk_degrades_with_one_warning_and_leaves_no_temporary_file(cdir, monkeypatch):
-    def full(*args, **kwargs):
+    def full(fh, *args, **kwargs):  # the disk fills part-way through the entry's first record
+        fh.write(b"\x93NUMPY")
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(cache.np, "savez", full)
+    monkeypatch.setattr(cache.np.lib.format, "write_array", full)
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
         for k in range(3):

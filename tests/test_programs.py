@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxrt import cache as _cache
 from jaxrt import programs as _programs
 
 from test_cache import _py
@@ -50,7 +51,7 @@ def test_a_stored_program_serves_a_new_function_object_without_tracing(cdir):
     assert list(_stats() - s0) == [0, 1, 0]
     for k in ref:
         assert np.array_equal(np.asarray(out[k]), np.asarray(ref[k])) and out[k].dtype == ref[k].dtype
-    assert sorted((cdir / "arrays").glob("program-*.npz"))
+    assert sorted((cdir / "arrays").glob("program-*" + _cache._SUFFIX))
     TRACES.clear()
     g = _programs.cached_jit(_fun, name="test.fun", static_argnames=("power",))  # as a new process has
     out2 = g(p, {"a": 1, "b": 2}["a"] * x)  # another value, same structure

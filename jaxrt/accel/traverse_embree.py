@@ -19,7 +19,10 @@ process (a few tables, keyed by a hash of the table's bytes that every call comp
 rebuilds it, a changed mesh never reuses a stale one. A program that traces one table many times
 (the path tracer: two calls per bounce and chunk) hashes it once instead: `table_key` makes the key
 from the table inside the program and `traverse(key=...)` passes it beside the same table (the key
-cannot go stale as long as both are made from the same traced value). Instanced scenes (`jaxrt.accel.two_level`) keep
+cannot go stale as long as both are made from the same traced value). A Whitted level on the CPU
+makes one call for its rays' closest hits and their shadow rays to the point lights (`direct`: the
+kernel makes each packet's shadow segments from the hits it has just found, with the float32
+operations of the trace loop, and traces them at once). Instanced scenes (`jaxrt.accel.two_level`) keep
 their own traversal.
 
 No build step at install: `available()` compiles the shipped source as `traverse_cpu` does (cached,

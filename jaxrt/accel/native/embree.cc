@@ -26,6 +26,10 @@
 // agree to ~1e-7 relative whichever kernel traced the ray; on request the hit point and the unit
 // geometric normal too (`Finish`), so that shading need not gather the corners again.
 //
+// Direct light (`Direct`): the closest hits and, per packet, the hits' shadow rays to point lights
+// (`Shadows16`), so that a Whitted frame of depth 1 is one call (BENCHMARKS.md, "Direct-light frames
+// on the CPU: shadow rays in the traversal call").
+//
 // Threads: chunks of consecutive rays (coherent image tiles) handed out by an atomic counter to the
 // caller and to tasks on XLA's intra-op thread pool, as in traverse.cc. Each chunk is traced in
 // packets of 16 rays (rtcIntersect16 / rtcOccluded16); Embree picks its kernels for the instruction

@@ -50,9 +50,10 @@ __all__ = ["ProgramStats", "cached_jit", "program_stats", "source_digest"]
 
 # Custom-call targets in jaxrt's programs that `jax.export` does not list as stable: the Pallas GPU
 # traversal (Triton) and the CPU traversal kernels (`jaxrt.accel.traverse_cpu.TARGET`,
-# `jaxrt.accel.traverse_embree.TARGET`, and its keyed calls' `KEY_TARGET`, `KEYED_TARGET`).
+# `jaxrt.accel.traverse_embree.TARGET`, its keyed calls' `KEY_TARGET`, `KEYED_TARGET` and the
+# direct-light call's `DIRECT_TARGET`).
 _UNLISTED_TARGETS = ("__gpu$xla.gpu.triton", "jaxrt_bvh_traverse", "jaxrt_embree_trace", "jaxrt_embree_table_key",
-                     "jaxrt_embree_trace_keyed")
+                     "jaxrt_embree_trace_keyed", "jaxrt_embree_direct")
 # JAX options that change what tracing produces (or whether it raises).
 _TRACE_OPTIONS = ("jax_enable_x64", "jax_numpy_rank_promotion", "jax_numpy_dtype_promotion",
                   "jax_default_matmul_precision", "jax_default_prng_impl", "jax_threefry_partitionable")

@@ -14,11 +14,11 @@ predicates shared by every traversal), `traverse_xla` (the portable stackless lo
 (the `BVH` pytree and the dispatch between back ends).
 """
 
-from jaxrt.accel.bvh import (BVH, IMPLS, RENDER_TREE, BVHStats, Hit, build, intersect, intersect_points, node_visits,
-                             occluded, stats, uses_embree, with_table_key)
+from jaxrt.accel.bvh import (BVH, IMPLS, RENDER_TREE, BVHStats, Hit, build, intersect, intersect_points,
+                             intersect_points_shadowed, node_visits, occluded, stats, uses_embree, with_table_key)
 from jaxrt.accel.two_level import InstancedBVH
 
 __all__ = [
     "BVH", "BVHStats", "Hit", "IMPLS", "InstancedBVH", "RENDER_TREE",
-    "build", "intersect", "intersect_points", "node_visits", "occluded", "stats", "uses_embree", "with_table_key",
+    "build", "intersect", "intersect_points", "intersect_points_shadowed", "node_visits", "occluded", "stats", "uses_embree", "with_table_key",
 ]

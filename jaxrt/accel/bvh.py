@@ -408,6 +408,36 @@ def intersect_points(
     return hit, p, ng
 
 
+def intersect_points_shadowed(
+    tree: BVH,
+    origins: Float[Array, "N 3"],
+    directions: Float[Array, "N 3"],
+    tmin: Float[Array, " N"] | float,
+    tmax: Float[Array, " N"] | float,
+    lights: Float[Array, "L 3"],
+) -> tuple[Hit, Float[Array, "N 3"], Float[Array, "N 3"], Bool[Array, "N L"]]:
+    """`intersect_points`, and whether each hit's shadow segment to each of L point lights is
+    blocked, in one Embree call (`traverse_embree.direct`; only where `uses_embree()`: the caller
+    checks). The segments are those of the Whitted trace loop (`jaxrt.integrators.whitted.
+    shadow_segments`: from the hit offset along its geometric normal, turned towards the ray, to
+    the light), made in the kernel with the same float32 operations and traced from the light's end
+    as `occluded(from_end=True)`; False on misses and for lights behind the oriented normal. Not
+    differentiable."""
+    if not uses_embree():
+        raise InputError("bvh.intersect_points_shadowed: Embree's CPU traversal only (see `uses_embree`)")
+    o = lax.stop_gradient(jnp.asarray(origins, jnp.float32))
+    d = lax.stop_gradient(jnp.asarray(directions, jnp.float32))
+    n = o.shape[0]
+    lo = jnp.broadcast_to(lax.stop_gradient(jnp.asarray(tmin, jnp.float32)), (n,))
+    hi = jnp.broadcast_to(lax.stop_gradient(jnp.asarray(tmax, jnp.float32)), (n,))
+    found, t, best, u, v, p, ng, occ = traverse_embree.direct(tree.triangles, o, d, lo, hi,
+                                                              lax.stop_gradient(lights))
+    prim = jnp.where(found, tree.prim_ids[jnp.maximum(best, 0)], -1)
+    t = jnp.clip(t, lo, hi)
+    hit = Hit(t=jnp.where(found, t, jnp.inf), prim=prim, u=jnp.where(found, u, 0.0), v=jnp.where(found, v, 0.0))
+    return hit, p, ng, occ
+
+
 def occluded(
     tree: BVH,
     origins: Float[Array, "N 3"],

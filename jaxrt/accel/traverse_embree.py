@@ -19,7 +19,10 @@ process (a few tables, keyed by a hash of the table's bytes that every call comp
 rebuilds it, a changed mesh never reuses a stale one. A program that traces one table many times
 (the path tracer: two calls per bounce and chunk) hashes it once instead: `table_key` makes the key
 from the table inside the program and `traverse(key=...)` passes it beside the same table (the key
-cannot go stale as long as both are made from the same traced value). Instanced scenes (`jaxrt.accel.two_level`) keep
+cannot go stale as long as both are made from the same traced value). A Whitted level on the CPU
+makes one call for its rays' closest hits and their shadow rays to the point lights (`direct`: the
+kernel makes each packet's shadow segments from the hits it has just found, with the float32
+operations of the trace loop, and traces them at once). Instanced scenes (`jaxrt.accel.two_level`) keep
 their own traversal.
 
 No build step at install: `available()` compiles the shipped source as `traverse_cpu` does (cached,
@@ -49,6 +52,8 @@ _SYMBOL = "JaxrtEmbreeTrace"
 # the keyed calls (`table_key`, `traverse(key=...)`): the same library, two more targets
 KEY_TARGET, _KEY_SYMBOL = "jaxrt_embree_table_key", "JaxrtEmbreeTableKey"
 KEYED_TARGET, _KEYED_SYMBOL = "jaxrt_embree_trace_keyed", "JaxrtEmbreeTraceKeyed"
+# closest hits and their shadow rays to point lights in one call (`direct`)
+DIRECT_TARGET, _DIRECT_SYMBOL = "jaxrt_embree_direct", "JaxrtEmbreeDirect"
 LIBS = ("-lembree3",)
 # No errno from sqrt and no floating-point traps, so that the loops finishing the hits in double
 # (`Finish` in embree.cc) have no branches and vectorise; neither changes a result.
@@ -76,7 +81,8 @@ def _load() -> bool:
     try:
         traverse_cpu.load_library("embree", _source(), compiler, TARGET, _SYMBOL, _state, LIBS, FLAGS)
         if not _state.get("keyed"):
-            for target, symbol in ((KEY_TARGET, _KEY_SYMBOL), (KEYED_TARGET, _KEYED_SYMBOL)):
+            for target, symbol in ((KEY_TARGET, _KEY_SYMBOL), (KEYED_TARGET, _KEYED_SYMBOL),
+                                   (DIRECT_TARGET, _DIRECT_SYMBOL)):
                 jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(_state["lib"], symbol)), platform="cpu")
             _state["keyed"] = True
     except Exception as e:  # noqa: BLE001 -- any failure means: use the native kernel
@@ -170,3 +176,39 @@ def table_key(triangles: Float[Array, "F 9"]) -> UInt32[Array, "2"]:
         raise RuntimeError("jaxrt.accel.traverse_embree: the Embree kernel is not available")
     call = jax.ffi.ffi_call(KEY_TARGET, jax.ShapeDtypeStruct((2,), jnp.uint32), vmap_method="sequential")
     return call(triangles, quality=np.int64(QUALITY))
+
+
+def direct(triangles: Float[Array, "F 9"], origins: Float[Array, "N 3"], directions: Float[Array, "N 3"],
+           tmin: Float[Array, " N"], tmax: Float[Array, " N"], lights: Float[Array, "L 3"], *,
+           coherent: str = "auto", threads: int = 0):
+    """Closest hits and, in the same call, each hit's shadow rays to L point lights: returns
+    (found, t, best, u, v, p, ng), as `traverse(points=True, refine=True)`, and occ (N, L) bool.
+
+    The shadow ray of a hit and light is the segment the Whitted trace loop tests
+    (`jaxrt.integrators.whitted.shadow_segments`), made in the kernel with the same float32
+    operations from the hit's p and ng, the ray's direction and the light's position, and traced from
+    the light's end (`bvh.occluded(from_end=True)`). occ is True where that segment is blocked, False
+    on misses and where the light is behind the hit's geometric normal (not lit; the caller decides
+    lit for itself and ANDs). The kernel writes the shadow rays of each packet of 16 hits right after
+    tracing them, so no shadow-ray arrays are made and the table is hashed once. Lowers for the CPU
+    only; raises RuntimeError where the kernel is not `available()`.
+    """
+    modes = {"no": 0, "yes": 1, "auto": 2}
+    if threads < 0 or coherent not in modes:
+        raise ValueError(f"traverse_embree.direct: threads must be >= 0 and coherent one of {tuple(modes)}; "
+                         f"got {threads}, {coherent!r}")
+    if not available():
+        raise RuntimeError("jaxrt.accel.traverse_embree: the Embree kernel is not available")
+    n = origins.shape[0]
+    nl = lights.shape[0]
+    f32 = jax.ShapeDtypeStruct((n,), jnp.float32)
+    i32 = jax.ShapeDtypeStruct((n,), jnp.int32)
+    f3 = jax.ShapeDtypeStruct((n, 3), jnp.float32)
+    call = jax.ffi.ffi_call(DIRECT_TARGET, (f32, i32, f32, f32, f3, f3, jax.ShapeDtypeStruct((n, nl), jnp.bool_)),
+                            vmap_method="sequential")
+    t, best, u, v, p, ng, occ = call(
+        jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32), jnp.asarray(tmin, jnp.float32),
+        jnp.asarray(tmax, jnp.float32), triangles, jnp.asarray(lights, jnp.float32).reshape(nl, 3),
+        coherent=np.int64(modes[coherent]), quality=np.int64(QUALITY), chunk=np.int64(CHUNK),
+        threads=np.int64(threads))
+    return best >= 0, t, best, u, v, p, ng, occ

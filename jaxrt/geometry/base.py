@@ -57,6 +57,19 @@ class AbstractGeometry(eqx.Module):
         hit = self.intersect(origins, directions, tmin, tmax)
         return hit, self.surface(hit.prim, hit.u, hit.v)
 
+    def shadows_in_traversal(self) -> bool:
+        """Whether `intersect_surface_shadowed` is implemented here (static): a traversal that traces
+        the hits' shadow rays to point lights in the same call (`TriangleGeometry` on the CPU with
+        Embree). Others: False, and the integrator traces shadow rays with `occluded`."""
+        return False
+
+    def intersect_surface_shadowed(self, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"],
+                                   tmin: Float[Array, " N"] | float, tmax: Float[Array, " N"] | float,
+                                   lights: Float[Array, "L 3"]) -> tuple[Hit, Surface, Bool[Array, "N L"]]:
+        """`intersect_surface` and whether each hit's shadow segment to each point light is blocked
+        (the segments of `jaxrt.integrators.whitted.shadow_segments`), where `shadows_in_traversal()`."""
+        raise NotImplementedError(f"{type(self).__name__} traces shadow rays with `occluded`")
+
     @abc.abstractmethod
     def triangles(self, prim: Int[Array, " B"]) -> tuple[Float[Array, "B 3"], Float[Array, "B 3"], Float[Array, "B 3"]]:
         """World-space corners (v0, v1, v2) of faces `prim` (e.g. for sampling points on emitters)."""

@@ -43,12 +43,26 @@ class TriangleGeometry(AbstractGeometry):
         # they are the BVH's triangles (built from `vertices`), equal to `surface`'s up to float32
         # rounding, and not differentiable
         hit, p, ng = accel.intersect_points(self.tree, origins, directions, tmin=tmin, tmax=tmax)
+        return hit, self._surface_at_hits(hit, p, ng)
+
+    def shadows_in_traversal(self) -> bool:
+        """Whether `intersect_surface_shadowed` is available: the CPU with Embree (one call for the
+        hits and their shadow rays, `accel.intersect_points_shadowed`)."""
+        return accel.uses_embree()
+
+    def intersect_surface_shadowed(self, origins, directions, tmin, tmax, lights):
+        """`intersect_surface`, and whether each hit's shadow segment to each point light (L, 3) is
+        blocked, (B, L), traced in the same call (`accel.intersect_points_shadowed`; only where
+        `shadows_in_traversal()`). Not differentiable."""
+        hit, p, ng, occ = accel.intersect_points_shadowed(self.tree, origins, directions, tmin, tmax, lights)
+        return hit, self._surface_at_hits(hit, p, ng), occ
+
+    def _surface_at_hits(self, hit, p, ng):
         f = self.faces[jnp.maximum(hit.prim, 0)]  # (B, 3)
         u, v = hit.u, hit.v
         uv = None if self.uvs is None else interpolate(self.uvs, f, u, v)
-        s = surface_at(p, ng, interpolate(self.normals, f, u, v), interpolate(self.tangents, f, u, v),
-                       self.face_material(hit.prim), uv)
-        return hit, s
+        return surface_at(p, ng, interpolate(self.normals, f, u, v), interpolate(self.tangents, f, u, v),
+                          self.face_material(hit.prim), uv)
 
     def triangles(self, prim):
         f = self.faces[jnp.maximum(prim, 0)]

@@ -92,6 +92,7 @@ def fold_in_uniforms(keys: Key[Array, " B"], k: int | Array, n: int) -> Float[Ar
 #: one fused kernel of log2(n) gathers. The result is the same index either way.
 SEARCH = "scan_unrolled"
 
+_UNSIGNED = True  # `sample_order_arrays` (False: signed on every backend, for A/B)
 BLOCK = (8, 4)  # pixels (wide, high) per block of level-0 slots: one GPU warp's 32 rays
 
 
@@ -126,14 +127,18 @@ def sample_order_arrays(height: int, width: int, spp: int) -> tuple[Int[Array, "
         order, first = sample_order(height, width, spp)
         return jnp.asarray(order), jnp.asarray(first)
     nbx = width // bw
-    s = jnp.arange(height * width * spp, dtype=jnp.int32)
+    # unsigned on the CPU: XLA:CPU writes a signed // and % by a constant with sign fix-ups (about 50
+    # integer operations for `first`), which it recomputed for every element of the gather into pixel
+    # order that consumes them; unsigned they are multiplies and shifts. Same indices.
+    dt = jnp.uint32 if _UNSIGNED and on_cpu() else jnp.int32
+    s = jnp.arange(height * width * spp, dtype=dt)
     p, j = s // spp, s % spp  # pixel rank, sample
     b, q = p // (bw * bh), p % (bw * bh)  # block, place in the block
     order = (((b // nbx) * bh + q // bw) * width + (b % nbx) * bw + q % bw) * spp + j
-    i = jnp.arange(height * width, dtype=jnp.int32)
+    i = jnp.arange(height * width, dtype=dt)
     y, x = i // width, i % width
     first = (((y // bh) * nbx + x // bw) * (bw * bh) + (y % bh) * bw + x % bw) * spp
-    return order, first
+    return order.astype(jnp.int32), first.astype(jnp.int32)
 
 
 def power_heuristic(a, b):

@@ -142,6 +142,9 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
     # the throughput's dtype follows the scene's values (float64 when a test asks for it)
     wdtype = jnp.result_type(mats.delta.dtype, jnp.float32)
     glass_shadows = transmits(scene)
+    # on the CPU with Embree the traversal traces each hit's shadow rays in the same call (the same
+    # segments, made in the kernel; `shadow_segments`): no shadow-ray arrays, one pass over the rays
+    native_shadows = not glass_shadows and geo.shadows_in_traversal()
 
     order, first = sample_order_arrays(th, tw, spp)
     # made in slot order (no gather of the rays), unit directions
@@ -178,18 +181,24 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
         k, (o, d, act, pix, parent, branch, weight), buf, img, rec = carry
         # the surface from the traversal's hit points and normals (the pass is under stop_gradient;
         # on the CPU Embree returns them, and the corners are not gathered again)
-        hit, s = intersect_surface_active(geo, o, d, act)
+        if native_shadows:
+            hit, s, occ = geo.intersect_surface_shadowed(o, d, 0.0, jnp.where(act, jnp.inf, -1.0),
+                                                         scene.lights.position)
+        else:
+            hit, s = intersect_surface_active(geo, o, d, act)
         prim = jnp.where(act, hit.prim, -1)
         found = prim >= 0
         u, v, t = (jnp.where(found, x, 0.0) for x in (hit.u, hit.v, hit.t))
         ng, ns, _ = oriented(s, d)
         eps = offset_scale(s.p)
         # shadow rays, one per (slot, light)
-        wi, dist, _ = _lights.incident(scene.lights, s.p)  # (B, L, 3), (B, L)
+        wi, dist, so, smax = shadow_segments(scene.lights, s.p, ng, eps)
         lit = found[:, None] & (dot(wi, ng[:, None, :]) > 0) & ~is_glass(mats, s.material)[:, None]
-        so = jnp.broadcast_to(s.p[:, None, :] + ng[:, None, :] * eps[:, None, :], wi.shape)
-        smax = jnp.where(lit, dist - 2.0 * eps, -1.0)
-        if glass_shadows:
+        smax = jnp.where(lit, smax, -1.0)
+        if native_shadows:
+            # traced with the hits (inactive slots and misses are not lit)
+            visible = lit & ~occ
+        elif glass_shadows:
             # glass lets light through: V is the Fresnel transmittance (jaxrt.shading.shadows)
             visible = lit * _shadows.transmittance(scene, so.reshape(-1, 3), wi.reshape(-1, 3),
                                                    smax.reshape(-1)).reshape(B, L)
@@ -302,6 +311,18 @@ def _trace_loop(scene, *, record: bool, image: bool, aovs: bool = False, window:
     if aovs:
         rec = build_aovs(scene, **rec, shape=(th, tw))
     return buf, img, rec
+
+
+def shadow_segments(lights, p: Float[Array, "B 3"], ng: Float[Array, "B 3"], eps: Float[Array, "B 1"]):
+    """The shadow rays of hits at p with geometric normals ng turned towards the arriving ray and
+    offsets eps (`surface.offset_scale`), one per (hit, light): (wi, dist, so, smax), wi the unit
+    direction to the light and dist its distance (`lights.incident`), so = p + ng·eps the origin and
+    smax = dist − 2·eps the segment's end (before masking the hits that are not lit). Embree's
+    direct-light call (`accel.intersect_points_shadowed`) makes the same segments in float32 with the
+    same operations; change both together."""
+    wi, dist, _ = _lights.incident(lights, p)  # (B, L, 3), (B, L)
+    so = jnp.broadcast_to(p[:, None, :] + ng[:, None, :] * eps[:, None, :], wi.shape)
+    return wi, dist, so, dist - 2.0 * eps
 
 
 def trace(scene) -> GBuffer:

@@ -338,3 +338,120 @@ def test_silent_fallback_without_embree(monkeypatch):
         monkeypatch.undo()
         traverse_embree._reset_for_tests()
     assert traverse_embree.available()
+
+
+def _segments_reference(tree, o, d, tmin, tmax, lights):
+    """The Whitted loop's shadow segments of the closest hits (made in JAX from `intersect_points`'
+    p and ng, `whitted.shadow_segments`) and their blocked flags from jaxrt's own XLA traversal
+    (`occluded(from_end=True, impl="xla")`): (hit, p, ng, lit, org, dirs, smax, occ)."""
+    from jaxrt.integrators.whitted import shadow_segments
+    from jaxrt.lights import PointLights
+    from jaxrt.shading.surface import dot, offset_scale
+
+    @jax.jit
+    def f(tree, o, d, lo, hi, lights):
+        hit, p, ng = bvh.intersect_points(tree, o, d, lo, hi, impl="embree")
+        ngo = jnp.where((dot(d, ng) > 0)[:, None], -ng, ng)
+        wi, _, so, smax = shadow_segments(PointLights(lights, jnp.ones_like(lights)), p, ngo, offset_scale(p))
+        lit = (hit.prim >= 0)[:, None] & (dot(wi, ngo[:, None, :]) > 0)
+        smax = jnp.where(lit, smax, -1.0)
+        n, nl = smax.shape
+        occ = bvh.occluded(tree, so.reshape(-1, 3), wi.reshape(-1, 3), smax.reshape(-1), from_end=True, impl="xla")
+        org = so + smax[..., None] * wi  # the segment from its light end, as from_end traces it
+        return hit, p, ng, lit, org, -wi, smax, occ.reshape(n, nl)
+
+    return tuple(jax.tree.map(np.asarray, f(tree, o, d, tmin, tmax, lights)))
+
+
+@pytest.mark.data
+def test_direct_call_traces_the_whitted_shadow_segments(bunny):
+    """`bvh.intersect_points_shadowed` (Embree's closest hits and their shadow rays in one call):
+    the hits are `intersect_points`' exactly; the blocked flags are those of the same segments made
+    in JAX and traced by jaxrt's XLA traversal (up to rays that meet an edge or vertex, where the two
+    watertight tests may differ), and agree with float64 brute force wherever the verdict is clear."""
+    from test_bvh import brute_force
+
+    tree = bvh.build(bunny.vertices, bunny.faces)
+    o, d, tmin, tmax = ray_mix(bunny, 3000, seed=7)
+    lo, hi = np.float32(tmin), np.float32(tmax)
+    v = np.asarray(bunny.vertices, np.float64)
+    c, r = (v.min(0) + v.max(0)) / 2, np.ptp(v, axis=0).max()
+    # one light far above, one just outside the mesh, one inside its bounding box
+    lights = np.float32([c + [0.3 * r, 3 * r, 0.5 * r], c + [0.7 * r, 0.1 * r, 0.0], c + [0.0, -0.05 * r, 0.02 * r]])
+    hit, p, ng, occ = jax.tree.map(np.asarray, jax.jit(bvh.intersect_points_shadowed)(tree, o, d, lo, hi, lights))
+    rhit, rp, rng_, lit, org, dirs, smax, rocc = _segments_reference(tree, o, d, lo, hi, lights)
+    for a, b in ((hit.prim, rhit.prim), (hit.t, rhit.t), (hit.u, rhit.u), (hit.v, rhit.v), (p, rp), (ng, rng_)):
+        np.testing.assert_array_equal(a, b)
+    assert occ.shape == (len(o), 3) and occ.dtype == bool
+    assert lit.sum() > 1500 and 0.1 < rocc[lit].mean() < 0.9  # both verdicts well represented
+    assert not np.any(occ & ~lit), "a segment that is not lit was traced"
+    differ = (occ != rocc) & lit
+    assert differ.sum() <= 0.002 * lit.sum(), f"{int(differ.sum())} of {int(lit.sum())} segments differ"
+    # float64 brute force on a sample of lit segments: blocked where a triangle's interior meets the
+    # segment's interior, open where nothing comes near it; the kernel must agree on those
+    i, j = np.nonzero(lit)
+    pick = np.random.default_rng(0).choice(len(i), 400, replace=False)
+    i, j = i[pick], j[pick]
+    so, sd, sm = org[i, j].astype(np.float64), dirs[i, j].astype(np.float64), smax[i, j].astype(np.float64)
+    tri = np.asarray(tree.triangles, np.float64).reshape(-1, 3, 3)
+    strict = brute_force(tri, so, sd, sm * 1e-5, sm * (1 - 1e-5), slack=-1e-5)[1] >= 0
+    loose = brute_force(tri, so, sd, -1e-5 * sm, sm * (1 + 1e-5), slack=1e-5)[1] >= 0
+    assert strict.sum() > 50 and (~loose).sum() > 50
+    np.testing.assert_array_equal(occ[i, j][strict], True)
+    np.testing.assert_array_equal(occ[i, j][~loose], False)
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("name", ["bunny", "spheres"])
+def test_frames_with_shadows_in_the_traversal_equal_the_separate_shadow_rays(name, data_dir, monkeypatch):
+    """Whitted frames whose shadow rays Embree traces with the hits (`shadows_in_traversal`) against
+    the same program with them traced by `occluded`: the same image up to float rounding (the
+    segments are made with the same float32 operations; a few grazing rays may go the other way). The
+    spheres (mirrors, glass with opaque shadows, depth 5, a second light) trace every level so."""
+    import tomllib
+
+    import jaxrt
+    from jaxrt import scene as S
+    from jaxrt.geometry.triangles import TriangleGeometry
+    from jaxrt.integrators import whitted
+
+    monkeypatch.setenv("JAXRT_DATA", str(data_dir))
+    doc = tomllib.loads(S.find_scene(name).read_text())
+    doc["render"]["glass_shadows"] = "opaque"
+    doc["lights"].append({"position": [-2.0, 3.0, 1.0], "intensity": [20.0, 15.0, 10.0]})
+    scn = S.load(doc, base_dir=S.find_scene(name).parent, overrides={"camera.width": 96, "camera.height": 72})
+    assert scn.geometry.shadows_in_traversal() and not whitted.transmits(scn)
+    f = jax.jit(whitted.whitted)
+    text = f.lower(scn).as_text()
+    assert traverse_embree.DIRECT_TARGET in text
+    assert "any_hit = true" not in text  # no separate shadow-ray call
+    img = np.asarray(f(scn))
+    monkeypatch.setattr(TriangleGeometry, "shadows_in_traversal", lambda self: False)
+    g = jax.jit(lambda s: whitted.whitted(s))  # a new function: traced again
+    assert traverse_embree.DIRECT_TARGET not in g.lower(scn).as_text()
+    ref = np.asarray(g(scn))
+    assert np.all(np.isfinite(img)) and ref.mean() > 0
+    differ = np.any(np.abs(img - ref) > 2e-5, axis=-1)
+    assert differ.mean() < 0.002, f"{int(differ.sum())} pixels differ"
+    assert abs(img.mean() - ref.mean()) < 1e-5 * ref.mean()
+    np.testing.assert_allclose(np.asarray(jaxrt.render(scn)), img, rtol=0, atol=1e-6)
+
+
+def test_without_embree_the_frame_traces_shadow_rays_separately(monkeypatch):
+    """No Embree library: the geometry reports no shadows in the traversal and the Whitted program
+    traces them with the native kernel's any-hit call."""
+    from jaxrt import scene as S
+    from jaxrt.integrators import whitted
+
+    scn = S.load("spheres", overrides={"camera.width": 16, "camera.height": 12, "render.max_depth": 1})
+    monkeypatch.setattr(traverse_embree, "_library", "jaxrt-no-such-library")
+    traverse_embree._reset_for_tests()
+    try:
+        assert not scn.geometry.shadows_in_traversal()
+        text = jax.jit(whitted.whitted).lower(scn).as_text()
+        assert traverse_embree.DIRECT_TARGET not in text and traverse_cpu.TARGET in text
+        assert np.all(np.isfinite(np.asarray(jax.jit(whitted.whitted)(scn))))
+    finally:
+        monkeypatch.undo()
+        traverse_embree._reset_for_tests()
+        assert traverse_embree.available()

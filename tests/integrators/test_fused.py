@@ -310,5 +310,6 @@ def test_sample_order_arrays_are_sample_orders_tables():
         got = jax.jit(sample_order_arrays, static_argnums=(0, 1, 2))(h, w, spp)
         np.testing.assert_array_equal(np.asarray(got[0]), order, err_msg=f"{h}x{w}x{spp}")
         np.testing.assert_array_equal(np.asarray(got[1]), first, err_msg=f"{h}x{w}x{spp}")
+        assert got[0].dtype == got[1].dtype == np.int32  # made unsigned on the CPU, returned as int32
     text = jax.jit(sample_order_arrays, static_argnums=(0, 1, 2)).lower(256, 256, 1).as_text()
     assert len(text) < 20_000, len(text)  # no 65,536-entry table in the program (such a table: ~1 MB of text)

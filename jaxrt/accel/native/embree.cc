@@ -26,6 +26,10 @@
 // agree to ~1e-7 relative whichever kernel traced the ray; on request the hit point and the unit
 // geometric normal too (`Finish`), so that shading need not gather the corners again.
 //
+// Direct light (`Direct`): the closest hits and, per packet, the hits' shadow rays to point lights
+// (`Shadows16`), so that a Whitted frame of depth 1 is one call (BENCHMARKS.md, "Direct-light frames
+// on the CPU: shadow rays in the traversal call").
+//
 // Threads: chunks of consecutive rays (coherent image tiles) handed out by an atomic counter to the
 // caller and to tasks on XLA's intra-op thread pool, as in traverse.cc. Each chunk is traced in
 // packets of 16 rays (rtcIntersect16 / rtcOccluded16); Embree picks its kernels for the instruction
@@ -237,6 +241,11 @@ struct Job {
   float* v;
   float* p;   // (n, 3) hit points, or null (points off)
   float* ng;  // (n, 3) unit geometric normals, or null
+  // Shadow rays of the direct-light call (`Direct`): nl point lights at `lights` (nl, 3), and per
+  // (ray, light) whether the segment from the hit to the light is blocked; nl = 0 otherwise.
+  const float* lights = nullptr;
+  int64_t nl = 0;
+  bool* occ = nullptr;  // (n, nl)
   int64_t chunk;
   std::atomic<int64_t> next{0};
   std::atomic<int64_t> done{0};
@@ -385,6 +394,92 @@ inline void Miss(const Job& J, int64_t i) {
   NoPoint(J, i);
 }
 
+// Octant coherence of a packet (`coherent` 2): Embree's coherent mode traverses the packet as one
+// (fast where its rays take the same path: camera tiles, shadow rays to one light); its incoherent
+// mode splits it into single rays as they diverge (bounced rays of a path tracer). Coherent here
+// when the packet's valid rays share a direction octant.
+inline void PacketFlags(RTCIntersectContext* ctx, const int* valid, const float* dx, const float* dy,
+                        const float* dz) {
+  unsigned all = 0, any = 0;
+  bool first = true;
+  for (int k = 0; k < 16; ++k) {
+    if (!valid[k]) continue;
+    const unsigned oct = (std::signbit(dx[k]) ? 1u : 0u) | (std::signbit(dy[k]) ? 2u : 0u) |
+                         (std::signbit(dz[k]) ? 4u : 0u);
+    all = first ? oct : all;
+    any |= oct != all;
+    first = false;
+  }
+  ctx->flags = any ? RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT : RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
+}
+
+// The shadow rays of the closest hits [s, e) just stored (their p and ng are in J.p, J.ng), one
+// packet per light, traced while the packet's hits are in cache. The rays are the ones the Whitted
+// trace loop makes in float32 (jaxrt/integrators/whitted.py, `shadow_segments`), operation for
+// operation, so that the same segments are tested:
+//   ng' = ng flipped towards the ray's origin (ng if d.ng <= 0), eps = 2^-16 (1 + max_k |p_k|),
+//   delta = light - p, d2 = delta.delta, dist = sqrt(d2) (0 and wi = 0 where d2 <= 1e-20),
+//   wi = delta / dist, lit = wi.ng' > 0, so = p + ng' eps, smax = dist - 2 eps (lit only),
+// traced from the light's end (`bvh.occluded(from_end=True)`): origin so + smax wi, direction -wi,
+// [0, smax]. occ is false where the hit is missed or not lit (the caller ANDs its own `lit`).
+void Shadows16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
+  alignas(64) int valid[16];
+  alignas(64) RTCRay16 r;
+  for (int64_t l = 0; l < J.nl; ++l) {
+    const float* L = J.lights + 3 * l;
+    bool any = false;
+    for (int k = 0; k < 16; ++k) {
+      const int64_t i = s + k;
+      bool ok = i < e && J.best[i >= e ? s : i] >= 0;
+      const int64_t j = i < e ? i : s;
+      const float* p = J.p + 3 * j;
+      const float* n = J.ng + 3 * j;
+      const float* d = J.d + 3 * j;
+      const float dn = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
+      const float sg = dn > 0.0f ? -1.0f : 1.0f;
+      const float g[3] = {n[0] * sg, n[1] * sg, n[2] * sg};
+      const float a = std::max(std::max(std::fabs(p[0]), std::fabs(p[1])), std::fabs(p[2]));
+      const float eps = 1.52587890625e-05f * (1.0f + a);  // 2^-16
+      const float dl[3] = {L[0] - p[0], L[1] - p[1], L[2] - p[2]};
+      const float d2 = dl[0] * dl[0] + dl[1] * dl[1] + dl[2] * dl[2];
+      const bool safe = d2 > 1e-20f;
+      const float dist = std::sqrt(safe ? d2 : 1.0f);
+      const float wi[3] = {safe ? dl[0] / dist : 0.0f, safe ? dl[1] / dist : 0.0f, safe ? dl[2] / dist : 0.0f};
+      const float dsafe = safe ? dist : 0.0f;
+      ok = ok && (wi[0] * g[0] + wi[1] * g[1] + wi[2] * g[2]) > 0.0f;
+      const float so[3] = {p[0] + g[0] * eps, p[1] + g[1] * eps, p[2] + g[2] * eps};
+      const float smax = dsafe - 2.0f * eps;
+      const float org[3] = {so[0] + smax * wi[0], so[1] + smax * wi[1], so[2] + smax * wi[2]};
+      // as `Valid`: finite, 0 <= smax, a direction
+      ok = ok && std::isfinite(org[0]) && std::isfinite(org[1]) && std::isfinite(org[2]) && std::isfinite(smax) &&
+           smax >= 0.0f && (wi[0] != 0.0f || wi[1] != 0.0f || wi[2] != 0.0f);
+      valid[k] = ok ? -1 : 0;
+      any = any || ok;
+      r.org_x[k] = org[0];
+      r.org_y[k] = org[1];
+      r.org_z[k] = org[2];
+      r.dir_x[k] = -wi[0];
+      r.dir_y[k] = -wi[1];
+      r.dir_z[k] = -wi[2];
+      r.tnear[k] = 0.0f;
+      r.tfar[k] = ok ? smax : -INFINITY;
+      r.time[k] = 0.0f;
+      r.mask[k] = 0xFFFFFFFFu;
+      r.id[k] = k;
+      r.flags[k] = 0;
+    }
+    if (any) {
+      if (J.coherent == 2) PacketFlags(ctx, valid, r.dir_x, r.dir_y, r.dir_z);
+      rtcOccluded16(valid, J.scene, ctx, &r);
+    }
+    for (int64_t i = s; i < e; ++i) {
+      const int k = static_cast<int>(i - s);
+      // Embree marks an occluded ray with tfar = -inf
+      J.occ[i * J.nl + l] = any && valid[k] && r.tfar[k] == -INFINITY;
+    }
+  }
+}
+
 // Closest hit of the rays [s, e) (e - s <= 16) in one packet.
 void Packet16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
   alignas(64) int valid[16];
@@ -410,23 +505,7 @@ void Packet16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
     rh.hit.geomID[k] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.primID[k] = RTC_INVALID_GEOMETRY_ID;
   }
-  if (J.coherent == 2) {
-    // Embree's coherent mode traverses the packet as one (fast where its rays take the same path:
-    // camera tiles, shadow rays to one light); its incoherent mode splits it into single rays as
-    // they diverge (bounced rays of a path tracer). Coherent here when the packet's valid rays share
-    // a direction octant.
-    unsigned all = 0, any = 0;
-    bool first = true;
-    for (int k = 0; k < 16; ++k) {
-      if (!valid[k]) continue;
-      const unsigned oct = (std::signbit(r.dir_x[k]) ? 1u : 0u) | (std::signbit(r.dir_y[k]) ? 2u : 0u) |
-                           (std::signbit(r.dir_z[k]) ? 4u : 0u);
-      all = first ? oct : all;
-      any |= oct != all;
-      first = false;
-    }
-    ctx->flags = any ? RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT : RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
-  }
+  if (J.coherent == 2) PacketFlags(ctx, valid, r.dir_x, r.dir_y, r.dir_z);
   if (J.any_hit) {
     rtcOccluded16(valid, J.scene, ctx, &r);
   } else {
@@ -461,6 +540,7 @@ void Packet16(const Job& J, RTCIntersectContext* ctx, int64_t s, int64_t e) {
     ++H.m;
   }
   Store(J, H);
+  if (J.nl > 0) Shadows16(J, ctx, s, e);
 }
 
 // One ray at a time (rtcIntersect1 / rtcOccluded1): the A/B reference for the packets.
@@ -554,7 +634,8 @@ void Run(ffi::ThreadPool& pool, std::shared_ptr<Scene> scene, ffi::Buffer<ffi::F
          ffi::Buffer<ffi::F32>& tmin, ffi::Buffer<ffi::F32>& tmax, ffi::Buffer<ffi::F32>& tri,
          ffi::ResultBuffer<ffi::F32>& t, ffi::ResultBuffer<ffi::S32>& best, ffi::ResultBuffer<ffi::F32>& u,
          ffi::ResultBuffer<ffi::F32>& v, ffi::ResultBuffer<ffi::F32>& p, ffi::ResultBuffer<ffi::F32>& ng, int64_t n,
-         bool any_hit, bool refine, int64_t coherent, int64_t packet, int64_t chunk, int64_t threads) {
+         bool any_hit, bool refine, int64_t coherent, int64_t packet, int64_t chunk, int64_t threads,
+         const float* lights = nullptr, int64_t nl = 0, bool* occ = nullptr) {
   const bool points = Count(p->dimensions()) > 0;
   auto job = std::make_shared<Job>();
   Job& J = *job;
@@ -576,6 +657,9 @@ void Run(ffi::ThreadPool& pool, std::shared_ptr<Scene> scene, ffi::Buffer<ffi::F
   J.points = points;
   J.p = points ? p->typed_data() : nullptr;
   J.ng = points ? ng->typed_data() : nullptr;
+  J.lights = lights;
+  J.nl = nl;
+  J.occ = occ;
   J.chunk = chunk;
   const int64_t chunks = (n + chunk - 1) / chunk;
   int64_t workers = threads > 0 ? threads : pool.num_threads();
@@ -702,6 +786,35 @@ ffi::Error TraceKeyed(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer
   return ffi::Error::Success();
 }
 
+// ---------------------------------------------------------------------------------------------
+// Direct-light call: the closest hits (refined, with points and normals) and, in the same pass over
+// the rays, each hit's shadow rays to nl point lights (`Shadows16`). A Whitted frame of depth 1
+// otherwise made the shadow rays in XLA from the hits (about ten passes over the rays) and traced
+// them in a second call that hashed the table again; here each packet's shadow rays are traced
+// right after its camera rays, while their triangles and hit data are in cache.
+ffi::Error Direct(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> o, ffi::Buffer<ffi::F32> d, ffi::Buffer<ffi::F32> tmin,
+                  ffi::Buffer<ffi::F32> tmax, ffi::Buffer<ffi::F32> tri, ffi::Buffer<ffi::F32> lights,
+                  ffi::ResultBuffer<ffi::F32> t, ffi::ResultBuffer<ffi::S32> best, ffi::ResultBuffer<ffi::F32> u,
+                  ffi::ResultBuffer<ffi::F32> v, ffi::ResultBuffer<ffi::F32> p, ffi::ResultBuffer<ffi::F32> ng,
+                  ffi::ResultBuffer<ffi::PRED> occ, int64_t coherent, int64_t quality, int64_t chunk,
+                  int64_t threads) {
+  const int64_t n = Count(tmin.dimensions());
+  const int64_t nf = Count(tri.dimensions()) / 9;
+  const int64_t nl = Count(lights.dimensions()) / 3;
+  if (!CheckShapes(o, d, tmax, n, tri, nf, t, best, u, v, p, ng, false, coherent, 16, quality, chunk) ||
+      Count(p->dimensions()) != 3 * n || Count(lights.dimensions()) != 3 * nl || Count(occ->dimensions()) != n * nl) {
+    return ffi::Error::InvalidArgument("jaxrt_embree_direct: inconsistent array shapes or attributes");
+  }
+  if (n == 0) return ffi::Error::Success();
+  std::string err;
+  const uint64_t h = TableHash(pool, threads <= 0 && pool.num_threads() > 0, tri.typed_data(), nf);
+  std::shared_ptr<Scene> scene = GetScene(tri.typed_data(), nf, h, static_cast<int>(quality), &err);
+  if (!scene) return ffi::Error::Internal("jaxrt_embree_direct: " + err);
+  Run(pool, scene, o, d, tmin, tmax, tri, t, best, u, v, p, ng, n, false, true, coherent, 16, chunk, threads,
+      lights.typed_data(), nl, occ->typed_data());
+  return ffi::Error::Success();
+}
+
 }  // namespace
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtEmbreeTrace, Trace,
@@ -752,6 +865,27 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtEmbreeTraceKeyed, TraceKeyed,
                                   .Attr<bool>("refine")
                                   .Attr<int64_t>("coherent")
                                   .Attr<int64_t>("packet")
+                                  .Attr<int64_t>("quality")
+                                  .Attr<int64_t>("chunk")
+                                  .Attr<int64_t>("threads"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxrtEmbreeDirect, Direct,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // origins (N,3)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // directions (N,3)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // tmin (N,)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // tmax (N,)
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // triangles (F,9), leaf order
+                                  .Arg<ffi::Buffer<ffi::F32>>()  // point lights' positions (L,3)
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // t
+                                  .Ret<ffi::Buffer<ffi::S32>>()  // best (leaf order, -1 = miss)
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // u
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // v
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // hit points (N,3)
+                                  .Ret<ffi::Buffer<ffi::F32>>()  // unit geometric normals (N,3)
+                                  .Ret<ffi::Buffer<ffi::PRED>>()  // (N,L) shadow ray blocked
+                                  .Attr<int64_t>("coherent")
                                   .Attr<int64_t>("quality")
                                   .Attr<int64_t>("chunk")
                                   .Attr<int64_t>("threads"));

@@ -3,6 +3,7 @@
     python benchmarks/path.py                                  # 64^2, 4 spp per pass, depth 4
     python benchmarks/path.py --size 256 --spp 16 --passes 5   # e.g. on a GPU
     python benchmarks/path.py --scenes cornell --mitsuba-variant scalar_rgb
+    XLA_FLAGS=--xla_force_host_platform_device_count=2 python benchmarks/path.py --devices 2   # 2 CPU devices
 
 Scenes (Stanford meshes need $JAXRT_DATA):
   cornell  scenes/cornell_area.toml: the Cornell box lit by its emissive ceiling quad (all Lambert).
@@ -90,7 +91,9 @@ def load(name: str, size: int, spp: int, depth: int, exr: Path, mesh: str):
     return S.load(dragon_dict(exr, mesh), overrides=ov)
 
 
-def bench_jaxrt(sc, passes: int) -> dict:
+def bench_jaxrt(sc, passes: int, devices: int = 1) -> dict:
+    if devices > 1:
+        return bench_jaxrt_devices(sc, passes, devices)
     t0 = time.perf_counter()
     out = P.samples_jit(sc, 0, jitter=True)
     out.block_until_ready()
@@ -104,6 +107,40 @@ def bench_jaxrt(sc, passes: int) -> dict:
         a = np.asarray(out)
         assert np.all(np.isfinite(a))
         means.append(a.mean())
+    return dict(compile_s=compile_s, pass_s=statistics.median(times), mean=float(np.mean(means)))
+
+
+def bench_jaxrt_devices(sc, passes: int, devices: int) -> dict:
+    """A pass split into tiles over `devices` devices (`jaxrt.render_tiles.accumulate`, the plan kept
+    across passes). On a CPU these are virtual devices
+    (XLA_FLAGS=--xla_force_host_platform_device_count=N, set before the process starts): XLA:CPU runs
+    one program's loops on one thread (only the Embree calls use the pool's threads), and each
+    device runs its own program, so N devices can keep N cores busy. compile_s covers the compiles,
+    the plan's timed passes (`render_tiles.TIMED_PASSES`) and a first pass of its schedule; pass_s is
+    the median of `passes` passes after them."""
+    from jaxrt import render_tiles
+
+    if len(jax.devices()) < devices:
+        raise SystemExit(f"--devices {devices}: this process has {len(jax.devices())} devices (on a CPU set "
+                         f"XLA_FLAGS=--xla_force_host_platform_device_count={devices})")
+    devs = jax.devices()[:devices]
+    t0 = time.perf_counter()
+    st, plan = render_tiles.accumulate(sc, devices=devs, return_plan=True)
+    # the timed passes, then one pass of the scheduled queue (`render_tiles.accumulate`: a second program)
+    for _ in range(render_tiles.TIMED_PASSES):
+        st, plan = render_tiles.accumulate(sc, st, use_plan=plan, return_plan=True)
+    jax.block_until_ready(st.total)
+    compile_s = time.perf_counter() - t0
+    times, means = [], []
+    for _ in range(passes):
+        before = np.asarray(st.total)
+        s = time.perf_counter()
+        st, plan = render_tiles.accumulate(sc, st, use_plan=plan, return_plan=True)
+        jax.block_until_ready(st.total)
+        times.append(time.perf_counter() - s)
+        img = (np.asarray(st.total) - before) / sc.settings.spp
+        assert np.all(np.isfinite(img))
+        means.append(img.mean())
     return dict(compile_s=compile_s, pass_s=statistics.median(times), mean=float(np.mean(means)))
 
 
@@ -191,6 +228,9 @@ def main(argv=None) -> int:
     ap.add_argument("--passes", type=int, default=3)
     ap.add_argument("--mesh", default="dragon", help="dragon mesh data name (dragon, dragon_res2, dragon_res4)")
     ap.add_argument("--mitsuba-variant", default="llvm_ad_rgb")
+    ap.add_argument("--devices", type=int, default=1,
+                    help="split each jaxrt pass over this many devices (render_tiles.accumulate; on a CPU "
+                         "virtual devices: XLA_FLAGS=--xla_force_host_platform_device_count=N)")
     ap.add_argument("--no-mitsuba", action="store_true")
     ap.add_argument("--mitsuba-child", help=argparse.SUPPRESS)
     ap.add_argument("--exr", help=argparse.SUPPRESS)
@@ -213,7 +253,8 @@ def main(argv=None) -> int:
     dev = jax.devices()[0]
     print(f"backend: {jax.default_backend()}  device: {dev.device_kind}  jax {jax.__version__}")
     n = args.size * args.size * args.spp
-    print(f"{args.size}x{args.size}, {args.spp} spp per pass, max_depth {args.depth}, median of {args.passes} passes")
+    print(f"{args.size}x{args.size}, {args.spp} spp per pass, max_depth {args.depth}, median of {args.passes} passes"
+          + (f", jaxrt on {args.devices} devices" if args.devices > 1 else ""))
     print(f"{'scene':8s} {'tris':>8s} {'build s':>8s} {'compile s':>9s} {'pass s':>8s} {'Msamples/s':>10s} "
           f"{'mean':>8s}")
     with tempfile.TemporaryDirectory() as tmp:
@@ -223,7 +264,7 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             sc = load(name, args.size, args.spp, args.depth, exr, args.mesh)
             build = time.perf_counter() - t0
-            r = bench_jaxrt(sc, args.passes)
+            r = bench_jaxrt(sc, args.passes, args.devices)
             line = (f"{name:8s} {sc.geometry.faces.shape[0]:8d} {build:8.2f} {r['compile_s']:9.2f} "
                     f"{r['pass_s']:8.3f} {n / r['pass_s'] / 1e6:10.4f} {r['mean']:8.4f}")
             print(line, flush=True)

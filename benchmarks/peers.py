@@ -17,6 +17,9 @@ Rows (each a median of --repeats runs after a warm-up run that compiles):
            those hits to the light (jaxrt `bvh.occluded`, Mitsuba `ray_test`), the same rays for both.
   path     `benchmarks/path.py`'s scenes and code: the Cornell box (area light) and the dragon in an
            environment map, --path-size², --spp, --depth; Mitsuba in a child process (path.py's).
+           --path-devices N splits each jaxrt pass over N devices (on a CPU, virtual ones:
+           XLA_FLAGS=--xla_force_host_platform_device_count=N; XLA:CPU runs one program's loops on
+           one thread, N device programs run side by side; Mitsuba uses every core either way).
 
 Mitsuba's variant: cuda_ad_rgb where JAX runs on a GPU, else llvm_ad_rgb (its libLLVM found by
 `_mitsuba.use_libllvm`); if Mitsuba cannot be imported or the variant not set, jaxrt's rows are
@@ -207,7 +210,7 @@ def bench_path(pb, names, args, use_mitsuba: bool, variant: str) -> dict:
         exr = pb.sky_exr(Path(tmp) / "sky.exr")
         for name in names:
             sc = pb.load(name, args.path_size, args.spp, args.depth, exr, args.mesh)
-            r = dict(jaxrt=pb.bench_jaxrt(sc, args.passes))
+            r = dict(jaxrt=pb.bench_jaxrt(sc, args.passes, args.path_devices))
             if use_mitsuba:
                 ns = argparse.Namespace(size=args.path_size, spp=args.spp, depth=args.depth, passes=args.passes,
                                         mesh=args.mesh)
@@ -233,6 +236,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--paths", nargs="+", default=["cornell", "dragon"], choices=["cornell", "dragon"])
     ap.add_argument("--path-size", type=int, default=512)
+    ap.add_argument("--path-devices", type=int, default=1,
+                    help="path tracing: split each jaxrt pass over this many devices (`path.py --devices`; on a "
+                         "CPU virtual ones: XLA_FLAGS=--xla_force_host_platform_device_count=N)")
     ap.add_argument("--spp", type=int, default=16, help="path tracing: samples per pixel per pass")
     ap.add_argument("--depth", type=int, default=4, help="path tracing: max_depth (Mitsuba's is +1)")
     ap.add_argument("--passes", type=int, default=3, help="path tracing: timed passes (median)")

@@ -65,8 +65,8 @@ from jaxtyping import Array, Float, Int
 import brdfs
 from jaxrt import accel, camera, envmap
 from jaxrt import lights as _lights
-from jaxrt.integrators.common import (emitter_table, fold_in_uniforms, intersect_active, power_heuristic,
-                                      sample_area_light)
+from jaxrt.integrators.common import (emitter_table, fold_in_uniforms, intersect_active, intersect_surface_active,
+                                      power_heuristic, sample_area_light)
 from jaxrt.integrators.common import on_cpu as _on_cpu  # a name of this module's: tests patch it
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, hit_params, glass_split, is_glass
@@ -216,6 +216,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     al = scene.area_lights
     nl = scene.lights.count
     models = _bsdf_models(mats)
+    on_cpu = _on_cpu()
 
     key = jax.random.fold_in(jax.random.key(jnp.asarray(st.seed, jnp.uint32)), jnp.asarray(pass_index, jnp.uint32))
     kcam, kpath = jax.random.split(key)
@@ -236,12 +237,19 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     def work(k, carry, last: bool = False):
         o, d, alive, tput, specular, pdf_prev, L, first, u, keys = carry
         B = o.shape[0]  # the paths of one chunk
-        hit = intersect_active(geo, o, d, alive)
+        if on_cpu:
+            # the hit point and geometric normal come with the hit (Embree computes them from the
+            # triangle it holds, on both cores; `geometry.intersect_surface`), so the glue gathers no
+            # corners: the geometry is under stop_gradient here, so nothing differentiates them
+            hit, s = intersect_surface_active(geo, o, d, alive)
+        else:
+            hit = intersect_active(geo, o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0
         first = jax.tree.map(lambda a, b: jnp.where(k == 0, b, a), first,
                              dict(prim=prim, u=hit.u, v=hit.v, t=jnp.where(found, hit.t, 0.0), d=d))
-        s = geo.surface(prim, hit.u, hit.v)
+        if not on_cpu:
+            s = geo.surface(prim, hit.u, hit.v)
         s = eqx.tree_at(lambda x: x.material, s, jnp.where(found, s.material, 0))
 
         # ---- emission found by the previous ray
@@ -392,7 +400,6 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     # costs a wait for the device to hand its predicate to the host and copies of the loop state
     # into the conditional's results, every bounce, while a pass's batch of paths is rarely all dead
     # before max_depth: there the bounce runs unconditionally (dead paths are masked throughout).
-    on_cpu = _on_cpu()
 
     def body(k, carry):
         if not on_cpu:

@@ -129,6 +129,30 @@ def test_unconditional_bounces_equal_skipped_dead_bounces(furnace, monkeypatch):
     assert float(jnp.mean(skipped[0])) > 0
 
 
+def test_surfaces_from_the_traversal_equal_the_gathered_ones(furnace, monkeypatch):
+    # On the CPU a bounce takes each hit's point and geometric normal from the traversal
+    # (`geometry.intersect_surface`: Embree computes them in double from the triangle it holds)
+    # instead of gathering the corners (`geometry.surface`, what the GPU does). The same pass with
+    # the surfaces rebuilt from the corners must agree to float32 rounding: same first hits, and
+    # radiance within a few ulps (the furnace's glossy sphere: paths bounce up to 10 times).
+    sc = _with_material(furnace, "glossy")
+    L, first = jax.jit(lambda s: path.samples(s, 2, jitter=True, aovs=True))(sc)
+    calls = []
+
+    def gathered(geo, o, d, active):
+        calls.append(1)
+        hit = geo.intersect(o, d, 0.0, jnp.where(active, jnp.inf, -1.0))
+        return hit, geo.surface(hit.prim, hit.u, hit.v)
+
+    monkeypatch.setattr(path, "intersect_surface_active", gathered)
+    L2, first2 = jax.jit(lambda s: path.samples(s, 2, jitter=True, aovs=True))(sc)
+    assert jax.default_backend() != "cpu" or calls  # the CPU pass takes its surfaces there
+    for k in first:
+        np.testing.assert_array_equal(np.asarray(first[k]), np.asarray(first2[k]))
+    np.testing.assert_allclose(np.asarray(L), np.asarray(L2), rtol=1e-5, atol=1e-6)
+    assert float(jnp.mean(L)) > 0.5
+
+
 def test_chunked_pass_traces_an_edited_mesh(furnace, monkeypatch):
     # On the CPU with Embree the pass keys Embree's scene by the triangle table it traces
     # (`path._keyed`), which lets large meshes go in chunks too. The key is made in the pass from

@@ -154,12 +154,19 @@ PY
                       stage "caustic-sweep-k$k-p$p" 75 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2 \
                           --reference .gpudata/caustic_ref.npz --camera-samples "$k" --photons "$p" --bias-seeds 0
                   done ;;
-        caustic-alpha)  # SPPM's radius reduction α and initial radius (pixel footprints) against the carried
-                  # reference, the GPU defaults otherwise; each its own cache folder (stored programs are keyed by source)
+        caustic-alpha)  # SPPM's radius reduction α ([render] alpha) and initial radius (pixel footprints, a study
+                  # constant: each its own cache folder, stored programs are keyed by source) against the carried reference
                   for cfg in "0.5 1" "0.7 0.5" "0.7 2" "0.5 0.5"; do
                       read -r al rp <<< "$cfg"
                       JAXRT_CACHE_DIR=/tmp/jc-alpha-$al-$rp stage "caustic-alpha$al-r$rp" 75 python3 benchmarks/sppm.py \
                           --equal-time 0.25,0.5,1,2 --reference .gpudata/caustic_ref.npz --alpha "$al" --radius-pixels "$rp" --bias-seeds 0
+                  done ;;
+        caustic-alpha2)  # α = 0.5 with the bias check, then 0.4 and 0.6, the GPU defaults otherwise
+                  stage caustic-alpha0.5 100 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                      --reference .gpudata/caustic_ref.npz --alpha 0.5 --bias-seeds 2
+                  for al in 0.4 0.6; do
+                      stage "caustic-alpha$al" 75 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
+                          --reference .gpudata/caustic_ref.npz --alpha "$al" --bias-seeds 0
                   done ;;
         profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;

@@ -527,7 +527,7 @@ def _run_until(marks, step, per_call=None):
 
 def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: float, path_spp: int | None,
                bias_seeds: int, lamp: float | None = None, aim: float | None = None,
-               samples: int | None = None, levels: int = 0, per_call: int = 0) -> None:
+               samples: int | None = None, levels: int = 0, per_call: int = 0, alpha: float | None = None) -> None:
     ref = load_reference(ref_path, size, lamp)
     meta, doc = ref["meta"], ref["doc"]
     photons = photons or _default(GPU_PHOTONS, CPU_PHOTONS)
@@ -553,6 +553,8 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
     extra["camera_samples"] = samples
     if levels:
         extra["grid_levels"] = levels
+    if alpha:
+        extra["alpha"] = alpha
     sp = _build(doc, photons=photons, **extra)
     pt = _build(doc, integrator="path", spp=path_spp)
     # SPPM's passes a call: --passes-per-call, else as a render picks them (`sppm.passes_per_call`)
@@ -565,7 +567,7 @@ def equal_time(marks, ref_path: str, size: int, photons: int | None, radius: flo
     print(f"device {_device()}; equal time on the caustic scene (area light only) {meta['width']}x{meta['height']}, "
           f"max_depth {meta['max_depth']}; SPPM {photons} photons/pass, {samples} visible points/pixel/pass, "
           f"initial radius {radius or f'{sppm.RADIUS_PIXELS:g} pixel footprint'}, photon_aim "
-          f"{sp.settings.photon_aim:g}, grid levels {sppm.grid_levels(sp)}, passes a call "
+          f"{sp.settings.photon_aim:g}, grid levels {sppm.grid_levels(sp)}, alpha {sppm.alpha(sp):g}, passes a call "
           f"{per_call or f'adaptive (~{target:g} s a call)'}; path {path_spp} spp/pass")
     print(f"reference {ref_path}: {meta['spp']} spp ({meta['chunks']} chunks) on {meta['device']}, commit "
           f"{meta['commit']}; caustic region {int(region.sum())} px, mean {m:.4g}; its relative RMS error "
@@ -639,20 +641,18 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=40.0, help="rendering time of each half of --picture")
     ap.add_argument("--scene", default="caustics", help="the shipped scene of --picture (caustics, caustics_dragon)")
     ap.add_argument("--alpha", type=float, default=None,
-                    help="study: SPPM's radius reduction α (module constant `sppm.ALPHA`, default %g) for this run; "
-                         "use a cache folder of its own (JAXRT_CACHE_DIR): stored programs are keyed by source, not "
-                         "by this value" % sppm.ALPHA)
+                    help="SPPM [render] alpha for --equal-time (radius reduction, default %g)" % sppm.ALPHA)
     ap.add_argument("--radius-pixels", type=float, default=None,
                     help="study: the default initial radius in pixel footprints (`sppm.RADIUS_PIXELS`, default %g); "
                          "same caveat as --alpha" % sppm.RADIUS_PIXELS)
     a = ap.parse_args()
-    for flag, name, lo, hi in (("--alpha", "ALPHA", 0.0, 1.0), ("--radius-pixels", "RADIUS_PIXELS", 0.0, 64.0)):
-        v = getattr(a, name.lower() if name == "ALPHA" else "radius_pixels")
-        if v is not None:
-            if not lo < v <= hi:
-                _fail(f"{flag} {v}: must be in ({lo:g}, {hi:g}]")
-            setattr(sppm, name, v)
-            print(f"# study: sppm.{name} = {v:g}")
+    if a.alpha is not None and not 0.0 < a.alpha < 1.0:
+        _fail(f"--alpha {a.alpha}: must be in (0, 1)")
+    if a.radius_pixels is not None:
+        if not 0.0 < a.radius_pixels <= 64.0:
+            _fail(f"--radius-pixels {a.radius_pixels}: must be in (0, 64]")
+        sppm.RADIUS_PIXELS = a.radius_pixels
+        print(f"# study: sppm.RADIUS_PIXELS = {a.radius_pixels:g}")
     if a.picture:
         picture(a.picture, a.seconds, a.size or 128, a.scene)
     elif a.make_reference:
@@ -668,7 +668,7 @@ def main() -> None:
         if not a.reference:
             _fail("--equal-time needs --reference FILE (made with --make-reference)")
         equal_time(marks, a.reference, a.size or 96, a.photons, a.radius, a.path_spp, a.bias_seeds, a.lamp,
-                   a.photon_aim, a.camera_samples, a.grid_levels, a.passes_per_call)
+                   a.photon_aim, a.camera_samples, a.grid_levels, a.passes_per_call, a.alpha)
     else:
         throughput(a.size or 128, a.photons or 65536, a.passes, a.passes_per_call or None, a.grid_levels,
                    a.throughput_scene, a.camera_samples or 1)

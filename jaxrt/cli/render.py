@@ -82,6 +82,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--photon-aim", type=float, metavar="F",
                         help="SPPM fraction of photons aimed at glass and mirror objects, 0 <= F < 1 (overrides "
                              "[render] photon_aim; default 0.5 with glass or mirrors, else 0)")
+    parser.add_argument("--alpha", type=float, metavar="A",
+                        help="SPPM radius reduction 0 < A < 1 (overrides [render] alpha; default 0.7; smaller "
+                             "shrinks the gather radius faster: less blur, more noise)")
     parser.add_argument("--seed", type=int, help="random seed for jittered samples (overrides [render] seed)")
     parser.add_argument("--exposure", type=float, default=0.0,
                         help="PNG exposure in stops: pixel values are scaled by 2^EXPOSURE (default 0)")
@@ -308,6 +311,7 @@ def run(args: argparse.Namespace) -> int:
         "render.max_depth": args.max_depth, "render.seed": args.seed,
         "render.integrator": args.integrator, "render.photons": args.photons, "render.radius": args.radius,
         "render.photon_aim": args.photon_aim, "render.camera_samples": args.camera_samples,
+        "render.alpha": args.alpha,
     }
     if args.passes is not None:
         overrides["render.spp"] = args.passes

@@ -53,7 +53,7 @@ DEFAULT_GRID_LEVELS per backend: every level adds a copy of each deposit to the 
 
 Progressive statistics per pixel (Hachisuka & Jensen 2009, eqs. 5-8) with M the photons found in
 radius r this pass and Φ = Σ β·f(wo, wi)·Φ_p their reflected flux:
-N' = N + α·M, r'² = r²·(N + α·M)/(N + M), τ' = (τ + Φ)·r'²/r², α = `ALPHA` = 0.7.
+N' = N + α·M, r'² = r²·(N + α·M)/(N + M), τ' = (τ + Φ)·r'²/r², α = `[render] alpha`, default `ALPHA` = 0.7.
 The pixel's radiance after P passes of N_p photons each is direct/P + τ/(P·N_p·π·r²).
 
 Several visible points per pixel (k > 1): each is a chain of its own with its own N, r and τ
@@ -215,6 +215,19 @@ def grid_levels(scene) -> int:
     return int(n) if n else DEFAULT_GRID_LEVELS.get(jax.default_backend(), DEFAULT_GRID_LEVELS["cpu"])
 
 
+def alpha(scene) -> float:
+    """The radius reduction α of the progressive update (static): `[render] alpha`, default ALPHA.
+
+    α is the fraction of a pass's new photons a visible point keeps (N' = N + α·M): smaller α
+    shrinks the radius faster, trading the blur (bias) of the density estimate for its noise
+    (Hachisuka & Jensen 2009 use 0.7; Knaus & Zwicker 2011 show the mean squared error falls
+    fastest, as passes^(-2/3), with α = 2/3 in the limit of many passes). At a short budget on
+    a sharp caustic the blur dominates: `benchmarks/sppm.py --equal-time` on one GPU gave 2x lower
+    error with α = 0.5 than with 0.7 at 0.25-2 s (BENCHMARKS.md)."""
+    a = getattr(scene.settings, "alpha", 0.0)
+    return float(a) if a else ALPHA
+
+
 def camera_samples(scene) -> int:
     """Visible points per pixel per pass (static): `[render] camera_samples`, default 1."""
     return int(getattr(scene.settings, "camera_samples", 0) or 1)
@@ -235,6 +248,9 @@ def check(scene) -> None:
     g = getattr(scene.settings, "grid_levels", 0)
     if not isinstance(g, int) or g < 0 or g > MAX_GRID_LEVELS:
         raise InputError(f"{scene.source}: [render] grid_levels = {g!r}: allowed 1..{MAX_GRID_LEVELS} (0: default)")
+    a = getattr(scene.settings, "alpha", 0.0)
+    if not (isinstance(a, (int, float)) and 0.0 <= a < 1.0 and math.isfinite(a)):
+        raise InputError(f"{scene.source}: [render] alpha = {a!r}: allowed 0 < alpha < 1 (0: default {ALPHA})")
     f = photon_aim(scene)
     if not (isinstance(f, (int, float)) and 0.0 <= f < 1.0):
         raise InputError(f"{scene.source}: [render] photon_aim = {f!r}: allowed 0 <= photon_aim < 1")
@@ -1039,9 +1055,9 @@ def _radii(state: SPPMState, vp, levels: int = DEFAULT_GRID_LEVELS["cpu"]):
     return state, jnp.maximum(2.0 * fine, 1e-6)
 
 
-def _update(state: SPPMState, m, phi, direct) -> SPPMState:
+def _update(state: SPPMState, m, phi, direct, a: float) -> SPPMState:
     # the progressive update of Hachisuka & Jensen 2009 (module docstring) with this pass's M and Φ
-    n_new = state.n + ALPHA * m
+    n_new = state.n + a * m
     ratio = jnp.where(state.n + m > 0, n_new / jnp.where(state.n + m > 0, state.n + m, 1.0), 1.0)
     r2_new = state.r2 * ratio
     tau = (state.tau + phi) * ratio[:, None]
@@ -1063,7 +1079,7 @@ def _pass(scene, state: SPPMState, with_first: bool = False, sources=None, dep: 
         dep = trace_photons(scene, kph, state.photons, sources=sources)
     grid = build_grid(dep, cell, kgrid, levels)
     m, phi = gather(scene, grid, vp, state.r2)
-    new = _update(state, m, phi, direct)
+    new = _update(state, m, phi, direct, alpha(scene))
     return (new, first) if with_first else new
 
 
@@ -1088,7 +1104,7 @@ def pass_share(scene, state: SPPMState, axis: str, count: int, sources=None) -> 
     dep = trace_photons(scene, kph, state.photons, share=(d, count), sources=sources)
     grid = build_grid(dep, cell, jax.random.fold_in(kgrid, d), levels)
     m, phi = lax.psum(gather(scene, grid, vp, state.r2), axis)
-    return _update(state, m, phi, direct)
+    return _update(state, m, phi, direct, alpha(scene))
 
 
 def photon_batch(scene, photons: int) -> int:

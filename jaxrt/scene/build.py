@@ -257,6 +257,7 @@ def build(spec: SceneSpec, *, on_shapes: Callable[[Scene], Any] | None = None) -
         grid_levels=r.grid_levels,
         photon_aim=r.photon_aim if r.photon_aim is not None else integrators.sppm.default_photon_aim(
             any(brdfs.get(spec.materials[n].model).delta or spec.materials[n].delta > 0 for n in mat_names)),
+        alpha=r.alpha,
     )
     scene = Scene(geometry, materials, lights, camera, settings, source=spec.source, area_lights=area_lights,
                   environment=environment, glare=spec.glare)

@@ -303,6 +303,8 @@ def parse(
         # SPPM photon aiming: the fraction of photons sent towards the glass and mirror objects
         # (None: the integrator's default, see `jaxrt.integrators.sppm`)
         photon_aim=rc.number("photon_aim", 0.0, lo=0.0, hi=1.0, hi_open=True) if "photon_aim" in rc.data else None,
+        # SPPM radius reduction α of the progressive update, 0 < α < 1 (0: the integrator's default)
+        alpha=rc.number("alpha", 0.0, lo=0.0, lo_open=True, hi=1.0, hi_open=True) if "alpha" in rc.data else 0.0,
     )
     rc.raw("ray_budget", None)
     rc.raw("photons", None)
@@ -310,6 +312,7 @@ def parse(
     rc.raw("camera_samples", None)
     rc.raw("grid_levels", None)
     rc.raw("photon_aim", None)
+    rc.raw("alpha", None)
     rc.done()
     glare = parse_glare(Table(file, "glare", doc["glare"])) if "glare" in doc else None
     return SceneSpec(file, camera, tuple(lights), materials, tuple(objects), render, groups, instances, environment,

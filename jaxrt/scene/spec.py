@@ -99,6 +99,7 @@ class RenderSpec:
     camera_samples: int = 0  # SPPM visible points per pixel per pass (0: the integrator's default)
     grid_levels: int = 0  # SPPM hash-grid levels (0: the integrator's default for the backend)
     photon_aim: float | None = None  # SPPM fraction of photons aimed at delta objects (None: default)
+    alpha: float = 0.0  # SPPM radius reduction α (0: the integrator's default)
 
 
 

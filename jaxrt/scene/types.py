@@ -84,6 +84,8 @@ class Settings(eqx.Module):
     # the fraction of photons aimed at the glass and mirror objects (`jaxrt.integrators.sppm`), in
     # [0, 1); 0 turns aiming off (the photon pass is then the unaimed one, bit for bit)
     photon_aim: float = eqx.field(static=True, default=0.0)
+    # SPPM's radius reduction α in (0, 1) (0: the integrator's default, `jaxrt.integrators.sppm.ALPHA`)
+    alpha: float = eqx.field(static=True, default=0.0)
 
 
 

@@ -123,7 +123,8 @@ def test_environment_photons_carry_its_power_into_the_bounding_sphere():
                                        ("radius", -1.0), ("radius", 0.0), ("radius", "big"),
                                        ("radius", float("inf")), ("camera_samples", 0),
                                        ("camera_samples", 1000), ("camera_samples", 2.5), ("grid_levels", 0),
-                                       ("grid_levels", 5), ("grid_levels", 1.5)])
+                                       ("grid_levels", 5), ("grid_levels", 1.5), ("alpha", 0.0), ("alpha", 1.0),
+                                       ("alpha", -0.5), ("alpha", "fast")])
 def test_bad_settings_are_one_line_errors(key, value):
     with pytest.raises(InputError) as e:
         R.load_scene(diffuse_scene(**{key: value}))
@@ -176,6 +177,26 @@ def test_settings_reach_the_integrator():
     assert sppm.camera_samples(R.load_scene(diffuse_scene(camera_samples=3))) == 3
     assert sppm.grid_levels(R.load_scene(diffuse_scene(grid_levels=3))) == 3
     assert sppm.grid_levels(default) == sppm.DEFAULT_GRID_LEVELS[jax.default_backend()]
+
+
+def test_alpha_sets_the_progressive_update():
+    """`[render] alpha` is the α of N' = N + α·M: from an empty state one pass leaves N = α·M and
+    r² = α·r0² (r'² = r²·(N + αM)/(N + M) with N = 0) at every visible point that found photons, so
+    two scenes that differ only in α (the same visible points and photons) differ by exactly the
+    ratio of their α's there; the default is ALPHA."""
+    default = R.load_scene(diffuse_scene(width=12, height=9, photons=2000))
+    half = R.load_scene(diffuse_scene(width=12, height=9, photons=2000, alpha=0.5))
+    assert sppm.alpha(default) == sppm.ALPHA == 0.7 and sppm.alpha(half) == 0.5
+    # `jaxrt render --alpha A` is the override render.alpha
+    assert sppm.alpha(R.load_scene(diffuse_scene(), overrides={"render.alpha": 0.4})) == 0.4
+    a = sppm.step(default, sppm.start(default))
+    b = sppm.step(half, sppm.start(half))
+    n_a, n_b = np.asarray(a.n), np.asarray(b.n)
+    found = n_a > 0
+    assert found.mean() > 0.5  # most visible points gathered photons: the check covers them
+    np.testing.assert_allclose(n_b[found] / n_a[found], 0.5 / 0.7, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(b.r2)[found] / np.asarray(a.r2)[found], 0.5 / 0.7, rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(b.r2)[~found], np.asarray(a.r2)[~found])
 
 
 # ---------------------------------------------------------------------------------------------- calls

@@ -93,10 +93,11 @@ class Phases:
         return out
 
     def report(self) -> None:
-        print("PHASES " + " ".join(f"{k} {v:.2f}" for k, v in self.times.items()) + f" total {sum(self.times.values()):.2f}")
-        # CPU seconds of the process (every thread): on a shared, loaded machine these vary far less than
+        # CPU: seconds of the process (every thread): on a shared, loaded machine these vary far less than
         # wall seconds, and on an idle one with N cores the wall time is between cpu / N and cpu.
-        print("CPU    " + " ".join(f"{k} {v:.2f}" for k, v in self.cpu.items()) + f" total {sum(self.cpu.values()):.2f}")
+        for label, values in (("PHASES", self.times), ("CPU   ", self.cpu)):
+            print(f"{label} " + " ".join(f"{k} {v:.2f}" for k, v in values.items())
+                  + f" total {sum(values.values()):.2f}")
         for name, c in self.counts.items():
             print(f"COUNTS {name}: " + ", ".join(f"{k} {v}" for k, v in c.items()))
             if self.names[name]:

@@ -165,33 +165,37 @@ def prepare(
     # one step per view (build and trace) and one for the fit buffer
     bar = tqdm(total=len(scenes) + 1, desc="preparing views", unit="step", leave=False, disable=not progress,
                delay=0.5)
+    from jaxrt import cache as _cache
+
     try:
-        for src, ov, gb in zip(scenes, overrides, traced):
-            original = _spec(src, ov, confine)
-            spec, mat_name, obj_name = _substitute(original, model, object)
-            # The ray tree depends on geometry, δ and which materials are glass, not on the opaque
-            # model: trace the scene as given (one compilation per scene, whatever model is fitted)
-            # unless the object was glass, whose branches the substituted model no longer has.
-            was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
-            if was_glass or gb is None:
-                # the scene to trace is built first, its trace program compiling from its shapes
-                # while the BVH is built on the host (`_compile_trace_ahead`)
-                ahead: list = []
-                to_trace = _scene.build(spec if was_glass else original,
-                                        on_shapes=lambda shapes: ahead.append(_compile_trace_ahead(shapes)))
-                sc = to_trace if was_glass else _scene.build(spec)
-                for t in ahead:
-                    if t is not None:
-                        t.join()
-                m = sc.materials.index(mat_name)
-                shading = edit.set_material_row(sc, int(sc.materials.model_id[m]), int(sc.materials.row[m]),
-                                                model.params())
-                gb = _trace(to_trace, shading)
-            else:
-                sc = _scene.build(spec)
-            built.append(sc)
-            gbs.append(gb)
-            bar.update(1)
+        # each view's geometry is built twice (as given, and wearing the fitted material): one tree for both
+        with _cache.sharing_trees():
+            for src, ov, gb in zip(scenes, overrides, traced):
+                original = _spec(src, ov, confine)
+                spec, mat_name, obj_name = _substitute(original, model, object)
+                # The ray tree depends on geometry, δ and which materials are glass, not on the opaque
+                # model: trace the scene as given (one compilation per scene, whatever model is fitted)
+                # unless the object was glass, whose branches the substituted model no longer has.
+                was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
+                if was_glass or gb is None:
+                    # the scene to trace is built first, its trace program compiling from its shapes
+                    # while the BVH is built on the host (`_compile_trace_ahead`)
+                    ahead: list = []
+                    to_trace = _scene.build(spec if was_glass else original,
+                                            on_shapes=lambda shapes: ahead.append(_compile_trace_ahead(shapes)))
+                    sc = to_trace if was_glass else _scene.build(spec)
+                    for t in ahead:
+                        if t is not None:
+                            t.join()
+                    m = sc.materials.index(mat_name)
+                    shading = edit.set_material_row(sc, int(sc.materials.model_id[m]), int(sc.materials.row[m]),
+                                                    model.params())
+                    gb = _trace(to_trace, shading)
+                else:
+                    sc = _scene.build(spec)
+                built.append(sc)
+                gbs.append(gb)
+                bar.update(1)
         shapes = {(s.camera.height, s.camera.width, s.settings.spp) for s in built}
         if len(shapes) != 1:
             raise InputError(f"all fitting scenes need the same resolution and spp, got {sorted(shapes)}")

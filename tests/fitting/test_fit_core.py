@@ -111,6 +111,14 @@ def test_delta_e_is_colour_sciences_bit_for_bit():
     assert "colour" not in metrics.__dict__
 
 
+def test_srgb_encoding_of_fit_pictures_is_colour_sciences_bit_for_bit():
+    colour = pytest.importorskip("colour")
+    from fitting import report
+
+    x = np.concatenate([np.linspace(0.0, 1.0, 200001), np.geomspace(1e-12, 1.0, 20001), [0.0031308, 0.0031309]])
+    assert np.array_equal(report.srgb_encode(x), np.asarray(colour.cctf_encoding(x, function="sRGB")))
+
+
 def test_recovers_parameters_noise_free(gbuffer):
     truth = TOY.params(rho_d=[0.2, 0.5, 0.7], rho_s=0.3, s=120.0)
     target = shade(truth, gbuffer)

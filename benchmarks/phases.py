@@ -49,11 +49,14 @@ class Phases:
 
             self._events = {"requests": 0, "cache hits": 0, "traces": 0}
             self._traced: list[str] = []  # the functions traced to jaxprs, in order
+            self._compiled: list[str] = []  # the XLA compilation requests, in order
             self.names: dict[str, list[str]] = {}
+            self.compiled: dict[str, list[str]] = {}
 
             def on_duration(event, duration, **kw):
                 if event == "/jax/core/compile/backend_compile_duration":
                     self._events["requests"] += 1
+                    self._compiled.append(f"{kw.get('fun_name')} {duration:.2f}s")
                 elif event == "/jax/core/compile/jaxpr_trace_duration":
                     self._events["traces"] += 1
                     self._traced.append(f"{kw.get('fun_name')} {duration:.2f}s")
@@ -75,6 +78,7 @@ class Phases:
         pr = cProfile.Profile() if self.profile else None
         before = self._snapshot() if self._events is not None else None
         first = len(self._traced) if self._events is not None else 0
+        first_compiled = len(self._compiled) if self._events is not None else 0
         t, c = time.perf_counter(), time.process_time()
         if pr:
             pr.enable()
@@ -90,6 +94,7 @@ class Phases:
             after = self._snapshot()
             self.counts[name] = {k: after[k] - before[k] for k in after}
             self.names[name] = self._traced[first:]
+            self.compiled[name] = self._compiled[first_compiled:]
         return out
 
     def report(self) -> None:
@@ -102,6 +107,8 @@ class Phases:
             print(f"COUNTS {name}: " + ", ".join(f"{k} {v}" for k, v in c.items()))
             if self.names[name]:
                 print(f"TRACED {name}: " + ", ".join(self.names[name]))
+            if self.compiled[name]:
+                print(f"COMPILED {name}: " + ", ".join(self.compiled[name]))
         for name, text in self.profiles.items():
             print(f"--- {name}\n" + "\n".join(text.splitlines()[:self.profile + 12]))
 

@@ -184,13 +184,14 @@ def prepare(
                     to_trace = _scene.build(spec if was_glass else original,
                                             on_shapes=lambda shapes: ahead.append(_compile_trace_ahead(shapes)))
                     sc = to_trace if was_glass else _scene.build(spec)
-                    for t in ahead:
-                        if t is not None:
-                            t.join()
                     m = sc.materials.index(mat_name)
                     shading = edit.set_material_row(sc, int(sc.materials.model_id[m]), int(sc.materials.row[m]),
                                                     model.params())
+                    # not joined first: `_trace` compiles the shade program while this one finishes
                     gb = _trace(to_trace, shading)
+                    for t in ahead:
+                        if t is not None:
+                            t.join()
                 else:
                     sc = _scene.build(spec)
                 built.append(sc)
@@ -264,7 +265,9 @@ def _trace(scene, shading):
 
     from jaxrt import _config
 
-    lowered = integrators.trace.lower(scene)  # the call below runs this program (compiled once)
+    # the call below runs this program, compiled once (where `_compile_trace_ahead` is compiling it,
+    # `lower` waits for its load, not its compilation, and the thread below for the compilation)
+    lowered = integrators.trace.lower(scene)
     compiling = threading.Thread(target=lowered.compile, name="fitting-trace-compile", daemon=True)
     compiling.start()
     try:

@@ -201,6 +201,9 @@ class _CachedJit:
         self._static = static_argnames
         self._jit = jax.jit(fun, static_argnames=static_argnames)
         self._programs: dict[Any, _Stored] = {}
+        # one load (read or export) at a time: a call that arrives while another thread loads the same
+        # program (a compilation started ahead of time) waits for it instead of tracing it again
+        self._loading = threading.RLock()
         functools.update_wrapper(self, fun)
 
     def _cache_size(self) -> int:
@@ -224,8 +227,11 @@ class _CachedJit:
         except TypeError:  # an unhashable static argument: jax.jit refuses it with its own message
             return None, statics
         if stored is None:
-            stored = self._load(tree, specs, statics, platform, cfg) or _UNSTORABLE
-            self._programs[memo] = stored
+            with self._loading:
+                stored = self._programs.get(memo)
+                if stored is None:
+                    stored = self._load(tree, specs, statics, platform, cfg) or _UNSTORABLE
+                    self._programs[memo] = stored
         if stored is _UNSTORABLE:
             return None, statics
         return stored, leaves

@@ -165,23 +165,38 @@ def prepare(
     # one step per view (build and trace) and one for the fit buffer
     bar = tqdm(total=len(scenes) + 1, desc="preparing views", unit="step", leave=False, disable=not progress,
                delay=0.5)
+    from jaxrt import cache as _cache
+
     try:
-        for src, ov, gb in zip(scenes, overrides, traced):
-            original = _spec(src, ov, confine)
-            spec, mat_name, obj_name = _substitute(original, model, object)
-            sc = _scene.build(spec)
-            # The ray tree depends on geometry, δ and which materials are glass, not on the opaque
-            # model: trace the scene as given (one compilation per scene, whatever model is fitted)
-            # unless the object was glass, whose branches the substituted model no longer has.
-            was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
-            if was_glass or gb is None:
-                m = sc.materials.index(mat_name)
-                shading = edit.set_material_row(sc, int(sc.materials.model_id[m]), int(sc.materials.row[m]),
-                                                model.params())
-                gb = _trace(sc if was_glass else _scene.build(original), shading)
-            built.append(sc)
-            gbs.append(gb)
-            bar.update(1)
+        # each view's geometry is built twice (as given, and wearing the fitted material): one tree for both
+        with _cache.sharing_trees():
+            for src, ov, gb in zip(scenes, overrides, traced):
+                original = _spec(src, ov, confine)
+                spec, mat_name, obj_name = _substitute(original, model, object)
+                # The ray tree depends on geometry, δ and which materials are glass, not on the opaque
+                # model: trace the scene as given (one compilation per scene, whatever model is fitted)
+                # unless the object was glass, whose branches the substituted model no longer has.
+                was_glass = brdfs.get(original.materials[edit.find_object(original, obj_name).material].model).delta
+                if was_glass or gb is None:
+                    # the scene to trace is built first, its trace program compiling from its shapes
+                    # while the BVH is built on the host (`_compile_trace_ahead`)
+                    ahead: list = []
+                    to_trace = _scene.build(spec if was_glass else original,
+                                            on_shapes=lambda shapes: ahead.append(_compile_trace_ahead(shapes)))
+                    sc = to_trace if was_glass else _scene.build(spec)
+                    m = sc.materials.index(mat_name)
+                    shading = edit.set_material_row(sc, int(sc.materials.model_id[m]), int(sc.materials.row[m]),
+                                                    model.params())
+                    # not joined first: `_trace` compiles the shade program while this one finishes
+                    gb = _trace(to_trace, shading)
+                    for t in ahead:
+                        if t is not None:
+                            t.join()
+                else:
+                    sc = _scene.build(spec)
+                built.append(sc)
+                gbs.append(gb)
+                bar.update(1)
         shapes = {(s.camera.height, s.camera.width, s.settings.spp) for s in built}
         if len(shapes) != 1:
             raise InputError(f"all fitting scenes need the same resolution and spp, got {sorted(shapes)}")
@@ -214,27 +229,50 @@ def prepare(
     )
 
 
-def _trace(scene, shading):
-    """`integrators.trace(scene)`, with the program `compact.build` shades the trace with (for the
-    constant image, on the scene `shading`) compiled while the trace program compiles: XLA compiles
-    with the GIL released, so on a first run the two compilations overlap. The shade program is a
-    stored one (`jaxrt.programs`), compiled from the trace's output shapes and kept for the call
-    that follows; with the cache off there is none to keep, and it compiles at that call as before.
-    The trace itself is the same call either way, so its results are the same bits."""
+def _compile_trace_ahead(shapes):
+    """Start compiling, in a thread, the trace program of the scene `shapes` (`jaxrt.scene.build`'s
+    on_shapes: the tree's arrays are `jax.ShapeDtypeStruct`s), as `jaxrt render` compiles its frame
+    (`jaxrt.render_tiles.compile_ahead`): XLA compiles with the GIL released while the host builds the
+    BVH. The stored program (`jaxrt.programs`) is kept per shapes, so `_trace` finds it compiled. Only
+    with the cache on (with it off, `jax.jit` would compile the call again); errors are left to the
+    trace itself to raise."""
     import threading
-
-    import jax
 
     from jaxrt import _config
 
-    traced = integrators.trace.trace(scene)  # the jit call below reuses this trace and the compilation
-    compiling = threading.Thread(target=lambda: traced.lower().compile(), name="fitting-trace-compile", daemon=True)
+    if not _config.config().cache:
+        return None
+
+    def work():
+        try:
+            integrators.trace.lower(shapes).compile()
+        except Exception:  # noqa: BLE001 -- see the docstring
+            pass
+
+    t = threading.Thread(target=work, name="fitting-trace-ahead", daemon=True)
+    t.start()
+    return t
+
+
+def _trace(scene, shading):
+    """`integrators.trace(scene)`, with the program `compact.build` shades the trace with (for the
+    constant image, on the scene `shading`) compiled while the trace program compiles: XLA compiles
+    with the GIL released, so on a first run the two compilations overlap. Both are stored programs
+    (`jaxrt.programs`): a later process reads them without tracing, and the shade program compiles
+    from the trace's output shapes (`out_info`). With the cache off the shade program compiles at
+    its call, as before. The trace itself is the same call either way, so its results are the same bits."""
+    import threading
+
+    from jaxrt import _config
+
+    # the call below runs this program, compiled once (where `_compile_trace_ahead` is compiling it,
+    # `lower` waits for its load, not its compilation, and the thread below for the compilation)
+    lowered = integrators.trace.lower(scene)
+    compiling = threading.Thread(target=lowered.compile, name="fitting-trace-compile", daemon=True)
     compiling.start()
     try:
         if _config.config().cache:
-            shapes = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type),
-                                  traced.out_avals)
-            integrators.shade.lower(shapes, shading)
+            integrators.shade.lower(lowered.out_info, shading).compile()
     finally:
         compiling.join()
     return integrators.trace(scene)

@@ -545,7 +545,6 @@ def fit_images(
     Returns: FitResult with the best start's parameters, standard errors, error metrics and the
     parameters that end at a bound of their declared range (`at_bound`).
     """
-    metrics.prefetch()  # colour-science for the ΔE at the end, imported while the solver runs
     prob = _problem(shade, model, fix, init, rgb, solver, starts)
     free, fixed = prob.free, prob.fixed
     targets = np.asarray(targets, np.float32)
@@ -713,7 +712,6 @@ def solve_batch(
 
     Returns: one `Solution` per target set, in order.
     """
-    metrics.prefetch()  # colour-science for the ΔE at the end, imported while the solver runs
     prob = _problem(shade, model, fix, init, rgb, solver, starts)
     free, fixed = prob.free, prob.fixed
     targets = np.asarray(targets, np.float32)

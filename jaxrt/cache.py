@@ -60,6 +60,7 @@ and benchmarks see what the cache did without timing it.
 from __future__ import annotations
 
 import builtins
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -97,6 +98,7 @@ __all__ = [
     "entry_path",
     "info",
     "load_mesh",
+    "sharing_trees",
     "stats",
 ]
 
@@ -624,6 +626,32 @@ def _file_sha256(path: str) -> str:
     return _data.sha256_of(path)
 
 
+_shared_trees: dict[str, BVH] | None = None  # while `sharing_trees` is active: key -> tree
+_shared_depth = 0
+_shared_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def sharing_trees():
+    """Within this block, `build_bvh` calls with the same arrays and settings return the tree the
+    first one built or read (one read of the entry, one transfer to the device), e.g. the two builds
+    of one geometry a fit's preparation makes (the scene as given, and with the fitted material). A
+    tree is a pure function of its key, so sharing it changes nothing; the block bounds how long the
+    trees are held (a resident worker's later jobs do not keep them)."""
+    global _shared_trees, _shared_depth
+    with _shared_lock:
+        _shared_depth += 1
+        if _shared_trees is None:
+            _shared_trees = {}
+    try:
+        yield
+    finally:
+        with _shared_lock:
+            _shared_depth -= 1
+            if _shared_depth == 0:
+                _shared_trees = None
+
+
 def build_bvh(vertices, faces, *, leaf_size: int = 1, builder: str = "lbvh", layout: str = "bfs",
               sah_settings: SahSettings | None = None) -> BVH:
     """`jaxrt.accel.build(vertices, faces, leaf_size=..., builder=..., layout=..., sah_settings=...)`
@@ -649,6 +677,10 @@ def build_bvh(vertices, faces, *, leaf_size: int = 1, builder: str = "lbvh", lay
            "layout": layout, "code": _source_hash(_bvh, _builder, sah, morton, traverse_pallas), "numpy": np.__version__,
            "backend": backend, "jax": jax.__version__ if backend == "gpu" else None,
            "sah": dataclasses.asdict(sah_settings) if builder == "sah" else None}
+    shared = _shared_trees
+    memo = _canonical(key) if shared is not None else None
+    if memo is not None and memo in shared:
+        return shared[memo]
     fields = dataclasses.fields(_bvh.BVH)
     built = []
 
@@ -662,7 +694,12 @@ def build_bvh(vertices, faces, *, leaf_size: int = 1, builder: str = "lbvh", lay
 
     a = cached_arrays("bvh", key, build)
     if built:
-        return built[0]
-    static = _from_json_array(a["static"])
-    kw = {x.name: (jax.device_put(a[x.name]) if x.name in a else None) for x in fields if not x.metadata.get("static")}
-    return _bvh.BVH(**kw, **static)
+        tree = built[0]
+    else:
+        static = _from_json_array(a["static"])
+        kw = {x.name: (jax.device_put(a[x.name]) if x.name in a else None) for x in fields
+              if not x.metadata.get("static")}
+        tree = _bvh.BVH(**kw, **static)
+    if memo is not None:
+        shared[memo] = tree
+    return tree

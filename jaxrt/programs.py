@@ -59,6 +59,10 @@ _TRACE_OPTIONS = ("jax_enable_x64", "jax_numpy_rank_promotion", "jax_numpy_dtype
                   "jax_default_matmul_precision", "jax_default_prng_impl", "jax_threefry_partitionable")
 _PACKAGES = ("jaxrt", "brdfs", "fitting")
 _CUSTOM_CALL = re.compile(r"custom_call @([\w$.\-]+)")
+# The native CPU kernels' FFI targets and the `jaxrt.accel` module that builds and registers each: a
+# stored program lists the ones it calls, and a process registers those (only) before compiling it.
+_NATIVE = {"jaxrt_bvh_traverse": "traverse_cpu", "jaxrt_embree_trace": "traverse_embree",
+           "jaxrt_embree_table_key": "traverse_embree", "jaxrt_embree_trace_keyed": "traverse_embree"}
 
 _lock = threading.Lock()
 _counts = {"hits": 0, "misses": 0, "exports": 0, "fallbacks": 0}
@@ -131,21 +135,84 @@ def _spec(x) -> tuple:
     return ((), str(jax.dtypes.canonicalize_dtype(jax.dtypes.result_type(x))), True)
 
 
+@functools.cache
+def _missing():
+    """equinox's MISSING, the marker a Module's pytree node holds for fields it does not have: a
+    singleton that Modules compare by identity, so a stored structure must unpickle to it."""
+    import equinox as eqx
+
+    class Probe(eqx.Module):
+        pass
+
+    return jax.tree_util.tree_structure(Probe()).node_data()[1][0]
+
+
+def _dump_tree(tree) -> bytes:
+    """An output's structure as bytes: pickle, with equinox's MISSING written as a reference to it.
+    A structure that does not come back equal (a class pickle cannot name, such as one defined inside a
+    function, or other data that does not survive a copy) raises: such a function runs through jax.jit."""
+    import io
+    import pickle
+
+    missing = _missing()
+
+    class Pickler(pickle.Pickler):
+        def reducer_override(self, obj):
+            return (_missing, ()) if obj is missing else NotImplemented
+
+    buf = io.BytesIO()
+    Pickler(buf, protocol=pickle.HIGHEST_PROTOCOL).dump(tree)
+    data = buf.getvalue()
+    if pickle.loads(data) != tree:
+        raise ValueError(f"the output structure {str(tree)[:200]} does not survive pickling")
+    return data
+
+
+class _Stored:
+    """One stored program of a `_CachedJit` in this process: the exported program (`jax.export`, which
+    returns the flat output leaves) and the output's structure; compiled on first use, once, whichever
+    thread gets there first (a compilation started ahead of time is waited for, not repeated)."""
+
+    def __init__(self, exp, out_tree):
+        self.exp, self.out_tree = exp, out_tree
+        self._executable = None
+        self._lock = threading.Lock()
+
+    def executable(self, leaves):
+        with self._lock:
+            if self._executable is None:
+                self._executable = jax.jit(self.exp.call).lower(*leaves).compile()
+            return self._executable
+
+    def __call__(self, leaves):
+        return jax.tree_util.tree_unflatten(self.out_tree, self.executable(leaves)(*leaves))
+
+    def out_info(self):
+        avals = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type) for a in self.exp.out_avals]
+        return jax.tree_util.tree_unflatten(self.out_tree, avals)
+
+
+_UNSTORABLE = object()  # a program export could not store: calls with that key go through jax.jit
+
+
 class _CachedJit:
     def __init__(self, fun: Callable, name: str, static_argnames: tuple[str, ...]):
         self._fun = fun
         self._name = name
         self._static = static_argnames
         self._jit = jax.jit(fun, static_argnames=static_argnames)
-        self._programs: dict[Any, Callable] = {}
+        self._programs: dict[Any, _Stored] = {}
+        # one load (read or export) at a time: a call that arrives while another thread loads the same
+        # program (a compilation started ahead of time) waits for it instead of tracing it again
+        self._loading = threading.RLock()
         functools.update_wrapper(self, fun)
 
     def _cache_size(self) -> int:
         """Distinct programs this function holds in this process (stored ones and `jax.jit`'s)."""
-        return len(self._programs) + self._jit._cache_size()
+        return sum(p is not _UNSTORABLE for p in self._programs.values()) + self._jit._cache_size()
 
     def _program(self, args, kwargs):
-        """(compiled program, leaves) for a call that a stored program can serve, else (None, statics)."""
+        """(stored program, leaves) for a call that a stored program can serve, else (None, statics)."""
         statics = {k: kwargs.pop(k) for k in self._static if k in kwargs}
         leaves, tree = jax.tree_util.tree_flatten((args, kwargs))
         cfg = _config.config()
@@ -157,32 +224,39 @@ class _CachedJit:
         specs = tuple(_spec(x) for x in leaves)
         memo = (tree, specs, tuple(sorted(statics.items())), platform, cfg.traversal)
         try:
-            compiled = self._programs.get(memo)
+            stored = self._programs.get(memo)
         except TypeError:  # an unhashable static argument: jax.jit refuses it with its own message
             return None, statics
-        if compiled is None:
-            compiled = self._load(tree, specs, statics, platform, cfg, leaves)
-            if compiled is None:
-                return None, statics
-            self._programs[memo] = compiled
-        return compiled, leaves
+        if stored is None:
+            with self._loading:
+                stored = self._programs.get(memo)
+                if stored is None:
+                    stored = self._load(tree, specs, statics, platform, cfg) or _UNSTORABLE
+                    self._programs[memo] = stored
+        if stored is _UNSTORABLE:
+            return None, statics
+        return stored, leaves
 
     def __call__(self, *args, **kwargs):
-        compiled, rest = self._program(args, kwargs)
-        if compiled is None:
+        stored, rest = self._program(args, kwargs)
+        if stored is None:
             _count("fallbacks")
             return self._jit(*args, **kwargs, **rest)
-        return compiled(*rest)
+        return stored(rest)
 
     def lower(self, *args, **kwargs):
-        """`jax.jit(fun).lower(...)`, through the stored program where there is one: its `compile()` is
-        the program later calls run (so compiling ahead of time never compiles twice)."""
-        compiled, rest = self._program(args, kwargs)
-        if compiled is None:
+        """`jax.jit(fun).lower(...)`, through the stored program where there is one (arguments may be
+        `jax.ShapeDtypeStruct`s): its `compile()` compiles the program later calls run (so compiling
+        ahead of time, in another thread too, never compiles twice), and its `out_info` is the
+        output's structure of `jax.ShapeDtypeStruct`s, known without tracing on a stored program."""
+        stored, rest = self._program(args, kwargs)
+        if stored is None:
             return self._jit.lower(*args, **kwargs, **rest)
-        return _Lowered(compiled, self._static)
+        return _Lowered(stored, rest, self._static)
 
-    def _load(self, tree, specs, statics, platform, cfg, leaves) -> Any:
+    def _load(self, tree, specs, statics, platform, cfg) -> _Stored | None:
+        import pickle
+
         from jax import export
 
         from jaxrt import cache
@@ -195,10 +269,15 @@ class _CachedJit:
             **_environment(),
         }
         fun = self._fun
+        out_trees: list = []
 
         def flat(*xs):
+            # the program returns the output's leaves: `jax.export` serializes only the pytree types
+            # registered with it, and a GBuffer or a FitBuffer is not; the structure is kept beside it
             a, k = jax.tree_util.tree_unflatten(tree, xs)
-            return fun(*a, **k, **statics)
+            leaves, out_tree = jax.tree_util.tree_flatten(fun(*a, **k, **statics))
+            out_trees.append(out_tree)
+            return leaves
 
         exported: list = []
 
@@ -220,23 +299,32 @@ class _CachedJit:
                     targets |= set(_CUSTOM_CALL.findall(text))
             else:
                 raise RuntimeError("custom-call targets could not be listed")
-            exported.append(exp)
-            return {"program": np.frombuffer(exp.serialize(), np.uint8)}
+            # The structure by pickle: the types it names are this source's (the key holds its digest),
+            # and the folder is the user's own, as trusted as the compiled programs read from it. A type
+            # pickle cannot name (a class defined inside a function) makes this raise: jax.jit serves.
+            out_tree = _dump_tree(out_trees[-1])
+            # the native kernels it calls (their targets were registered while it was traced)
+            native = sorted(set(_CUSTOM_CALL.findall(exp.mlir_module())) & set(_NATIVE)) if platform == "cpu" else []
+            exported.append((exp, out_trees[-1]))
+            return {"program": np.frombuffer(exp.serialize(), np.uint8), "tree": np.frombuffer(out_tree, np.uint8),
+                    "native": np.frombuffer(" ".join(native).encode(), np.uint8)}
 
         try:
-            if platform == "cpu" and cfg.traversal in ("auto", "cpu", "embree"):
-                # a stored program may call a native kernel: register its FFI targets first
-                from jaxrt.accel import traverse_cpu, traverse_embree
-
-                traverse_cpu.available()
-                if cfg.traversal != "cpu":
-                    traverse_embree.available()
             arrays = cache.cached_arrays("program", key, build)
             if exported:
-                exp = exported[0]
+                exp, out_tree = exported[0]
                 _count("misses")
             else:
                 exp = export.deserialize(bytearray(arrays["program"].tobytes()))
+                out_tree = pickle.loads(arrays["tree"].tobytes())
+                # a stored program calling a native kernel: register its FFI target before the
+                # program compiles or its executable is read from the compilation cache (building the
+                # kernel where this cache folder has none yet); the other kernel is not built
+                import importlib
+
+                for target in arrays["native"].tobytes().decode().split():
+                    if not importlib.import_module(f"jaxrt.accel.{_NATIVE[target]}").available():
+                        raise RuntimeError(f"the native kernel of {target} is not available")
                 _count("hits")
         except Exception as e:  # noqa: BLE001 -- anything export cannot do runs through jax.jit
             if cfg.debug:
@@ -245,18 +333,23 @@ class _CachedJit:
                 warnings.warn(f"jaxrt: {self._name[:80]}: program not stored ({type(e).__name__}: {str(e)[:400]})",
                               RuntimeWarning, stacklevel=3)
             return None
-        return jax.jit(exp.call).lower(*leaves).compile()
+        return _Stored(exp, out_tree)
 
 
 class _Lowered:
     """What `_CachedJit.lower` returns for a stored program: `compile()` gives the program calls use,
-    called with the original (unflattened) arguments."""
+    called with the original (unflattened) arguments; `out_info` the output's shapes and types."""
 
-    def __init__(self, compiled, static: tuple[str, ...]):
-        self._compiled, self._static = compiled, static
+    def __init__(self, stored: _Stored, leaves, static: tuple[str, ...]):
+        self._stored, self._leaves, self._static = stored, leaves, static
+
+    @property
+    def out_info(self):
+        return self._stored.out_info()
 
     def compile(self):
-        return _Compiled(self._compiled, self._static)
+        self._stored.executable(self._leaves)
+        return _Compiled(self._stored, self._static)
 
 
 class _Compiled:
@@ -264,16 +357,16 @@ class _Compiled:
     accepted and ignored: they are part of the program); other attributes (`memory_analysis`,
     `cost_analysis`, ...) are the executable's."""
 
-    def __init__(self, compiled, static: tuple[str, ...]):
-        self._compiled, self._static = compiled, static
+    def __init__(self, stored: _Stored, static: tuple[str, ...]):
+        self._stored, self._static = stored, static
 
     def __call__(self, *args, **kwargs):
         for k in self._static:
             kwargs.pop(k, None)
-        return self._compiled(*jax.tree_util.tree_leaves((args, kwargs)))
+        return self._stored(jax.tree_util.tree_leaves((args, kwargs)))
 
     def __getattr__(self, name):
-        return getattr(self._compiled, name)
+        return getattr(self._stored._executable, name)
 
 
 def cached_jit(fun: Callable | None = None, *, name: str | None = None,

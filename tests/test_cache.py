@@ -762,3 +762,26 @@ def test_cli_cache_clear_removes_ended_workers_files_and_keeps_a_listening_one(c
         assert live.exists() and (cdir / "worker-up.lock").exists() and (cdir / "worker-up.log").exists()
     finally:
         server.close()
+
+
+def test_sharing_trees_reads_each_tree_once_within_the_block(cdir, monkeypatch):
+    """`cache.sharing_trees()`: inside, a second `build_bvh` of the same arrays returns the first tree
+    (no second read of the entry); other arrays get their own; outside, nothing is held."""
+    from jaxrt.geometry import shapes
+
+    m = shapes.sphere(subdivisions=2)
+    v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    ref = cache.build_bvh(v, f)  # stored
+    reads = []
+    original = cache._read
+    monkeypatch.setattr(cache, "_read", lambda *a: reads.append(1) or original(*a))
+    with cache.sharing_trees():
+        a = cache.build_bvh(v, f)
+        with cache.sharing_trees():  # nested: the same block
+            b = cache.build_bvh(v.copy(), f.copy())
+        c = cache.build_bvh(v + np.float32(1), f)
+    assert a is b and c is not a and len(reads) == 1
+    d = cache.build_bvh(v, f)
+    assert d is not a and cache._shared_trees is None and len(reads) == 2
+    for x, y in zip(jax.tree.leaves(ref), jax.tree.leaves(d)):
+        assert np.array_equal(np.asarray(x), np.asarray(y))

@@ -211,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
     if len(scenes) == 1:
         scenes = scenes * len(args.targets)
     targets = _read_targets(args.targets)
-    start_kernels()  # the scene's trace needs them; they compile while the scene loads
+    start_kernels()  # the scene's trace needs one; it compiles while the scene loads
     setup = fit_setup.prepare(scenes, model, object=args.object, confine=args.confine or None,
                               progress=not args.quiet)
     expect = setup.mask.shape[1:]

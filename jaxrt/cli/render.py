@@ -227,15 +227,17 @@ _kernels: list[threading.Thread] = []
 
 
 def start_kernels() -> None:
-    """On a CPU, compile and load the native traversal kernels (`jaxrt.accel.traverse_cpu`, and
-    `traverse_embree` where Embree is installed) now, each in a background thread of its own, once
-    per process. Their C++ compilation (the first process of a cache folder only: they are kept
+    """On a CPU, compile and load the native traversal kernel the traversal will use now, in a
+    background thread, once per process: Embree's (`jaxrt.accel.traverse_embree`) where it is
+    installed, else (or with JAXRT_TRAVERSAL=cpu) jaxrt's own (`traverse_cpu`), which `jaxrt.accel.bvh`
+    uses only where Embree is not there; a stored program loads just the kernels it calls
+    (`jaxrt.programs`). Their C++ compilation (the first process of a cache folder only: they are kept
     in <cache folder>/native) runs in a compiler process, about 5-10 s each on a 2-core CPU; started
-    here, after the command's input checks, the two run beside each other and beside the mesh load
-    and the BVH build instead of one after the other inside the first program's tracing, which
-    needs them. Later `available()` calls wait for these. Errors are theirs to report (a warning,
-    then the slower traversal), as without this. The process waits for the threads before it exits,
-    so it never leaves a compiler running or a half-written library behind."""
+    here, after the command's input checks, it runs beside the mesh load and the BVH build instead of
+    inside the first program's tracing, which needs it. Later `available()` calls wait for it. Errors
+    are the kernels' to report (a warning, then the slower traversal), as without this. The process
+    waits for the thread before it exits, so it never leaves a compiler running or a half-written
+    library behind."""
     if _kernels:
         return
     from jaxrt import _config
@@ -243,26 +245,26 @@ def start_kernels() -> None:
     traversal = _config.config().traversal
     if traversal not in ("auto", "cpu", "embree"):
         return
-    names = ("traverse_cpu",) if traversal == "cpu" else ("traverse_cpu", "traverse_embree")
 
-    def build(name):
+    def build():
         try:
-            import importlib
-
             import jax
 
-            if jax.default_backend() == "cpu":  # a GPU process lowers its programs for the GPU
-                importlib.import_module(f"jaxrt.accel.{name}").available()
+            if jax.default_backend() != "cpu":  # a GPU process lowers its programs for the GPU
+                return
+            from jaxrt.accel import traverse_cpu, traverse_embree
+
+            if traversal == "cpu" or not traverse_embree.available():
+                traverse_cpu.available()
         except Exception:  # noqa: BLE001 -- see the docstring
             pass
 
     import atexit
 
-    for name in names:
-        t = threading.Thread(target=build, args=(name,), name=f"jaxrt-{name}", daemon=True)
-        _kernels.append(t)
-        t.start()
-        atexit.register(t.join)
+    t = threading.Thread(target=build, name="jaxrt-kernels", daemon=True)
+    _kernels.append(t)
+    t.start()
+    atexit.register(t.join)
 
 
 def write_outputs(tmp, exr, png, img, extra, exposure: float) -> None:

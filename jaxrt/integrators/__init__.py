@@ -54,8 +54,8 @@ def _tile(scene, window: Window, aovs: bool = False):
 
 
 # One compiled function per (scene structure, aovs); reused across calls.
-# `frame`, `tile` and `shade` keep their traced programs on disk (`jaxrt.programs.cached_jit`): a new
-# process with the same scene structure skips tracing as well as compilation.
+# `frame`, `tile`, `trace` and `shade` keep their traced programs on disk (`jaxrt.programs.cached_jit`): a
+# new process with the same scene structure skips tracing as well as compilation.
 frame = cached_jit(_frame, name="integrators.frame", static_argnames=("aovs",))
 #: One tile: `tile(scene, window, aovs=False)` -> the window's share of the image, Σ over the
 #: window's samples / spp, (window height, width, 3) (and with aovs the AOVs of those pixels), from
@@ -63,7 +63,7 @@ frame = cached_jit(_frame, name="integrators.frame", static_argnames=("aovs",))
 #: how the compiler rounds the two program shapes (`jaxrt.render_tiles`); one compilation per
 #: (scene structure, window extents, aovs).
 tile = cached_jit(_tile, name="integrators.tile", static_argnames=("aovs",))
-trace = jax.jit(whitted.trace)
+trace = cached_jit(whitted.trace, name="integrators.trace")
 shade = cached_jit(whitted.shade, name="integrators.shade", static_argnames=("aovs",))
 
 __all__ = [

@@ -84,6 +84,41 @@ def test_delta_e_matches_cie_reference_pair():
     np.testing.assert_allclose(metrics.delta_e_2000(fit, tgt)[0], 2.0425, atol=2e-3)
 
 
+def test_delta_e_is_colour_sciences_bit_for_bit():
+    """`metrics.delta_e_2000` (numpy only) gives colour-science's values exactly (its RGB -> XYZ with the
+    default CAT02 step, CIELAB, CIEDE2000) over colours that reach every branch: greys and black (no
+    hue), the lightness function's linear segment, hue differences across 0°/360° and beyond ±180°."""
+    colour = pytest.importorskip("colour")
+    rng = np.random.default_rng(7)
+    n = 6000
+    tgt = rng.uniform(0.0, 1.0, (n, 3)) ** 3
+    tgt[:200] = tgt[:200, :1]  # greys
+    tgt[200:220] = 0.0
+    tgt[220:400] *= 1e-3  # below (24/116)^3 of the white
+    fit = tgt * rng.uniform(0.7, 1.3, (n, 3))
+    fit[400:600] = fit[400:600, ::-1]  # large hue changes
+    fit[600:700] = tgt[600:700]
+    fit[700:800] = fit[700:800, :1]
+    mask = rng.uniform(size=n) > 0.1
+    ours = metrics.delta_e_2000(fit, tgt, mask)
+    # colour-science, as this module computed it before
+    cs = colour.RGB_COLOURSPACES["sRGB"]
+    lum = tgt[mask] @ np.array([0.2126, 0.7152, 0.0722])
+    white = max(float(np.percentile(lum, metrics.WHITE_PERCENTILE)), 1e-12)
+    lab = lambda rgb: colour.XYZ_to_Lab(colour.RGB_to_XYZ(rgb / white, cs, apply_cctf_decoding=False), cs.whitepoint)
+    ref = np.asarray(colour.delta_E(lab(fit[mask]), lab(tgt[mask]), method="CIE 2000"))
+    assert ours.shape == ref.shape and np.array_equal(ours, ref)
+    assert "colour" not in metrics.__dict__
+
+
+def test_srgb_encoding_of_fit_pictures_is_colour_sciences_bit_for_bit():
+    colour = pytest.importorskip("colour")
+    from fitting import report
+
+    x = np.concatenate([np.linspace(0.0, 1.0, 200001), np.geomspace(1e-12, 1.0, 20001), [0.0031308, 0.0031309]])
+    assert np.array_equal(report.srgb_encode(x), np.asarray(colour.cctf_encoding(x, function="sRGB")))
+
+
 def test_recovers_parameters_noise_free(gbuffer):
     truth = TOY.params(rho_d=[0.2, 0.5, 0.7], rho_s=0.3, s=120.0)
     target = shade(truth, gbuffer)

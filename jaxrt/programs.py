@@ -48,21 +48,27 @@ from jaxrt import _config
 
 __all__ = ["ProgramStats", "cached_jit", "program_stats", "source_digest"]
 
-# Custom-call targets in jaxrt's programs that `jax.export` does not list as stable: the Pallas GPU
-# traversal (Triton) and the CPU traversal kernels (`jaxrt.accel.traverse_cpu.TARGET`,
-# `jaxrt.accel.traverse_embree.TARGET`, its keyed calls' `KEY_TARGET`, `KEYED_TARGET` and the
-# direct-light call's `DIRECT_TARGET`).
-_UNLISTED_TARGETS = ("__gpu$xla.gpu.triton", "jaxrt_bvh_traverse", "jaxrt_embree_trace", "jaxrt_embree_table_key",
-                     "jaxrt_embree_trace_keyed", "jaxrt_embree_direct")
+# The Pallas GPU traversal's custom call (Triton), which `jax.export` does not list as stable; nor
+# does it list the native CPU kernels' targets (`_native`).
+_TRITON_TARGET = "__gpu$xla.gpu.triton"
 # JAX options that change what tracing produces (or whether it raises).
 _TRACE_OPTIONS = ("jax_enable_x64", "jax_numpy_rank_promotion", "jax_numpy_dtype_promotion",
                   "jax_default_matmul_precision", "jax_default_prng_impl", "jax_threefry_partitionable")
 _PACKAGES = ("jaxrt", "brdfs", "fitting")
 _CUSTOM_CALL = re.compile(r"custom_call @([\w$.\-]+)")
-# The native CPU kernels' FFI targets and the `jaxrt.accel` module that builds and registers each: a
-# stored program lists the ones it calls, and a process registers those (only) before compiling it.
-_NATIVE = {"jaxrt_bvh_traverse": "traverse_cpu", "jaxrt_embree_trace": "traverse_embree",
-           "jaxrt_embree_table_key": "traverse_embree", "jaxrt_embree_trace_keyed": "traverse_embree"}
+# The `jaxrt.accel` modules that build and register the native CPU kernels (each lists its FFI
+# targets in `TARGETS`): a stored program lists the targets it calls, and a process registers those
+# (only) before compiling it.
+_NATIVE_MODULES = ("traverse_cpu", "traverse_embree")
+
+
+@functools.cache
+def _native() -> dict[str, str]:
+    """FFI target -> the `jaxrt.accel` module that registers it, from the modules' own TARGETS (one
+    source of truth: a target added to a module is stored, looked up and registered without an edit here)."""
+    import importlib
+
+    return {t: m for m in _NATIVE_MODULES for t in importlib.import_module(f"jaxrt.accel.{m}").TARGETS}
 
 _lock = threading.Lock()
 _counts = {"hits": 0, "misses": 0, "exports": 0, "fallbacks": 0}
@@ -284,7 +290,7 @@ class _CachedJit:
         def build():
             avals = [jax.ShapeDtypeStruct(s[0], s[1], weak_type=s[2]) for s in specs]
             jitted = jax.jit(flat)
-            targets = set(_UNLISTED_TARGETS)
+            targets = {_TRITON_TARGET, *_native()}
             for _ in range(2):
                 checks = [export.DisabledSafetyCheck.custom_call(t) for t in sorted(targets)]
                 try:
@@ -304,7 +310,7 @@ class _CachedJit:
             # pickle cannot name (a class defined inside a function) makes this raise: jax.jit serves.
             out_tree = _dump_tree(out_trees[-1])
             # the native kernels it calls (their targets were registered while it was traced)
-            native = sorted(set(_CUSTOM_CALL.findall(exp.mlir_module())) & set(_NATIVE)) if platform == "cpu" else []
+            native = sorted(set(_CUSTOM_CALL.findall(exp.mlir_module())) & set(_native())) if platform == "cpu" else []
             exported.append((exp, out_trees[-1]))
             return {"program": np.frombuffer(exp.serialize(), np.uint8), "tree": np.frombuffer(out_tree, np.uint8),
                     "native": np.frombuffer(" ".join(native).encode(), np.uint8)}
@@ -323,7 +329,9 @@ class _CachedJit:
                 import importlib
 
                 for target in arrays["native"].tobytes().decode().split():
-                    if not importlib.import_module(f"jaxrt.accel.{_NATIVE[target]}").available():
+                    if target not in _native():
+                        raise RuntimeError(f"no jaxrt.accel module registers {target}")
+                    if not importlib.import_module(f"jaxrt.accel.{_native()[target]}").available():
                         raise RuntimeError(f"the native kernel of {target} is not available")
                 _count("hits")
         except Exception as e:  # noqa: BLE001 -- anything export cannot do runs through jax.jit

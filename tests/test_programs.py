@@ -148,7 +148,10 @@ def test_unserializable_outputs_fall_back_to_jit(cdir):
 
 
 @pytest.mark.slow  # minutes on 2 cores: CI's slow pass
-def test_a_second_process_renders_from_the_stored_frame_program(tmp_path):
+# opaque glass shadows: on a CPU with Embree the frame's hits and shadow rays are one native call of
+# its own FFI target, which the second process must register before the stored program compiles
+@pytest.mark.parametrize("glass_shadows", ["transmit", "opaque"])
+def test_a_second_process_renders_from_the_stored_frame_program(tmp_path, glass_shadows):
     code = """
     import hashlib, json, sys
     import jax
@@ -160,12 +163,13 @@ def test_a_second_process_renders_from_the_stored_frame_program(tmp_path):
         traced.append(1)
         return whitted(*a, **k)
     integrators.REGISTRY["whitted"] = (counting, doc)
-    sc = scene.load("spheres", overrides={"camera.width": 24, "camera.height": 16})
+    sc = scene.load("spheres", overrides={"camera.width": 24, "camera.height": 16, "render.glass_shadows": GS})
     img = jax.device_get(jaxrt.render(sc))
     s = _programs.program_stats()
     print(json.dumps(dict(hits=s.hits, misses=s.misses, traced=len(traced), lean="optimistix" not in sys.modules,
                           image=hashlib.sha256(img.tobytes()).hexdigest())))
     """
+    code = code.replace("GS", repr(glass_shadows))
     d = tmp_path / "cache"
     first, second = _py(code, d), _py(code, d)
     off = _py(code, tmp_path / "off", JAXRT_CACHE="off")
@@ -212,6 +216,7 @@ def test_a_second_process_fits_from_stored_programs_without_importing_the_solver
                           params={k: np.asarray(v).tolist() for k, v in r.params.items()},
                           target=hashlib.sha256(target.tobytes()).hexdigest())))
     """
+    code = code.replace("GS", repr(glass_shadows))
     d = tmp_path / "cache"
     first, second = _py(code, d), _py(code, d)
     assert first["misses"] > 0 and first["solver"]
@@ -333,3 +338,18 @@ def test_cli_render_compiles_its_frame_once_beside_the_tree_build_and_a_second_p
     # the kernel the frame calls was built in this folder (Embree's where installed, else jaxrt's), not the other
     built = sorted(p.name.split("-")[0] for p in (d / "native").glob("*.so"))
     assert built in (["embree"], ["traverse"]), built
+
+
+def test_every_native_ffi_target_is_known_to_stored_programs():
+    """A stored program that calls a native kernel registers that kernel's FFI target before it is
+    compiled; a target missing from the map would leave the program unloadable in a second process
+    ("No FFI handler registered"). Every *TARGET constant of the native modules is in their TARGETS,
+    and every one is mapped to its module."""
+    import importlib
+
+    for name in _programs._NATIVE_MODULES:
+        mod = importlib.import_module(f"jaxrt.accel.{name}")
+        consts = {v for k, v in vars(mod).items() if (k == "TARGET" or k.endswith("_TARGET")) and isinstance(v, str)}
+        assert consts and consts == set(mod.TARGETS), name
+        for t in mod.TARGETS:
+            assert _programs._native()[t] == name

@@ -43,6 +43,8 @@ from jaxrt import _config
 from jaxrt.accel.predicates import FAR_SCALE
 
 TARGET = "jaxrt_bvh_traverse"
+#: every FFI target this module registers (see `jaxrt.accel.traverse_embree.TARGETS`)
+TARGETS = (TARGET,)
 _SYMBOL = "JaxrtBvhTraverse"
 # -ffp-contract=off: every float32 product is rounded before it is added, as in the XLA path
 # (results must not depend on the compiler's FMA contraction). No -march=native: the cached

@@ -54,6 +54,9 @@ KEY_TARGET, _KEY_SYMBOL = "jaxrt_embree_table_key", "JaxrtEmbreeTableKey"
 KEYED_TARGET, _KEYED_SYMBOL = "jaxrt_embree_trace_keyed", "JaxrtEmbreeTraceKeyed"
 # closest hits and their shadow rays to point lights in one call (`direct`)
 DIRECT_TARGET, _DIRECT_SYMBOL = "jaxrt_embree_direct", "JaxrtEmbreeDirect"
+#: every FFI target this module registers (`jaxrt.programs` registers them before compiling a stored
+#: program that calls one)
+TARGETS = (TARGET, KEY_TARGET, KEYED_TARGET, DIRECT_TARGET)
 LIBS = ("-lembree3",)
 # No errno from sqrt and no floating-point traps, so that the loops finishing the hits in double
 # (`Finish` in embree.cc) have no branches and vectorise; neither changes a result.

@@ -621,7 +621,7 @@ def test_second_process_compiles_nothing_for_a_render(tmp_path):
     assert third["image"] == first["image"] and third["compiled"] == first["compiled"]
 
 
-@pytest.mark.parametrize("kernel", ["native", "pallas"])
+@pytest.mark.parametrize("kernel", ["native", pytest.param("pallas", marks=pytest.mark.slow)])
 def test_cached_programs_with_the_native_kernel_and_pallas_load_in_a_fresh_process(tmp_path, kernel):
     # The FFI target of the native kernel is registered while the program is traced (jaxrt.accel.bvh
     # calls bvh_cpu.available()), i.e. before JAX looks the compiled program up in the cache.

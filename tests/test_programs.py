@@ -216,7 +216,6 @@ def test_a_second_process_fits_from_stored_programs_without_importing_the_solver
                           params={k: np.asarray(v).tolist() for k, v in r.params.items()},
                           target=hashlib.sha256(target.tobytes()).hexdigest())))
     """
-    code = code.replace("GS", repr(glass_shadows))
     d = tmp_path / "cache"
     first, second = _py(code, d), _py(code, d)
     assert first["misses"] > 0 and first["solver"]

@@ -305,6 +305,7 @@ def test_auto_mode_starts_a_worker_only_for_a_command_typed_at_a_terminal():
         assert serve.wants_worker(mode, environ, streams) is None, (mode, environ, streams)
 
 
+@pytest.mark.slow  # starts a worker process; 16 s on 2 cores
 def test_default_mode_starts_a_worker_from_a_terminal_and_not_from_a_pipe(tmp_path):
     """JAXRT_WORKER unset (auto), CI unset: the same command from a pipe runs in its own process and
     leaves nothing behind; typed at a terminal (a pseudo-terminal for stdin and stderr) it starts a

@@ -350,7 +350,7 @@ def test_a_render_that_fits_runs_the_compiled_frame_without_compiling(whitted):
 
 
 
-@pytest.mark.parametrize("max_rays", [None, 40])  # one frame; tiles of at most 40 ray samples
+@pytest.mark.parametrize("max_rays", [None, pytest.param(40, marks=pytest.mark.slow)])  # one frame; tiles of at most 40 ray samples
 def test_compile_ahead_compiles_the_render_program_while_the_tree_builds(max_rays):
     """`render_tiles.compile_ahead` on the scene `scene.build` hands to on_shapes (its BVH arrays
     shapes only) compiles, in its own thread, the program the render of the built scene then runs:

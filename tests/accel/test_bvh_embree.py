@@ -402,7 +402,7 @@ def test_direct_call_traces_the_whitted_shadow_segments(bunny):
 
 
 @pytest.mark.data
-@pytest.mark.parametrize("name", ["bunny", "spheres"])
+@pytest.mark.parametrize("name", [pytest.param("bunny", marks=pytest.mark.slow), "spheres"])
 def test_frames_with_shadows_in_the_traversal_equal_the_separate_shadow_rays(name, data_dir, monkeypatch):
     """Whitted frames whose shadow rays Embree traces with the hits (`shadows_in_traversal`) against
     the same program with them traced by `occluded`: the same image up to float rounding (the

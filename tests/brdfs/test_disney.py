@@ -224,6 +224,7 @@ GRID_VALUES = ((0, 1), (0, 1), (0, 1), (0, 1), (0, 0.5, 1), (0, 1), (0, 1), (0, 
 GRID_ANGLES = np.array([0.0, 30.0, 60.0, 80.0]) * DEG
 
 
+@pytest.mark.slow  # 11 s on 2 cores
 def test_albedo_grid_and_documented_maximum():
     """Over the corner grid: the metallic specular lobe alone never exceeds 1 (GGX with Smith masking
     loses energy), while the full model does (not energy conserving, as flagged and documented), with

@@ -46,6 +46,7 @@ def test_surface_from_the_traversal_is_the_surface_of_the_hit(monkeypatch, impl)
     np.testing.assert_array_equal(np.asarray(s.material)[found], np.asarray(ref.material)[found])
 
 
+@pytest.mark.slow  # 20 s on 2 cores
 def test_instanced_default_is_intersect_then_surface():
     scn = S.load(REPO / "scenes" / "instances.toml", overrides=SMALL)
     geo = scn.geometry

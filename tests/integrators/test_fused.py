@@ -112,7 +112,7 @@ def test_scenes_exercise_the_branches(case):
         assert sc.settings.spp == 2 and sc.environment is not None
 
 
-@pytest.mark.parametrize("spp", [1, 2])
+@pytest.mark.parametrize("spp", [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_direct_light_frame_equals_two_pass(spp):
     """max_depth 1 runs the ray-tree loop's body once, outside a loop, and at one sample per pixel
     writes the image as the level's contributions in pixel order (a gather, not a scatter-add): the

@@ -114,6 +114,7 @@ def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
     assert float(jnp.mean(whole[0])) > 0
 
 
+@pytest.mark.slow  # 17-20 s on 2 cores
 def test_unconditional_bounces_equal_skipped_dead_bounces(furnace, monkeypatch):
     # On a GPU every bounce runs (no `lax.cond` skipping a batch whose paths are all dead): dead
     # paths must then contribute nothing. Made here by telling the path tracer it is not on the
@@ -129,6 +130,7 @@ def test_unconditional_bounces_equal_skipped_dead_bounces(furnace, monkeypatch):
     assert float(jnp.mean(skipped[0])) > 0
 
 
+@pytest.mark.slow  # 17-20 s on 2 cores
 def test_surfaces_from_the_traversal_equal_the_gathered_ones(furnace, monkeypatch):
     # On the CPU a bounce takes each hit's point and geometric normal from the traversal
     # (`geometry.intersect_surface`: Embree computes them in double from the triangle it holds)
@@ -153,6 +155,7 @@ def test_surfaces_from_the_traversal_equal_the_gathered_ones(furnace, monkeypatc
     assert float(jnp.mean(L)) > 0.5
 
 
+@pytest.mark.slow  # 17-20 s on 2 cores
 def test_chunked_pass_traces_an_edited_mesh(furnace, monkeypatch):
     # On the CPU with Embree the pass keys Embree's scene by the triangle table it traces
     # (`path._keyed`), which lets large meshes go in chunks too. The key is made in the pass from

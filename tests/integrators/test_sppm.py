@@ -141,6 +141,7 @@ def test_cli_bad_photons_exit_2(tmp_path):
     assert not (tmp_path / "x.exr").exists()
 
 
+@pytest.mark.slow  # 20 s on 2 cores
 def test_a_pass_larger_than_the_memory_budget_is_refused_before_any_pass():
     # a pass is one whole-frame program (not tiled): its arrays and the compiled pass's temporaries
     # are checked against the budget before rendering; refused in one line, nothing run
@@ -179,6 +180,7 @@ def test_settings_reach_the_integrator():
     assert sppm.grid_levels(default) == sppm.DEFAULT_GRID_LEVELS[jax.default_backend()]
 
 
+@pytest.mark.slow  # compiles two SPPM programs (α is static); 40 s on 2 cores
 def test_alpha_sets_the_progressive_update():
     """`[render] alpha` is the α of N' = N + α·M: from an empty state one pass leaves N = α·M and
     r² = α·r0² (r'² = r²·(N + αM)/(N + M) with N = 0) at every visible point that found photons, so
@@ -201,6 +203,7 @@ def test_alpha_sets_the_progressive_update():
 
 # ---------------------------------------------------------------------------------------------- calls
 
+@pytest.mark.slow  # compiles one- and many-pass programs; 25 s on 2 cores
 def test_passes_in_one_call_equal_separate_calls():
     """`step(scene, state, P)` runs P passes in one compiled call: the statistics after 1 + 3 + 2
     passes in three calls are those of six calls of one pass, bit for bit (the same loop body on the
@@ -291,6 +294,7 @@ def test_grid_order_is_bucket_then_random_key_then_index(on_cpu, monkeypatch):
     np.testing.assert_array_equal(np.asarray(got_b), b[want])
 
 
+@pytest.mark.slow  # several pass-group programs; 25 s on 2 cores
 def test_render_groups_passes_into_calls_without_changing_the_image(monkeypatch):
     """`render_tiles.render` runs several passes a call (`passes_per_call`) once the first call is
     timed; its image is the one of one pass a call, bit for bit, and the progress bar counts every pass."""
@@ -354,7 +358,7 @@ def _wall_scene(mirror: bool, **render):
     }
 
 
-@pytest.mark.parametrize("mirror,length", [(False, 5.0), (True, 12.0)])
+@pytest.mark.parametrize("mirror,length", [(False, 5.0), pytest.param(True, 12.0, marks=pytest.mark.slow)])
 def test_default_initial_radius_is_a_pixel_footprint(mirror, length):
     """The default initial radius is RADIUS_PIXELS pixel footprints at the visible point: the camera
     path's length (through the mirror) times 2·tan(vfov/2)/height. The four centre pixels' rays are

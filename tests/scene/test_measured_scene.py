@@ -64,6 +64,7 @@ def test_neural_material_renders_the_direct_value_with_both_integrators(brdf_dat
     np.testing.assert_allclose(np.asarray(R.frame(sc_p)), img, rtol=2e-4, atol=1e-6 * ref.max())
 
 
+@pytest.mark.slow  # 11 s on 2 cores
 def test_two_measured_materials_each_shade_their_own_object(brdf_data):
     # two rows of one measured model: each hit must use its own row (at_hits), not row 0
     doc = plane_doc({"model": "measured", "data": MATERIAL})

@@ -286,6 +286,7 @@ def test_sphere_uv_is_latitude_longitude_without_a_seam_sweep():
     assert span[~near_pole].max() < 0.1
 
 
+@pytest.mark.slow  # 12 s on 2 cores
 def test_gather_params_textured_scalar_parameter_and_float64_gradient(tmp_path):
     """gather_params(..., uv) returns the texture value only for the textured material's slots, and
     the Disney BRDF's gradient with respect to a roughness texel matches float64 central differences."""

@@ -17,9 +17,10 @@ Rows (each a median of --repeats runs after a warm-up run that compiles):
            those hits to the light (jaxrt `bvh.occluded`, Mitsuba `ray_test`), the same rays for both.
   path     `benchmarks/path.py`'s scenes and code: the Cornell box (area light) and the dragon in an
            environment map, --path-size², --spp, --depth; Mitsuba in a child process (path.py's).
-           --path-devices N splits each jaxrt pass over N devices (on a CPU, virtual ones:
-           XLA_FLAGS=--xla_force_host_platform_device_count=N; XLA:CPU runs one program's loops on
-           one thread, N device programs run side by side; Mitsuba uses every core either way).
+           Each jaxrt pass is split over the devices `jaxrt render` uses: on a CPU one per core (at
+           most 8; XLA:CPU runs one program's loops on one thread, the device programs run side by
+           side; Mitsuba uses every core either way), on a GPU one; --path-devices N sets the count
+           (JAX_NUM_CPU_DEVICES sets how many CPU devices there are).
 
 Mitsuba's variant: cuda_ad_rgb where JAX runs on a GPU, else llvm_ad_rgb (its libLLVM found by
 `_mitsuba.use_libllvm`); if Mitsuba cannot be imported or the variant not set, jaxrt's rows are
@@ -41,6 +42,12 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
+
+from jaxrt import _config  # noqa: E402
+
+# the devices a `jaxrt` command's JAX has (on a CPU one per core: `_config.command_defaults`), set
+# before JAX is imported, so that the path rows split their passes as `jaxrt render` does
+_config.command_defaults()
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -236,15 +243,18 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--paths", nargs="+", default=["cornell", "dragon"], choices=["cornell", "dragon"])
     ap.add_argument("--path-size", type=int, default=512)
-    ap.add_argument("--path-devices", type=int, default=1,
-                    help="path tracing: split each jaxrt pass over this many devices (`path.py --devices`; on a "
-                         "CPU virtual ones: XLA_FLAGS=--xla_force_host_platform_device_count=N)")
+    ap.add_argument("--path-devices", type=int, default=None,
+                    help="path tracing: split each jaxrt pass over this many devices (`path.py --devices`); "
+                         "default: on a CPU every device, one per core as in `jaxrt render` "
+                         "(JAX_NUM_CPU_DEVICES=1 for one), on a GPU 1 (Mitsuba's variant uses one GPU)")
     ap.add_argument("--spp", type=int, default=16, help="path tracing: samples per pixel per pass")
     ap.add_argument("--depth", type=int, default=4, help="path tracing: max_depth (Mitsuba's is +1)")
     ap.add_argument("--passes", type=int, default=3, help="path tracing: timed passes (median)")
     ap.add_argument("--mesh", default="dragon", help="the path-traced dragon's mesh (dragon, dragon_res2, ...)")
     ap.add_argument("--no-mitsuba", action="store_true")
     args = ap.parse_args(argv)
+    if args.path_devices is None:
+        args.path_devices = len(jax.devices()) if jax.default_backend() == "cpu" else 1
 
     gpu = jax.default_backend() == "gpu"
     dev = jax.devices()[0]
@@ -295,6 +305,7 @@ def main(argv=None) -> int:
                          f"{n / tm / 1e6:.3f} Msamples/s, {m['mean']:.4f}" if m else "", ""))
     mname = f"Mitsuba 3 ({peer.variant})" if use_mi else "Mitsuba 3 (not run)"
     print(f"\nmedians of {args.repeats} (frames, rays) / {args.passes} (path passes) after a warm-up; "
+          f"jaxrt's path passes on {args.path_devices} {jax.default_backend()} device(s); "
           f"load at the end {os.getloadavg()[0]:.1f}\n")
     print(f"| workload | jaxrt | {mname} | ratio (time jaxrt / time Mitsuba) |")
     print("|---|---|---|---|")

@@ -805,7 +805,7 @@ def fit_devices(devices) -> tuple:
         return ()
     from jaxrt import _devices
 
-    devs = _devices.select(devices)
+    devs = _devices.solver_devices(devices)
     return devs if _devices.sharded(devs) else ()
 
 

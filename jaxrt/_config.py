@@ -36,8 +36,9 @@ from pathlib import Path
 
 from jaxrt.errors import InputError
 
-__all__ = ["DEFAULT_CACHE_SIZE", "RUNTIME_DEFAULTS", "TRAVERSALS", "VARIABLES", "WORKER_KEY_PREFIXES", "WORKER_KEY_VARIABLES", "WORKER_MODES",
-           "Config", "apply_runtime_defaults", "config", "default_cache_dir", "parse_size"]
+__all__ = ["DEFAULT_CACHE_SIZE", "MAX_CPU_DEVICES", "RUNTIME_DEFAULTS", "TRAVERSALS", "VARIABLES", "WORKER_KEY_PREFIXES", "WORKER_KEY_VARIABLES", "WORKER_MODES",
+           "Config", "apply_runtime_defaults", "command_defaults", "config", "cores", "default_cache_dir",
+           "parse_size"]
 
 #: The traversal implementations `JAXRT_TRAVERSAL` may name (`jaxrt.accel.bvh.IMPLS` holds the same tuple).
 TRAVERSALS = ("auto", "xla", "cpu", "embree", "pallas", "pallas-interpret")
@@ -71,6 +72,14 @@ WORKER_KEY_PREFIXES = ("JAX_", "XLA_", "TF_", "NCCL_")
 #: `jaxrt render dragon`) and holds the memory whether a job needs it or not; the allocator still
 #: keeps and reuses what it has grown to, so frames after the first run at the same speed.
 RUNTIME_DEFAULTS = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+
+#: The most CPU devices a `jaxrt` command asks JAX for (`command_defaults`). Every device holds its
+#: own copy of the scene (`jaxrt._devices`: BVH, materials, textures) and the render's memory budget
+#: is split between them, and at 8 devices a frame's tiles stop having the same shape for every
+#: device count (`jaxrt._devices.MIN_TILES` / `TILES_PER_DEVICE`).
+MAX_CPU_DEVICES = 8
+
+_CPU_DEVICE_FLAG = "--xla_force_host_platform_device_count"
 
 _TRUE = ("1", "true", "yes", "on")
 _FALSE = ("", "0", "false", "no", "off")
@@ -117,6 +126,33 @@ def apply_runtime_defaults(environ: dict | None = None) -> dict:
     env = os.environ if environ is None else environ
     for name, value in RUNTIME_DEFAULTS.items():
         env.setdefault(name, value)
+    return env
+
+
+def cores() -> int:
+    """The CPU cores this process may run on (its affinity mask where the platform has one)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - platforms without affinity masks
+        return max(1, os.cpu_count() or 1)
+
+
+def command_defaults(environ: dict | None = None) -> dict:
+    """`apply_runtime_defaults`, and for a `jaxrt` command one device per core (at most
+    `MAX_CPU_DEVICES`) on JAX's CPU backend, JAX_NUM_CPU_DEVICES, unless the environment already sets
+    it or XLA_FLAGS sets --xla_force_host_platform_device_count. Returns `environ` (default
+    ``os.environ``).
+
+    Why: XLA:CPU runs one program's fused loops on one thread (only library calls such as jaxrt's
+    traversal kernels spread over the cores), so a progressive render whose tiles are spread over one
+    device per core keeps every core busy: path tracing 512², 16 spp on 2 cores took 0.69-0.75 of the
+    one-device time (BENCHMARKS.md, "CPU path tracing on one device per core"). A GPU render is not
+    affected (only the CPU backend's device count changes). Fits do not spread over CPU devices by
+    default (`jaxrt._devices.solver_devices`). Only the command line does this: the Python API keeps
+    JAX's default of one CPU device, as a program that imports jaxrt expects."""
+    env = apply_runtime_defaults(environ)
+    if "JAX_NUM_CPU_DEVICES" not in env and _CPU_DEVICE_FLAG not in env.get("XLA_FLAGS", ""):
+        env["JAX_NUM_CPU_DEVICES"] = str(min(cores(), MAX_CPU_DEVICES))
     return env
 
 

@@ -100,10 +100,10 @@ from jaxrt import _config, integrators
 from jaxrt.camera import Window
 from jaxrt.errors import InputError
 
-__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "gather", "initialize", "local",
-           "lpt", "makespan", "mesh", "pad_rows", "padded", "parse", "pass_program", "program", "put_each", "put_rows",
+__all__ = ["AXIS", "MIN_TILES", "TILES_PER_DEVICE", "batched", "concurrent", "gather", "initialize", "local", "lpt",
+           "makespan", "mesh", "pad_rows", "padded", "parse", "pass_program", "program", "put_each", "put_rows",
            "queue_arrays", "queue_program", "replicate", "round_arrays", "select", "shard_map", "sharded",
-           "sppm_program", "tile_pass_program", "timed", "views"]
+           "solver_devices", "sppm_program", "tile_pass_program", "timed", "views"]
 
 AXIS = "devices"
 # A render on several devices is split into at least max(MIN_TILES, TILES_PER_DEVICE·D) tiles, so
@@ -174,6 +174,38 @@ def select(devices: Any = None, label: str = "devices=") -> tuple[jax.Device, ..
         raise InputError(f"{_what(label, list(devices))}: a list of devices must name distinct devices of "
                          f"jax.devices() ({', '.join(str(d) for d in avail)}), at least one")
     return chosen
+
+
+def concurrent(devices: Sequence[jax.Device]) -> int:
+    """How many of `devices` may run a solver's program at the same time in this process: all of
+    them on a GPU; on a CPU, one fewer than the cores (at least one).
+
+    Why: XLA:CPU runs each device's program on a worker of one intra-op thread pool with as many
+    threads as cores, and some library kernels a solver's program calls fan their work out onto
+    that same pool and block until it is done (jaxlib's LAPACK kernels: a batch of QR
+    factorisations, `lapack_sgeqrf_ffi`, waits on the batch's tasks). With as many programs as
+    threads each inside such a kernel, no thread is left to run the tasks they wait for: a 256²
+    fit with its starts on 2 devices of a 2-core CPU stopped there, its threads idle (seen with
+    gdb: both pool threads in `jax::ParallelBatchMap` waiting, the pool's queue holding their tasks).
+    One free thread is enough for progress. Renders do not need this: their only library calls
+    are jaxrt's traversal kernels, whose calling thread does the work itself and waits only for
+    pieces other threads have started (`accel/native`)."""
+    devices = list(devices)
+    if devices and devices[0].platform == "cpu":
+        return max(1, min(len(devices), _config.cores() - 1))
+    return len(devices)
+
+
+def solver_devices(devices: Any = None, label: str = "devices=") -> tuple[jax.Device, ...]:
+    """`select` for fits and studies: the same, except that the default (None or "all") on a CPU
+    is the first `concurrent` devices, so a command that sees one CPU device per core
+    (`jaxrt._config.command_defaults`) does not split a fit it would run more slowly split (each
+    device compiles the solver once, and at most `concurrent` of them run at once). An explicit
+    number or list is kept."""
+    devs = select(devices, label)
+    if devices is None or (isinstance(devices, str) and devices.strip().lower() == "all"):
+        devs = devs[:concurrent(devs)]
+    return devs
 
 
 def initialize(environ=None) -> bool:
@@ -518,7 +550,10 @@ def batched(fn, devices: Sequence[jax.Device], split: tuple[bool, ...], *args, r
     shared = [a for i, a in enumerate(args) if not split[i]]
     copies = replicated if replicated is not None else put_each(shared, [devices[j] for j in mine])
     outs = []
+    at_once = concurrent([devices[j] for j in mine])
     for c, j in enumerate(mine):
+        if c >= at_once:  # at most `concurrent` programs at once (on a CPU: see there)
+            jax.block_until_ready(outs[c - at_once])
         it = iter(copies[c])
         call = [jax.device_put(jax.tree.map(lambda x: np.asarray(x)[j * k:(j + 1) * k], a), devices[j]) if split[i]
                 else next(it) for i, a in enumerate(args)]

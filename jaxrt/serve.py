@@ -127,7 +127,7 @@ def worker_key(environ=None) -> str:
     import jaxrt
 
     # the defaults a worker's own process applies before JAX starts count as set in the client too
-    env = _config.apply_runtime_defaults(dict(os.environ if environ is None else environ))
+    env = _config.command_defaults(dict(os.environ if environ is None else environ))
     names = set(_config.WORKER_KEY_VARIABLES) | {k for k in env if k.startswith(_config.WORKER_KEY_PREFIXES)}
     key = {"python": sys.executable, "prefix": sys.prefix, "version": jaxrt.__version__, "sources": _sources(),
            "environment": {k: env.get(k) for k in sorted(names)}}

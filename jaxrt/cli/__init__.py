@@ -74,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     """`jaxrt ARGV`: in a resident worker where one runs for this environment and JAXRT_WORKER allows
     (`jaxrt.serve`; this process then imports no JAX), else here (`execute`). The exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    if "jax" not in sys.modules:  # JAX reads its variables when it is imported: one CPU device per core
+        _config.command_defaults()
     from jaxrt import serve
 
     code = serve.forward(argv, _command(argv))

@@ -68,8 +68,9 @@ def add_common_options(p: argparse.ArgumentParser) -> None:
                    help=f"solver iterations per start, 1..{MAX_STEPS} (default 200)")
     p.add_argument("--grey", action="store_true", help="fit ρ parameters as one grey value instead of RGB")
     p.add_argument("--devices", metavar="N", default="all",
-                   help="split the work over the first N devices of jax.devices() (default: all; 1: the default "
-                        "device alone): fit's starts, fit-matrix's fits of each model to every target")
+                   help="split the work over the first N devices of jax.devices() (default: all, on a CPU one fewer "
+                        "than the cores; 1: the default device alone): fit's starts, fit-matrix's fits of each "
+                        "model to every target")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
 
 
@@ -134,7 +135,7 @@ def devices_option(text: str):
     from jaxrt import _devices
 
     n = _devices.parse(text, "--devices")
-    devs = _devices.select("all" if n is None else n, "--devices")
+    devs = _devices.solver_devices("all" if n is None else n, "--devices")
     return devs if _devices.sharded(devs) else None
 
 

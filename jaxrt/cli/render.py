@@ -34,10 +34,11 @@ JAXRT_MEMORY, else half the RAM on a CPU (90% of the free memory on a GPU); an i
 in one piece is rendered in tiles of pixels and batches of samples, with a progress bar on stderr
 (not with -q). A job that cannot fit one tile stops before rendering, naming the memory it needs.
 
-Devices: the tiles are spread over every device JAX sees (all GPUs of the host; a CPU is one
-device unless XLA_FLAGS=--xla_force_host_platform_device_count=N), each device rendering its own
-tiles with the whole scene (integrator sppm: each pass's photons split over them); --devices N uses
-the first N. The memory budget applies to each device.
+Devices: the tiles are spread over every device JAX sees (all GPUs of the host; on a CPU, one
+device per core, at most 8, unless JAX_NUM_CPU_DEVICES or XLA_FLAGS=--xla_force_host_platform_device_count=N
+say otherwise: XLA:CPU runs one program on one thread), each device rendering its own tiles with the
+whole scene (integrator sppm: each pass's photons split over them); --devices N uses the first N.
+The memory budget applies to each device.
 
 Glare: --glare on|off|KEY=VALUE,... adds (or removes) the diffraction glare of the camera's aperture,
 a post-process of the whole finished image that preserves its sum (the [glare] table of a scene file;

@@ -53,8 +53,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch", type=int, help="materials per compiled solve and device (default: all on a GPU, "
                                                   "1 on a CPU)")
     parser.add_argument("--devices", metavar="N", default="all",
-                        help="split each solve's materials over the first N devices of jax.devices() (default: all; "
-                             "1: the default device alone)")
+                        help="split each solve's materials over the first N devices of jax.devices() (default: all, "
+                             "on a CPU one fewer than the cores; 1: the default device alone)")
     parser.add_argument("--sampling", metavar="NH,ND,NP",
                         help="fit grid: θh, θd, φd cells (default %s)" % ",".join(map(str, study.FIT_RESOLUTION)))
     parser.add_argument("--eval-sampling", metavar="NH,ND,NP",

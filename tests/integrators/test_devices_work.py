@@ -93,6 +93,110 @@ def test_batched_splits_independent_problems_over_devices():
     assert "multiple of the device count" in out["unpadded"]
 
 
+# ---- one device per core on a CPU: the command's default, and solvers that never starve the pool ----------
+
+_STARVE = r"""
+import json, time
+import jax, jax.numpy as jnp
+import numpy as np
+from jaxrt import _config, _devices
+
+def solve(a, b):
+    # a vmapped loop of QR factorisations: jaxlib's batched LAPACK kernel fans out onto the intra-op
+    # thread pool it runs on and waits for its tasks
+    def one(a, b):
+        def body(i, x):
+            q, r = jnp.linalg.qr(a + 1e-3 * i * jnp.eye(a.shape[0], a.shape[1]))
+            return x + jax.scipy.linalg.solve_triangular(r[: a.shape[1]], q.T @ b)[0]
+        return jax.lax.fori_loop(0, 50, body, 0.0)
+    return jax.vmap(one)(a, b)
+
+devs = jax.devices()
+rng = np.random.default_rng(0)
+a = rng.normal(size=(64, 400, 8)).astype(np.float32)
+b = rng.normal(size=(64, 400)).astype(np.float32)
+one = np.asarray(jax.jit(solve)(a, b))
+outs = [_devices.batched(solve, devs, (True, True), a, b) for _ in range(10)]
+print(json.dumps(dict(devices=len(devs), cores=_config.cores(), concurrent=_devices.concurrent(devs),
+                      equal=all(bool(np.array_equal(o, one)) for o in outs))))
+"""
+
+
+def test_solvers_split_over_one_cpu_device_per_core_do_not_wait_forever():
+    """With one CPU device per core (the command's default), a batch of QR-based solves split over all of
+    them by `_devices.batched` finishes, equal to the one-device program: at most cores − 1 programs run
+    at once, so the pool keeps a thread for the tasks the LAPACK kernels wait on. With every device's
+    program dispatched at once this stopped with its threads idle (the 120 s timeout below; seen with
+    gdb in jaxlib's `ParallelBatchMap`)."""
+    n = min(_config.cores(), _config.MAX_CPU_DEVICES)
+    out = _run(_STARVE, devices=n, env={"XLA_FLAGS": "", "JAX_NUM_CPU_DEVICES": str(n)}, timeout=120)
+    assert out["devices"] == n and out["concurrent"] == max(1, min(n, out["cores"] - 1))
+    assert out["equal"]
+
+
+class _Dev:
+    def __init__(self, platform, i):
+        self.platform, self.id = platform, i
+
+
+@pytest.mark.parametrize("platform, cores, want", [("cpu", 2, 1), ("cpu", 4, 3), ("cpu", 16, 5), ("cpu", 1, 1),
+                                                   ("gpu", 2, 5)])
+def test_concurrent_solvers_leave_a_core_on_a_cpu(monkeypatch, platform, cores, want):
+    from jaxrt import _devices
+
+    monkeypatch.setattr(_config, "cores", lambda: cores)
+    devs = [_Dev(platform, i) for i in range(5)]
+    assert _devices.concurrent(devs) == want
+    monkeypatch.setattr(_devices, "select", lambda devices=None, label="": tuple(devs))
+    assert _devices.solver_devices() == tuple(devs[:want]) == _devices.solver_devices(" ALL ")
+    assert _devices.solver_devices(5) == tuple(devs)  # an explicit count or list is kept
+
+
+def test_commands_ask_for_one_cpu_device_per_core(monkeypatch):
+    monkeypatch.setattr(_config, "cores", lambda: 12)
+    env = _config.command_defaults({})
+    assert env["JAX_NUM_CPU_DEVICES"] == str(_config.MAX_CPU_DEVICES) == "8"  # capped
+    assert env["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"  # and the runtime defaults
+    monkeypatch.setattr(_config, "cores", lambda: 2)
+    assert _config.command_defaults({})["JAX_NUM_CPU_DEVICES"] == "2"
+    assert _config.command_defaults({"JAX_NUM_CPU_DEVICES": "1"})["JAX_NUM_CPU_DEVICES"] == "1"  # set wins
+    flags = {"XLA_FLAGS": "--xla_cpu_enable_fast_math=false --xla_force_host_platform_device_count=3"}
+    assert "JAX_NUM_CPU_DEVICES" not in _config.command_defaults(dict(flags))  # so does the XLA flag
+    assert "JAX_NUM_CPU_DEVICES" not in _config.apply_runtime_defaults({})  # the Python API: JAX's default
+    assert 1 <= _config.cores() <= (os.cpu_count() or 1)
+
+
+def test_a_command_renders_on_one_cpu_device_per_core(tmp_path):
+    """`jaxrt render` in a fresh process sees one CPU device per core (at most 8) and spreads the tiles over
+    them; JAX_NUM_CPU_DEVICES=1 renders on one. Both images agree to the rounding of another XLA module
+    (`jaxrt._devices`: the partitioned program)."""
+    code = r"""
+import json, sys
+from jaxrt.cli import main
+rc = main(["render", "spheres", "--width", "24", "--height", "16", "-q", "-o", sys.argv[1]])
+import jax
+print(json.dumps(dict(rc=rc, devices=len(jax.devices()), platform=jax.default_backend())))
+"""
+    outs = []
+    for k, extra in enumerate(({}, {"JAX_NUM_CPU_DEVICES": "1"})):
+        e = dict(os.environ, JAX_PLATFORMS="cpu", JAXRT_WORKER="off",
+                 PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+        e.pop("JAX_NUM_CPU_DEVICES", None)
+        e["XLA_FLAGS"] = ""
+        e.update(extra)
+        r = subprocess.run([sys.executable, "-c", textwrap.dedent(code), str(tmp_path / f"{k}.exr")], cwd=ROOT, env=e,
+                           capture_output=True, text=True, timeout=600, check=False)
+        assert r.returncode == 0, r.stderr[-3000:]
+        outs.append(json.loads(r.stdout.strip().splitlines()[-1]))
+    assert outs[0] == dict(rc=0, devices=min(_config.cores(), _config.MAX_CPU_DEVICES), platform="cpu")
+    assert outs[1] == dict(rc=0, devices=1, platform="cpu")
+    from jaxrt import image
+
+    a, b = (np.asarray(image.read_exr(tmp_path / f"{k}.exr")) for k in range(2))
+    assert a.shape == b.shape == (16, 24, 3) and a.max() > 0.1
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
+
+
 # ---- several hosts: the launch configuration and process-0-only output ---------------------------------------
 
 

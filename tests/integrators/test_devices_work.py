@@ -166,6 +166,7 @@ def test_commands_ask_for_one_cpu_device_per_core(monkeypatch):
     assert 1 <= _config.cores() <= (os.cpu_count() or 1)
 
 
+@pytest.mark.slow  # 20 s on 2 cores: two fresh processes compile a render
 def test_a_command_renders_on_one_cpu_device_per_core(tmp_path):
     """`jaxrt render` in a fresh process sees one CPU device per core (at most 8) and spreads the tiles over
     them; JAX_NUM_CPU_DEVICES=1 renders on one. Both images agree to the rounding of another XLA module

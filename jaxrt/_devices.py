@@ -147,6 +147,11 @@ def parse(text: str, label: str = "--devices") -> int | None:
     return n
 
 
+def _every(devices: Any) -> bool:
+    # the default choice of `select`: None or "all" (any case, surrounding spaces)
+    return devices is None or (isinstance(devices, str) and devices.strip().lower() == "all")
+
+
 def select(devices: Any = None, label: str = "devices=") -> tuple[jax.Device, ...]:
     """The devices of a render: None or "all": every device of the default backend (`jax.devices()`);
     an int N: the first N of them; a sequence of those devices: these, in this order.
@@ -158,7 +163,7 @@ def select(devices: Any = None, label: str = "devices=") -> tuple[jax.Device, ..
     n = len(avail)
     allowed = (f"'all' or a number from 1 to {n} (this host has {n} {avail[0].platform} "
                f"device{'s' if n > 1 else ''})")
-    if devices is None or (isinstance(devices, str) and devices.strip().lower() == "all"):
+    if _every(devices):
         return avail
     if isinstance(devices, str):
         devices = parse(devices, label)
@@ -203,9 +208,7 @@ def solver_devices(devices: Any = None, label: str = "devices=") -> tuple[jax.De
     device compiles the solver once, and at most `concurrent` of them run at once). An explicit
     number or list is kept."""
     devs = select(devices, label)
-    if devices is None or (isinstance(devices, str) and devices.strip().lower() == "all"):
-        devs = devs[:concurrent(devs)]
-    return devs
+    return devs[:concurrent(devs)] if _every(devices) else devs
 
 
 def initialize(environ=None) -> bool:

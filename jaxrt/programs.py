@@ -29,14 +29,29 @@ on the same platform, which the key guarantees.
 
 Within a process, each (key) keeps its compiled wrapper, so a repeated call costs a pytree flatten
 and a dictionary lookup beyond `jax.jit`'s own dispatch.
+
+Compiled programs and the kernel's mapping limit. XLA:CPU loads every compiled program's machine
+code into memory mappings of its own (three per object file: code, constants, data; a small program
+takes about a dozen, a frame of the path tracer hundreds), and JAX keeps every executable it compiled
+for as long as the process lives. Linux allows a process `vm.max_map_count` mappings (65530 by
+default); at the limit LLVM cannot map the next program and aborts the whole process ("Unable to
+allocate section memory"). A long-lived process that compiles many distinct programs (the resident
+worker, a notebook, a test run) reaches it. `mapped_regions()` reports (used, limit); `release()` drops
+the compiled programs this process holds in memory (JAX's caches and the stored programs' executables;
+the next call compiles again, from the persistent compilation cache where that is on); `relieve()`
+releases when the used share passes `RELEASE_AT`. A stored program calls `relieve()` before it
+compiles (once, with a warning, where it released anything), and `jaxrt serve` between jobs.
 """
 
 from __future__ import annotations
 
 import functools
+import gc
 import hashlib
 import re
 import threading
+import warnings
+import weakref
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -46,7 +61,8 @@ import numpy as np
 
 from jaxrt import _config
 
-__all__ = ["ProgramStats", "cached_jit", "program_stats", "source_digest"]
+__all__ = ["RELEASE_AT", "ProgramStats", "cached_jit", "mapped_regions", "program_stats", "relieve", "release",
+           "source_digest"]
 
 # The Pallas GPU traversal's custom call (Triton), which `jax.export` does not list as stable; nor
 # does it list the native CPU kernels' targets (`_native`).
@@ -72,6 +88,56 @@ def _native() -> dict[str, str]:
 
 _lock = threading.Lock()
 _counts = {"hits": 0, "misses": 0, "exports": 0, "fallbacks": 0}
+# every `cached_jit` function of the process (weakly: a function that goes away is not kept alive),
+# so that `release` can drop their executables
+_functions: weakref.WeakSet = weakref.WeakSet()
+_releasing = threading.Lock()
+_released = {"warned": False}
+
+#: the share of `vm.max_map_count` above which `relieve` releases the compiled programs (a program
+#: compiled at 75 % still leaves room for a few hundred large ones before the limit)
+RELEASE_AT = 0.75
+
+
+def mapped_regions() -> tuple[int, int] | None:
+    """(memory mappings this process holds, the most it may hold: Linux's ``vm.max_map_count``), or
+    None where the kernel does not say (not Linux). Reading costs ~1 ms per 1,000 mappings."""
+    try:
+        with open("/proc/sys/vm/max_map_count", "rb") as f:
+            limit = int(f.read())
+        with open("/proc/self/maps", "rb") as f:
+            used = sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b""))
+    except (OSError, ValueError):
+        return None
+    return used, limit
+
+
+def release() -> int:
+    """Drop every compiled program this process holds in memory: JAX's caches (`jax.clear_caches`:
+    every `jax.jit`'s executables and traces) and the executables of the `cached_jit` programs, whose
+    traced programs are kept. Later calls compile again, from the persistent compilation cache where
+    it is on (`jaxrt.cache`). Objects a caller still holds (a `lower(...).compile()` result) keep
+    theirs. Returns how many stored programs' executables were dropped."""
+    with _releasing:
+        n = 0
+        for fn in list(_functions):
+            for stored in list(fn._programs.values()):
+                if stored is not _UNSTORABLE and stored._executable is not None:
+                    stored._executable = None  # a call compiling it meanwhile just sets it again
+                    n += 1
+        jax.clear_caches()
+        gc.collect()
+        return n
+
+
+def relieve(fraction: float = RELEASE_AT) -> bool:
+    """`release()` where this process holds more than `fraction` of the memory mappings it may hold
+    (`mapped_regions`); True where it released."""
+    m = mapped_regions()
+    if m is None or m[0] <= fraction * m[1]:
+        return False
+    release()
+    return True
 
 
 class ProgramStats:
@@ -185,6 +251,10 @@ class _Stored:
         self._lock = threading.Lock()
 
     def executable(self, leaves):
+        exe = self._executable
+        if exe is not None:
+            return exe
+        _before_compiling()
         with self._lock:
             if self._executable is None:
                 self._executable = jax.jit(self.exp.call).lower(*leaves).compile()
@@ -201,6 +271,18 @@ class _Stored:
 _UNSTORABLE = object()  # a program export could not store: calls with that key go through jax.jit
 
 
+def _before_compiling() -> None:
+    """`relieve()` before a stored program compiles; the first release of the process says so."""
+    if relieve():
+        used, limit = mapped_regions() or (0, 0)
+        if not _released["warned"]:
+            _released["warned"] = True
+            warnings.warn(f"jaxrt: compiled programs filled more than {RELEASE_AT:.0%} of the {limit} memory "
+                          f"mappings a process may have (vm.max_map_count; {used} after releasing them): "
+                          "this process's compiled programs were dropped and compile again when used "
+                          "(from the compilation cache where it is on)", RuntimeWarning, stacklevel=4)
+
+
 class _CachedJit:
     def __init__(self, fun: Callable, name: str, static_argnames: tuple[str, ...]):
         self._fun = fun
@@ -212,6 +294,7 @@ class _CachedJit:
         # program (a compilation started ahead of time) waits for it instead of tracing it again
         self._loading = threading.RLock()
         functools.update_wrapper(self, fun)
+        _functions.add(self)
 
     def _cache_size(self) -> int:
         """Distinct programs this function holds in this process (stored ones and `jax.jit`'s)."""
@@ -356,8 +439,7 @@ class _Lowered:
         return self._stored.out_info()
 
     def compile(self):
-        self._stored.executable(self._leaves)
-        return _Compiled(self._stored, self._static)
+        return _Compiled(self._stored, self._static, self._stored.executable(self._leaves))
 
 
 class _Compiled:
@@ -365,16 +447,18 @@ class _Compiled:
     accepted and ignored: they are part of the program); other attributes (`memory_analysis`,
     `cost_analysis`, ...) are the executable's."""
 
-    def __init__(self, stored: _Stored, static: tuple[str, ...]):
-        self._stored, self._static = stored, static
+    def __init__(self, stored: _Stored, static: tuple[str, ...], executable):
+        # the executable is held here too: `release` may drop the stored program's, not this one's
+        self._stored, self._static, self._executable = stored, static, executable
 
     def __call__(self, *args, **kwargs):
         for k in self._static:
             kwargs.pop(k, None)
-        return self._stored(jax.tree_util.tree_leaves((args, kwargs)))
+        leaves = jax.tree_util.tree_leaves((args, kwargs))
+        return jax.tree_util.tree_unflatten(self._stored.out_tree, self._executable(*leaves))
 
     def __getattr__(self, name):
-        return getattr(self._stored._executable, name)
+        return getattr(self._executable, name)
 
 
 def cached_jit(fun: Callable | None = None, *, name: str | None = None,

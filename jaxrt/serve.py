@@ -42,7 +42,11 @@ runs over several hosts (JAXRT_COORDINATOR).
 
 Bounded memory: the worker keeps the compiled programs of the jobs it ran (that is its point); it
 retires (stops listening, removes its socket and exits) after `MAX_JOBS` jobs or when its resident
-memory exceeds `max_rss` after a job, and the next `jaxrt serve` starts a fresh one. Results: the
+memory exceeds `max_rss` after a job, and the next `jaxrt serve` starts a fresh one. Compiled
+programs also take memory mappings, of which Linux allows a process `vm.max_map_count` (at the
+limit the compiler aborts the process: `jaxrt.programs`): past `RELEASE_AT` of them after a job the
+worker drops its compiled programs (`jaxrt.programs.release`; later jobs compile again from the
+persistent cache), and retires where that does not bring it back under. Results: the
 worker runs the same code on the same compiled programs with the same configuration as a process of
 its own, so images and fits are bit-identical to in-process runs (tested); warnings shown once per
 process (a cache folder that cannot be written) are shown once per worker.
@@ -80,6 +84,9 @@ DEFAULT_IDLE_TIMEOUT = 900.0
 AUTO_IDLE_TIMEOUT = 600.0
 #: Jobs after which a worker retires (its compiled programs and cached scenes are freed with it).
 MAX_JOBS = 200
+#: the share of the process's memory-mapping limit above which the worker releases its compiled
+#: programs after a job (lower than `jaxrt.programs.RELEASE_AT`: between jobs nothing is running)
+RELEASE_AT = 0.5
 #: Commands a client never hands to a worker (see the module docstring).
 LOCAL_COMMANDS = ("view", "serve", "cache")
 #: Seconds `start` waits for a new worker to accept connections (importing JAX, starting devices).
@@ -425,7 +432,7 @@ class _Worker:
         self.stopping = False
         self.job_running = False
         self.forwarded = False
-        self.counts = {"jobs": 0, "busy_refused": 0, **{v: 0 for v in _EVENTS.values()}}
+        self.counts = {"jobs": 0, "busy_refused": 0, "releases": 0, **{v: 0 for v in _EVENTS.values()}}
         self.started = time.time()
 
     # -- the listening thread: answers status and stop at once, hands jobs to the main thread
@@ -509,8 +516,20 @@ class _Worker:
                     self.counts["jobs"] += 1
                     jobs = self.counts["jobs"]
                 last = time.monotonic()
-            if jobs >= MAX_JOBS or (self.max_rss is not None and _rss() > self.max_rss):
+            if jobs >= MAX_JOBS or (self.max_rss is not None and _rss() > self.max_rss) or self.mappings_full():
                 return  # retire: the next `jaxrt serve` starts a fresh worker
+
+    def mappings_full(self) -> bool:
+        """Past `RELEASE_AT` of the mapping limit: release the compiled programs; True (retire) where
+        the process is still past it afterwards."""
+        from jaxrt import programs
+
+        if not programs.relieve(RELEASE_AT):
+            return False
+        with self.cv:
+            self.counts["releases"] += 1
+        m = programs.mapped_regions()
+        return m is not None and m[0] > RELEASE_AT * m[1]
 
     def run_job(self, conn: socket.socket, job: dict) -> None:
         lock, gone = threading.Lock(), threading.Event()

@@ -6,6 +6,7 @@ inherit the environment), so compiled programs and built scenes are reused withi
 """
 
 import os
+import sys
 import tempfile
 from pathlib import Path
 
@@ -19,6 +20,19 @@ os.environ["JAXRT_WORKER"] = "off"
 
 if not os.environ.get("JAXRT_CACHE_DIR"):
     os.environ["JAXRT_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxrt-test-cache-")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _compiled_programs_within_the_mapping_limit():
+    """An xdist worker runs hundreds of test modules in one process, and every program they compile
+    keeps its machine code mapped: past Linux's `vm.max_map_count` LLVM aborts the worker
+    (`jaxrt.programs`). Between modules, past 40 % of the limit, the compiled programs are dropped
+    (a module's own compilation counts are never disturbed: nothing is dropped inside one)."""
+    yield
+    if "jax" in sys.modules:
+        from jaxrt import programs
+
+        programs.relieve(0.4)
 
 
 @pytest.fixture(scope="session")

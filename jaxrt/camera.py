@@ -87,6 +87,8 @@ def uniform_at(key, index: Int[Array, "..."], size: int) -> Float[Array, "..."]:
     """
     from jax.extend.random import threefry2x32_p
 
+    from jaxrt import _random
+
     index = jnp.asarray(index)
     if str(jax.random.key_impl(key)) != "threefry2x32":  # pragma: no cover - a non-default PRNG
         return jax.random.uniform(key, (size,), jnp.float32)[index]
@@ -94,7 +96,7 @@ def uniform_at(key, index: Int[Array, "..."], size: int) -> Float[Array, "..."]:
     i = index.astype(jnp.uint32)
     k1, k2 = (jnp.broadcast_to(k, i.shape) for k in (k1, k2))
     if jax.config.jax_threefry_partitionable:
-        b1, b2 = threefry2x32_p.bind(k1, k2, jnp.zeros_like(i), i)
+        b1, b2 = _random.threefry2x32(k1, k2, jnp.zeros_like(i), i)  # the primitive's bits, unrolled
         bits = b1 ^ b2
     else:
         half = (size + 1) // 2
@@ -144,7 +146,10 @@ def generate_rays(
     if window is None:
         def uniforms():
             keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(jnp.arange(spp))
-            return jax.vmap(lambda k: jax.random.uniform(k, (h, w, 4), jnp.float32))(keys)  # (spp, h, w, 4)
+            # jax.random.uniform(k, (h, w, 4)) of each sample's key, bit for bit, without JAX's rolled
+            # loop over every ray of the pass on the CPU (`jaxrt._random`)
+            flat = jnp.arange(h * w * 4, dtype=jnp.uint32).reshape(h, w, 4)
+            return jax.vmap(lambda k: uniform_at(k, flat, h * w * 4))(keys)  # (spp, h, w, 4)
         rows = jnp.arange(h, dtype=jnp.float32)[:, None, None]
         cols = jnp.arange(w, dtype=jnp.float32)[None, :, None]
         shape = (h, w, spp)

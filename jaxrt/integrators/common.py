@@ -13,6 +13,8 @@ from jax import lax
 from jaxtyping import Array, Bool, Float, Int, Key
 
 from jaxrt import envmap
+from jaxrt._random import threefry2x32 as _threefry2x32
+from jaxrt._random import unit_float
 from jaxrt.accel import Hit
 from jaxrt.shading.surface import dot, normalize
 
@@ -38,33 +40,37 @@ def intersect_surface_active(geometry, origins: Float[Array, "B 3"], directions:
     return geometry.intersect_surface(origins, directions, 0.0, jnp.where(active, jnp.inf, -1.0))
 
 
-def _rotl(x, r: int):
-    return (x << np.uint32(r)) | (x >> np.uint32(32 - r))
+#: rounds of Threefry-2x32 behind `counter_uniforms`: the fewest Salmon et al. (2011) found
+#: "Crush-resistant" (every test of TestU01's BigCrush passed) for Threefry-2x32; 20 (JAX's) adds
+#: a safety margin against cryptanalysis that a Monte Carlo estimate does not need
+COUNTER_ROUNDS = 13
 
 
-def _threefry2x32(k1, k2, x1, x2):
-    """Threefry-2x32 with 20 rounds (Salmon et al., "Parallel random numbers: as easy as 1, 2, 3",
-    SC 2011), the block function of JAX's default PRNG, written out round by round.
+def counter_uniforms(keys: Key[Array, " B"], k: int | Array, n: int) -> Float[Array, "B n"]:
+    """n uniforms in [0, 1) for each of B typed keys and a counter k (a path's bounce), counter-based:
+    the words of Threefry-2x32-13 blocks (`COUNTER_ROUNDS`) keyed by the key's two words with
+    counters (k, 0), (k, 1), ..., both words of a block used, each word's top 23 bits the mantissa
+    of a float in [1, 2), minus 1. A path's numbers depend on its key and k only, never on the batch
+    around it.
 
-    JAX lowers its `threefry2x32` primitive on the CPU as a rolled loop of 5 iterations (a `while`
-    whose every iteration writes its state to memory) to keep compile times short; written out, the
-    hash and whatever consumes it fuse into one loop over the batch. Same uint32 arithmetic, so the
-    same bits as `jax.random`."""
-    ks = (k1, k2, k1 ^ k2 ^ np.uint32(0x1BD11BDA))
-    rot = ((13, 15, 26, 6), (17, 29, 16, 24))
-    x1, x2 = x1 + ks[0], x2 + ks[1]
-    for i in range(5):
-        for r in rot[i % 2]:
-            x1 = x1 + x2
-            x2 = _rotl(x2, r) ^ x1
-        x1 = x1 + ks[(i + 1) % 3]
-        x2 = x2 + ks[(i + 2) % 3] + np.uint32(i + 1)
-    return x1, x2
+    Why not `fold_in_uniforms` (JAX's fold_in then uniform, 9 blocks of 20 rounds for 8 numbers):
+    these 8 numbers cost 4 blocks of 13 rounds, about a quarter of the integer work, which on a CPU
+    was a sixth of a path-tracing pass's glue. Other key types than Threefry's go through
+    `fold_in_uniforms`. The floats have the default float type's width (float64 under x64: the
+    float32 values, widened)."""
+    if str(jax.random.key_impl(keys)) != "threefry2x32":
+        return fold_in_uniforms(keys, k, n)
+    key_data = jax.random.key_data(keys)
+    k1, k2 = key_data[:, 0], key_data[:, 1]
+    words = []
+    for j in range(-(-n // 2)):  # block by block over the batch: XLA:CPU vectorises along the batch
+        words += _threefry2x32(k1, k2, jnp.asarray(k, jnp.uint32), np.uint32(j), rounds=COUNTER_ROUNDS)
+    return unit_float(jnp.stack(words[:n], axis=-1)).astype(jnp.result_type(float))
 
 
 def fold_in_uniforms(keys: Key[Array, " B"], k: int | Array, n: int) -> Float[Array, "B n"]:
     """``jax.random.uniform(jax.random.fold_in(key, k), (n,))`` for each of B typed keys, bit for
-    bit; for Threefry keys and float32 (JAX's defaults) from an unrolled hash (see `_threefry2x32`).
+    bit; for Threefry keys and float32 (JAX's defaults) from an unrolled hash (`jaxrt._random`).
 
     fold_in hashes the counter (0, k) with the key; element j of the uniform draw hashes (0, j) with
     the folded key and takes the XOR of the two output words (JAX's default
@@ -82,8 +88,7 @@ def fold_in_uniforms(keys: Key[Array, " B"], k: int | Array, n: int) -> Float[Ar
     zero = jnp.zeros((), jnp.uint32)
     f1, f2 = _threefry2x32(k1, k2, zero, jnp.asarray(k, jnp.uint32))
     b1, b2 = _threefry2x32(f1, f2, zero, jnp.arange(n, dtype=jnp.uint32)[None, :])
-    mant = ((b1 ^ b2) >> np.uint32(9)) | np.uint32(0x3F800000)
-    return lax.bitcast_convert_type(mant, jnp.float32) - 1.0
+    return unit_float(b1 ^ b2)
 
 
 #: `jnp.searchsorted`'s method for the integrators' table look-ups (light CDFs, the photon grid's

@@ -35,10 +35,10 @@ Emitters are one-sided (they emit on the side the triangle winding's normal poin
 surfaces are two-sided for reflection. No NaN/Inf reaches the image: zero pdfs and degenerate
 directions end the path, and non-finite samples are replaced by 0.
 
-Random numbers are counter-based: the path of pixel i, sample j in pass P uses
-`fold_in(fold_in(key(seed), P), i·spp + j)`, then folds in the bounce and takes 8 uniforms for the
-8 purposes (light class, triangle, 2 for the light point, lobe/mirror/Fresnel choice, 2 for the
-BSDF direction, roulette). A path's numbers therefore do not depend on the batch around it. Camera
+Random numbers are counter-based: the path of pixel i, sample j in pass P has the key
+`fold_in(fold_in(key(seed), P), i·spp + j)`, and its 8 uniforms at bounce k (light class, triangle,
+2 for the light point, lobe/mirror/Fresnel choice, 2 for the BSDF direction, roulette) are the words
+of Threefry-2x32-13 blocks of that key with counters (k, 0..3) (`common.counter_uniforms`). A path's numbers therefore do not depend on the batch around it. Camera
 jitter and lens samples come from `camera.generate_rays` with a per-pass seed. A tile of tiled
 rendering (`camera.Window`) computes its paths' global i·spp + j, so its paths are the whole
 image's, bit for bit; where i·spp + j ≥ 2³² (only tiled renders reach it) the high word is folded
@@ -63,9 +63,9 @@ from jax import lax
 from jaxtyping import Array, Float, Int
 
 import brdfs
-from jaxrt import accel, camera, envmap
+from jaxrt import _random, accel, camera, envmap
 from jaxrt import lights as _lights
-from jaxrt.integrators.common import (emitter_table, fold_in_uniforms, intersect_active, intersect_surface_active,
+from jaxrt.integrators.common import (counter_uniforms, emitter_table, intersect_active, intersect_surface_active,
                                       power_heuristic, sample_area_light)
 from jaxrt.integrators.common import on_cpu as _on_cpu  # a name of this module's: tests patch it
 from jaxrt.shading.aovs import build_aovs
@@ -111,8 +111,8 @@ def _path_keys(kpath, window: camera.Window, spp: int, width: int):
     lo = a + b
     hi = ((hi16 * u32(spp)) >> u32(16)) + (lo < a).astype(u32)
     lo, hi = lo.reshape(-1), hi.reshape(-1)
-    k_lo = jax.vmap(lambda i: jax.random.fold_in(kpath, i))(lo)
-    k_hi = jax.vmap(jax.random.fold_in)(k_lo, hi)
+    k_lo = _random.fold_in(kpath, lo)
+    k_hi = _random.fold_in(k_lo, hi)
     data = jnp.where((hi == 0)[:, None], jax.random.key_data(k_lo), jax.random.key_data(k_hi))
     return jax.random.wrap_key_data(data, impl=jax.random.key_impl(kpath))
 
@@ -224,15 +224,14 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     o0, d0 = camera.generate_rays(cam, spp, cam_seed, jitter, window=window)
     d0 = normalize(d0)
     if window is None:
-        path_keys = jax.vmap(lambda i: jax.random.fold_in(kpath, i))(jnp.arange(B, dtype=jnp.uint32))
+        path_keys = _random.fold_in(kpath, jnp.arange(B, dtype=jnp.uint32))
         alive0 = jnp.ones(B, bool)
     else:
         path_keys = _path_keys(kpath, window, spp, cam.width)
         alive0 = jnp.broadcast_to(jnp.arange(nsamp) < window.count, (npix, nsamp)).reshape(-1)
 
     def uniforms(keys, k):
-        # jax.random.uniform(fold_in(path key, k), (_NU,)) of every path, bit for bit
-        return fold_in_uniforms(keys, k, _NU)
+        return counter_uniforms(keys, k, _NU)
 
     def work(k, carry, last: bool = False):
         o, d, alive, tput, specular, pdf_prev, L, first, u, keys = carry

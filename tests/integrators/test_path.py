@@ -698,8 +698,8 @@ def test_radiance_hdr_environment_matches_the_exr_one(tmp_path):
 
 @pytest.mark.parametrize("k", [0, 1, 7, 2**31 - 1])
 def test_fold_in_uniforms_are_jax_random_bit_for_bit(k):
-    # the path tracer's per-bounce numbers come from an unrolled Threefry; they must be exactly
-    # jax.random.uniform(fold_in(path key, bounce), (8,)), so the images keep their random streams
+    # the unrolled Threefry (the path tracer's numbers with another key type, and the 20-round
+    # block it shares with `counter_uniforms`) must be exactly jax.random.uniform(fold_in(key, k), (8,))
     from jaxrt.integrators.common import fold_in_uniforms
 
     keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(12345), i))(jnp.arange(4099, dtype=jnp.uint32))
@@ -707,6 +707,71 @@ def test_fold_in_uniforms_are_jax_random_bit_for_bit(k):
     got = jax.jit(fold_in_uniforms, static_argnums=2)(keys, jnp.int32(k), 8)
     assert got.shape == (4099, 8) and got.dtype == jnp.float32
     np.testing.assert_array_equal(np.asarray(got), np.asarray(ref))
+
+
+# Random123's known-answer vectors for Threefry-2x32 (its tests/kat_vectors): rounds, key, counter,
+# the block's two output words. Independent of JAX: the 13-round rows are not a JAX PRNG at all.
+_THREEFRY_KAT = [
+    (13, (0, 0), (0, 0), (0x9D1C5EC6, 0x8BD50731)),
+    (13, (0xFFFFFFFF, 0xFFFFFFFF), (0xFFFFFFFF, 0xFFFFFFFF), (0xFD36D048, 0x2D17272C)),
+    (13, (0x13198A2E, 0x03707344), (0x243F6A88, 0x85A308D3), (0xBA3E4725, 0xF27D669E)),
+    (20, (0, 0), (0, 0), (0x6B200159, 0x99BA4EFE)),
+    (20, (0x13198A2E, 0x03707344), (0x243F6A88, 0x85A308D3), (0xC4923A9C, 0x483DF7A0)),
+    (32, (0xFFFFFFFF, 0xFFFFFFFF), (0xFFFFFFFF, 0xFFFFFFFF), (0x6E2FE0D0, 0xB1B76F82)),
+]
+
+
+@pytest.mark.parametrize("rounds, key, counter, words", _THREEFRY_KAT)
+def test_threefry_block_matches_random123_known_answers(rounds, key, counter, words):
+    from jaxrt._random import threefry2x32
+
+    u32 = jnp.uint32
+    got = threefry2x32(u32(key[0]), u32(key[1]), u32(counter[0]), u32(counter[1]), rounds=rounds)
+    assert (int(got[0]), int(got[1])) == words
+
+
+def test_unrolled_fold_in_is_jax_random_fold_in_bit_for_bit():
+    # the paths' keys (one key, many data) and the high word of a tile's path index (a key per datum)
+    from jaxrt import _random
+
+    data = jnp.asarray([0, 1, 7, 2**31 - 1, 2**32 - 1, 123456789], jnp.uint32)
+    key = jax.random.key(2024)
+    ref = jax.vmap(lambda d: jax.random.fold_in(key, d))(data)
+    got = jax.jit(_random.fold_in)(key, data)
+    np.testing.assert_array_equal(np.asarray(jax.random.key_data(got)), np.asarray(jax.random.key_data(ref)))
+    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(3), i))(jnp.arange(6, dtype=jnp.uint32))
+    ref = jax.vmap(jax.random.fold_in)(keys, data)
+    got = jax.jit(_random.fold_in)(keys, data)
+    np.testing.assert_array_equal(np.asarray(jax.random.key_data(got)), np.asarray(jax.random.key_data(ref)))
+
+
+def test_counter_uniforms_are_threefry13_words_and_look_independent():
+    """The path tracer's per-bounce numbers: element 2j and 2j+1 at bounce k are the two words of the
+    Threefry-2x32-13 block (key, counter (k, j)) (checked on Random123's all-zero vector), mapped to
+    [0, 1) by their top 23 bits; over 2^17 keys each of the 8 columns is uniform and no two columns,
+    nor a column and the next bounce's, are correlated beyond chance."""
+    from jaxrt.integrators.common import counter_uniforms
+
+    zero = jax.random.wrap_key_data(jnp.zeros((1, 2), jnp.uint32))
+    words = np.array([0x9D1C5EC6, 0x8BD50731], np.uint64)
+    expect = ((words >> 9) / 2.0**23).astype(np.float32)
+    np.testing.assert_array_equal(np.asarray(counter_uniforms(zero, 0, 2))[0], expect)
+    n = 2**17
+    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(7), i))(jnp.arange(n, dtype=jnp.uint32))
+    f = jax.jit(counter_uniforms, static_argnums=2)
+    u0, u1 = np.asarray(f(keys, jnp.uint32(3), 8), np.float64), np.asarray(f(keys, jnp.uint32(4), 8), np.float64)
+    assert u0.shape == (n, 8) and u0.min() >= 0.0 and u0.max() < 1.0
+    se = 1.0 / np.sqrt(n)
+    # uniform: mean 1/2 (sd 0.289/sqrt(n)), variance 1/12, a 64-bin histogram's chi-square (63 dof)
+    assert np.all(np.abs(u0.mean(0) - 0.5) < 5 * 0.289 * se)
+    assert np.all(np.abs(u0.var(0) - 1 / 12) < 5 * 0.0745 * se)
+    counts = np.stack([np.bincount((u0[:, c] * 64).astype(int), minlength=64) for c in range(8)])
+    chi2 = ((counts - n / 64) ** 2 / (n / 64)).sum(1)
+    assert np.all(chi2 < 120), chi2  # P(chi2_63 > 120) ~ 1e-5
+    # independent: correlations of the 8 columns with each other and with the next bounce's
+    c = np.corrcoef(np.concatenate([u0, u1], axis=1).T)
+    off = c[~np.eye(16, dtype=bool)]
+    assert np.all(np.abs(off) < 5 * se), np.abs(off).max()
 
 
 @pytest.mark.parametrize("loop", [True, False], ids=["loop", "unrolled"])

@@ -76,6 +76,8 @@ for s in "$@"; do
                   stage caustic-carried 90 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
                       --reference .gpudata/caustic_ref.npz --bias-seeds 0
                   stage peers-path 120 python3 benchmarks/peers.py --rows path --repeats 5 ;;
+        peers-path)  # only the path-tracing rows beside Mitsuba's cuda_ad_rgb (.mitsuba/ carried)
+                  stage peers-path 120 python3 benchmarks/peers.py --rows path --repeats 5 ;;
         hlo)      # the optimised GPU programs of a path-tracing pass and an SPPM call, as text (xz) beside the
                   # kernel profiles: to read which fusions and copies the profiles' kernel names are
                   for w in path-dragon path-cornell sppm; do

@@ -79,7 +79,7 @@ def test_release_gives_back_the_mappings_of_compiled_programs_and_calls_still_ag
     before = programs.mapped_regions()[0]
     fs = _programs_of(15)
     grown = programs.mapped_regions()[0] - before
-    assert grown >= 100  # ~12 mappings per small program on XLA:CPU
+    assert grown >= 30  # ~12 mappings per small program on XLA:CPU here; at least 2 anywhere
     assert programs.release() >= 1  # the stored program's executable
     assert programs.mapped_regions()[0] - before <= 0.2 * grown
     (entry,) = [p for p in stored._programs.values() if p is not programs._UNSTORABLE]
@@ -132,22 +132,23 @@ def test_the_worker_releases_past_its_share_and_retires_if_that_does_not_help(tm
     assert not w.mappings_full() and w.counts["releases"] == 2
 
 
-@pytest.mark.slow  # ~10-25 s on 2 cores: 40 compilations, each after a release
+@pytest.mark.slow  # ~15-35 s on 2 cores: 60 compilations, each after a release
 @pytest.mark.skipif(programs.mapped_regions() is None, reason="the kernel reports no mapping count (not Linux)")
 def test_a_process_near_the_mapping_limit_keeps_compiling_stored_programs(tmp_path):
     """Without `relieve` before each compilation this process aborts ("LLVM ERROR: Unable to allocate
-    section memory") after about 16 programs: it starts 200 mappings short of the limit and each
-    program takes ~12."""
+    section memory") after about 10 programs: it starts 120 mappings short of the limit and each
+    program takes ~12 here (60 programs would cross it at 2 each)."""
     code = _FILL + textwrap.dedent("""
         import jax.numpy as jnp, numpy as np
         from jaxrt import programs
-        used, limit = programs.mapped_regions()
-        fill(limit - used - 200)
         f = programs.cached_jit(lambda x, *, k: jnp.sin(x * k) @ jnp.cos(x.T + k), name="near.limit",
                                 static_argnames=("k",))
         x = np.ones((4, 4), np.float32)
-        total = sum(float(f(x, k=k)[0, 0]) for k in range(40))
-        ref = sum(float((np.sin(x * k) @ np.cos(x.T + k))[0, 0]) for k in range(40))
+        float(f(x, k=-1)[0, 0])  # the libraries a first compilation loads (LAPACK through scipy) are mapped now
+        used, limit = programs.mapped_regions()
+        fill(limit - used - 120)
+        total = sum(float(f(x, k=k)[0, 0]) for k in range(60))
+        ref = sum(float((np.sin(x * k) @ np.cos(x.T + k))[0, 0]) for k in range(60))
         print("ok", abs(total - ref) <= 1e-4 * (1 + abs(ref)), programs.mapped_regions()[0] < limit)
     """)
     env = dict(os.environ, JAXRT_CACHE_DIR=str(tmp_path / "cache"), PYTHONPATH=str(REPO))

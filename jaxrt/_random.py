@@ -47,7 +47,8 @@ def fold_in(keys, data: UInt32[Array, "..."]):
     impl = jax.random.key_impl(keys)
     if str(impl) != "threefry2x32":
         shape = jnp.broadcast_shapes(jnp.shape(keys), data.shape)
-        flat = jax.vmap(jax.random.fold_in)(jnp.broadcast_to(keys, shape).reshape(-1), jnp.broadcast_to(data, shape).reshape(-1))
+        flat = jax.vmap(jax.random.fold_in)(jnp.broadcast_to(keys, shape).reshape(-1),
+                                            jnp.broadcast_to(data, shape).reshape(-1))
         return flat.reshape(shape)
     kd = jax.random.key_data(keys)
     y1, y2 = threefry2x32(kd[..., 0], kd[..., 1], jnp.zeros_like(data), data)

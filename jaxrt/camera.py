@@ -13,6 +13,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int
 
+from jaxrt import _random
 from jaxrt.shading.surface import dot
 
 
@@ -85,10 +86,6 @@ def uniform_at(key, index: Int[Array, "..."], size: int) -> Float[Array, "..."]:
     image draws exactly the numbers the whole image's call gives its pixels. Other PRNG
     implementations fall back to drawing the whole array and gathering from it.
     """
-    from jax.extend.random import threefry2x32_p
-
-    from jaxrt import _random
-
     index = jnp.asarray(index)
     if str(jax.random.key_impl(key)) != "threefry2x32":  # pragma: no cover - a non-default PRNG
         return jax.random.uniform(key, (size,), jnp.float32)[index]
@@ -96,18 +93,16 @@ def uniform_at(key, index: Int[Array, "..."], size: int) -> Float[Array, "..."]:
     i = index.astype(jnp.uint32)
     k1, k2 = (jnp.broadcast_to(k, i.shape) for k in (k1, k2))
     if jax.config.jax_threefry_partitionable:
-        b1, b2 = _random.threefry2x32(k1, k2, jnp.zeros_like(i), i)  # the primitive's bits, unrolled
+        b1, b2 = _random.threefry2x32(k1, k2, jnp.zeros_like(i), i)
         bits = b1 ^ b2
     else:
         half = (size + 1) // 2
         low = i < half
         x0 = jnp.where(low, i, i - half)
         x1 = jnp.where(low, jnp.where(i + half < size, i + half, jnp.uint32(0)), i)
-        b1, b2 = threefry2x32_p.bind(k1, k2, x0, x1)
+        b1, b2 = _random.threefry2x32(k1, k2, x0, x1)
         bits = jnp.where(low, b1, b2)
-    # 23 random mantissa bits under the exponent of 1.0, minus 1: uniform on [0, 1)
-    one = np.array(1.0, np.float32).view(np.uint32)
-    f = jax.lax.bitcast_convert_type((bits >> jnp.uint32(9)) | one, jnp.float32) - jnp.float32(1.0)
+    f = _random.unit_float(bits)
     return jnp.maximum(jnp.float32(0.0), f * jnp.float32(1.0) + jnp.float32(0.0))
 
 

@@ -13,8 +13,7 @@ from jax import lax
 from jaxtyping import Array, Bool, Float, Int, Key
 
 from jaxrt import envmap
-from jaxrt._random import threefry2x32 as _threefry2x32
-from jaxrt._random import unit_float
+from jaxrt._random import threefry2x32, unit_float
 from jaxrt.accel import Hit
 from jaxrt.shading.surface import dot, normalize
 
@@ -64,7 +63,7 @@ def counter_uniforms(keys: Key[Array, " B"], k: int | Array, n: int) -> Float[Ar
     k1, k2 = key_data[:, 0], key_data[:, 1]
     words = []
     for j in range(-(-n // 2)):  # block by block over the batch: XLA:CPU vectorises along the batch
-        words += _threefry2x32(k1, k2, jnp.asarray(k, jnp.uint32), np.uint32(j), rounds=COUNTER_ROUNDS)
+        words += threefry2x32(k1, k2, jnp.asarray(k, jnp.uint32), np.uint32(j), rounds=COUNTER_ROUNDS)
     return unit_float(jnp.stack(words[:n], axis=-1)).astype(jnp.result_type(float))
 
 
@@ -86,8 +85,8 @@ def fold_in_uniforms(keys: Key[Array, " B"], k: int | Array, n: int) -> Float[Ar
     key_data = jax.random.key_data(keys)
     k1, k2 = key_data[:, 0:1], key_data[:, 1:2]
     zero = jnp.zeros((), jnp.uint32)
-    f1, f2 = _threefry2x32(k1, k2, zero, jnp.asarray(k, jnp.uint32))
-    b1, b2 = _threefry2x32(f1, f2, zero, jnp.arange(n, dtype=jnp.uint32)[None, :])
+    f1, f2 = threefry2x32(k1, k2, zero, jnp.asarray(k, jnp.uint32))
+    b1, b2 = threefry2x32(f1, f2, zero, jnp.arange(n, dtype=jnp.uint32)[None, :])
     return unit_float(b1 ^ b2)
 
 

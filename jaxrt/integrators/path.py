@@ -38,7 +38,8 @@ directions end the path, and non-finite samples are replaced by 0.
 Random numbers are counter-based: the path of pixel i, sample j in pass P has the key
 `fold_in(fold_in(key(seed), P), i·spp + j)`, and its 8 uniforms at bounce k (light class, triangle,
 2 for the light point, lobe/mirror/Fresnel choice, 2 for the BSDF direction, roulette) are the words
-of Threefry-2x32-13 blocks of that key with counters (k, 0..3) (`common.counter_uniforms`). A path's numbers therefore do not depend on the batch around it. Camera
+of Threefry-2x32-13 blocks of that key with counters (k, 0..3) (`common.counter_uniforms`). A path's
+numbers therefore do not depend on the batch around it. Camera
 jitter and lens samples come from `camera.generate_rays` with a per-pass seed. A tile of tiled
 rendering (`camera.Window`) computes its paths' global i·spp + j, so its paths are the whole
 image's, bit for bit; where i·spp + j ≥ 2³² (only tiled renders reach it) the high word is folded

@@ -4,8 +4,8 @@ floats, bit for bit, without JAX's rolled loop on the CPU.
 Threefry-2x32 (Salmon et al., "Parallel random numbers: as easy as 1, 2, 3", SC 2011) is the block
 function of JAX's default PRNG (20 rounds). JAX lowers its primitive on the CPU as a loop of 5
 iterations (a `while` whose every iteration copies its state through memory) to keep compile times
-short; a path-tracing pass drew its camera jitter and its paths' keys that way, over every path of
-the pass at once. Written out, the hash and what consumes it fuse into one loop over the batch: the
+short, and a path-tracing pass draws its camera jitter and its paths' keys over every path of the
+pass at once, so each iteration copies the whole pass's state. Written out, the hash and what consumes it fuse into one loop over the batch: the
 same uint32 arithmetic, so the same bits.
 """
 

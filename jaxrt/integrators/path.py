@@ -1,12 +1,12 @@
 """Unidirectional path tracing with next-event estimation and multiple importance sampling.
 
 `integrator = "path"`. Every pixel sample is one path; the B = H·W·spp paths advance together
-(wavefront style; on the CPU in chunks, one after another: `_chunk_size`), one bounce per iteration of
-a `lax.fori_loop` (a scan: BVH traversal is compiled
+(wavefront style), one bounce per iteration of a `lax.fori_loop` (a scan: BVH traversal is compiled
 once, not once per bounce, and the loop is reverse-differentiable), then one last ray query that only
-collects the emission found after max_depth vertices (no light sample or next direction there). An
-iteration whose paths are all dead skips its work on the CPU (`lax.cond`), so short paths cost little
-whatever max_depth is (on a GPU every iteration runs: see `samples`).
+collects the emission found after max_depth vertices (no light sample or next direction there). Each
+bounce runs on the live paths only, compacted into chunks (`_compacted`: the dead ones cost neither
+memory traffic nor traversal lanes), so short paths cost little whatever max_depth is. On the CPU the
+paths go in batches of a few chunks, one after another (`_batch_sizes`).
 
 Estimator (pbrt-v4's PathIntegrator, power heuristic with β = 2). At each path vertex:
 
@@ -75,7 +75,9 @@ from jaxrt.shading.surface import dot, from_local, local_frame, mirror_dir, norm
 
 RR_DEPTH = 3
 _NU = 8  # uniforms per path and bounce (see module docstring)
-CPU_CHUNK = 16384  # paths per chunk of a pass on the CPU (`_chunk_size`)
+CPU_CHUNK = 16384  # live paths per chunk of a bounce on the CPU (`_batch_sizes`)
+CPU_BATCH_CHUNKS = 8  # chunks per batch of paths on the CPU (`_batch_sizes`)
+GPU_CHUNKS = 4  # chunks per pass on a GPU (`_batch_sizes`)
 _sg = lax.stop_gradient
 
 
@@ -157,20 +159,69 @@ def _keyed(geo):
     return eqx.tree_at(lambda g: g.tree, geo, tree), True
 
 
-def _chunk_size(n: int, triangles: int) -> int:
-    """Paths traced together (one `lax.map` step) of a pass of n paths.
+def _batch_sizes(n: int, triangles: int) -> tuple[int, int]:
+    """(batch, chunk): the paths of a pass of n paths traced together (one `lax.map` step), and the
+    live paths of a batch that one bounce handles at a time (`_compacted`).
 
-    On the CPU a bounce is ~50 XLA ops that each stream every path's state through memory: in chunks
-    of CPU_CHUNK paths that state stays in cache (the Cornell box at 256², 16 spp: ~20 % less CPU
-    time per pass; BENCHMARKS.md, "Path tracing on the CPU: chunks and stored samples"). A traversal
-    call that hashes its triangle table (Embree without a key, `_keyed`) keeps a chunk at least
-    `triangles` paths (the 871k-triangle dragon's 31 MB take 2-4 ms a call: chunks of 4096 made its
-    pass 2.3x slower); pass 0 where the calls are keyed. The n paths go in equal chunks, the fewest
-    that respect both bounds. Elsewhere (GPUs) every path at once."""
+    GPU: one batch of every path, in GPU_CHUNKS chunks. CPU: a bounce is ~50 XLA ops that each stream
+    every path's state through memory: in chunks of CPU_CHUNK paths that state stays in cache (the
+    Cornell box at 256², 16 spp: ~20 % less CPU time per pass; BENCHMARKS.md, "Path tracing on the
+    CPU: chunks and stored samples"), and a batch is CPU_BATCH_CHUNKS chunks (its state, ~150 bytes a
+    path, is what the gathers and scatters of `_compacted` walk). A traversal call that hashes its
+    triangle table (Embree without a key, `_keyed`) keeps a chunk at least `triangles` paths (the
+    871k-triangle dragon's 31 MB take 2-4 ms a call: chunks of 4096 made its pass 2.3x slower); pass 0
+    where the calls are keyed. Chunks and batches are equal in size, the fewest that respect the bounds."""
     if jax.default_backend() != "cpu":
-        return n
+        return n, -(-n // GPU_CHUNKS)
     m = max(1, n // max(CPU_CHUNK, triangles))
-    return -(-n // m)
+    chunk = -(-n // m)
+    batches = -(-m // CPU_BATCH_CHUNKS)
+    return -(-m // batches) * chunk, chunk
+
+
+def _compacted(fn, carry, chunk: int):
+    """One bounce (`fn` over a path-state tuple whose third entry is `alive` and whose last, the
+    paths' keys, fn does not change) over the live paths of `carry` only: their indices are gathered
+    in order (a prefix sum, so neighbouring paths stay neighbours), then fn runs on `chunk` of them at
+    a time and its results are scattered back; chunks past the live count are skipped (`lax.cond`).
+
+    Why (Laine, Karras and Aila 2013, "Megakernels considered harmful: wavefront path tracing on
+    GPUs"): a wavefront bounce costs every path of the batch its state's memory traffic, dead or
+    alive, and a traversal warp costs as much for one live lane as for 32. In the environment-lit
+    dragon (`benchmarks/path.py`, 16 spp, max_depth 4) 63 %, 19 %, 8 % and 0.3 % of the paths are
+    alive at bounces 1-4, scattered over 65 %, 44 %, 35 % and 7 % of 32-path groups: compacted, the
+    pass handles ~1.9 batches of paths instead of 5. The results are the uncompacted ones: a path's
+    arithmetic and random numbers (`counter_uniforms`, by key and bounce) never depend on the paths
+    beside it. The loops are a scan (reverse-differentiable); a skipped chunk's results are zeros
+    that the scatter drops."""
+    alive = carry[2]
+    n_all = alive.shape[0]
+    m = -(-n_all // chunk)
+    n = jnp.sum(alive, dtype=jnp.int32)
+    pos = jnp.cumsum(alive, dtype=jnp.int32) - 1
+    idx = jnp.zeros(m * chunk, jnp.int32).at[jnp.where(alive, pos, m * chunk)].set(
+        jnp.arange(n_all, dtype=jnp.int32), mode="drop", unique_indices=True)
+    state, keys = carry[:-1], carry[-1]
+    lane = jnp.arange(chunk, dtype=jnp.int32)
+
+    def run(rows, valid, state):
+        sub = jax.tree.map(lambda x: x[rows], state)
+        sub = sub[:2] + (sub[2] & valid,) + sub[3:]
+        return fn(sub + (keys[rows],))[:-1]
+
+    def skip(rows, valid, state):
+        return jax.tree.map(lambda x: jnp.zeros((chunk,) + x.shape[1:], x.dtype), state)
+
+    def step(c, state):
+        start = c * chunk
+        rows = lax.dynamic_slice(idx, (start,), (chunk,))
+        valid = start + lane < n
+        out = lax.cond(start < n, run, skip, rows, valid, state)
+        dest = jnp.where(valid, rows, n_all)
+        return jax.tree.map(lambda x, y: x.at[dest].set(y, mode="drop", unique_indices=True), state, out)
+
+    state = step(0, state) if m == 1 else lax.fori_loop(0, m, step, state)
+    return state + (keys,)
 
 
 def _in_chunks(fn, xs, n: int, chunk: int):
@@ -396,18 +447,9 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first, uniforms(keys, k + 1),
                 keys)
 
-    # A bounce whose paths are all dead is skipped on the CPU (`lax.cond`). On a GPU a conditional
-    # costs a wait for the device to hand its predicate to the host and copies of the loop state
-    # into the conditional's results, every bounce, while a pass's batch of paths is rarely all dead
-    # before max_depth: there the bounce runs unconditionally (dead paths are masked throughout).
-
-    def body(k, carry):
-        if not on_cpu:
-            return work(k, carry)
-        return lax.cond(jnp.any(carry[2]), lambda c: work(k, c), lambda c: c, carry)
-
-    def trace(o0, d0, alive0, key_data):
-        # the paths of one chunk, from their camera rays to their ends: (radiance, first hits)
+    def trace(o0, d0, alive0, key_data, chunk):
+        # the paths of one batch, from their camera rays to their ends: (radiance, first hits); each
+        # bounce runs on the batch's live paths only, in chunks of `chunk` (`_compacted`)
         B = o0.shape[0]
         keys = jax.random.wrap_key_data(key_data, impl=jax.random.key_impl(kpath))
         first = dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
@@ -415,15 +457,13 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         one = jnp.ones((B, 3), jnp.result_type(float))
         carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, uniforms(keys, 0),
                  keys)
-        carry = lax.fori_loop(0, D, body, carry)
-        if on_cpu:
-            carry = lax.cond(jnp.any(carry[2]), lambda c: work(D, c, last=True), lambda c: c, carry)
-        else:
-            carry = work(D, carry, last=True)
+        carry = lax.fori_loop(0, D, lambda k, c: _compacted(lambda x: work(k, x), c, chunk), carry)
+        carry = _compacted(lambda x: work(D, x, last=True), carry, chunk)
         return carry[6], carry[7]
 
     xs = (o0, d0, alive0, jax.random.key_data(path_keys))
-    L, first = _in_chunks(lambda x: trace(*x), xs, B, _chunk_size(B, 0 if keyed else geo.triangle_count))
+    batch, chunk = _batch_sizes(B, 0 if keyed else geo.triangle_count)
+    L, first = _in_chunks(lambda x: trace(*x, chunk), xs, B, batch)
     L = jnp.where(jnp.isfinite(L), L, 0.0).reshape(npix, nsamp, 3)
     if aovs:
         return L, first

@@ -1,0 +1,95 @@
+"""Live-path compaction in the path tracer (`jaxrt.integrators.path._compacted`): one pass timed with
+the bounces compacted into each of several chunk counts, and uncompacted, in one process.
+
+    python benchmarks/path_chunks.py                      # 512², 16 spp, depth 4, both scenes
+    python benchmarks/path_chunks.py --chunks 2 4 8 --size 256 --scenes dragon
+
+Scenes are `benchmarks/path.py`'s (Cornell box with its area light; the dragon in an environment
+map). For each variant: the first call's wall time (tracing + compilation, or the persistent cache's
+load), then the median wall time of --repeats passes (different random streams, block_until_ready),
+the image mean, and whether its pixels equal the uncompacted pass's (the largest difference where
+they do not: compaction changes which paths run beside which, never a path's own arithmetic, so at
+most a rounding difference from a different fusion). "off" runs every bounce on every path, as the
+tracer did before compaction. On the CPU the variants set the chunks per batch
+(`path.CPU_BATCH_CHUNKS`); on a GPU the chunks per pass (`path.GPU_CHUNKS`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import path as bench  # noqa: E402  (benchmarks/path.py)
+from jaxrt.integrators import path as P  # noqa: E402
+
+
+def _uncompacted(fn, carry, chunk):
+    return fn(carry)
+
+
+def run_variant(sc, chunks: int | None, repeats: int) -> tuple[dict, np.ndarray]:
+    attr = "CPU_BATCH_CHUNKS" if jax.default_backend() == "cpu" else "GPU_CHUNKS"
+    saved = getattr(P, attr), P._compacted
+    try:
+        if chunks is None:
+            P._compacted = _uncompacted
+        else:
+            setattr(P, attr, chunks)
+        # a new function object: jit's trace cache is keyed by it, and the module's knobs are read
+        # while tracing
+        f = jax.jit(lambda s, i: P.samples(s, i, jitter=True))
+        t0 = time.perf_counter()
+        first = np.asarray(f(sc, 0))
+        first_s = time.perf_counter() - t0
+        times = []
+        for i in range(1, repeats + 1):
+            t = time.perf_counter()
+            f(sc, i).block_until_ready()
+            times.append(time.perf_counter() - t)
+    finally:
+        setattr(P, attr, saved[0])
+        P._compacted = saved[1]
+    assert np.all(np.isfinite(first))
+    return dict(first_s=first_s, pass_s=statistics.median(times), mean=float(first.mean())), first
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--depth", type=int, default=4)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--chunks", type=int, nargs="+", default=[1, 2, 4, 8])
+    ap.add_argument("--scenes", nargs="+", default=["cornell", "dragon"], choices=["cornell", "dragon"])
+    ap.add_argument("--mesh", default="dragon")
+    args = ap.parse_args(argv)
+    exr = bench.sky_exr(Path(tempfile.mkdtemp()) / "sky.exr")
+    dev = jax.devices()[0]
+    print(f"{getattr(dev, 'device_kind', dev.platform)}, jax {jax.__version__}; {args.size}², {args.spp} spp, "
+          f"depth {args.depth}, median of {args.repeats} passes")
+    for name in args.scenes:
+        sc = bench.load(name, args.size, args.spp, args.depth, exr, args.mesh)
+        base, ref = run_variant(sc, None, args.repeats)
+        print(f"{name:8s} off      first {base['first_s']:6.2f} s  pass {base['pass_s'] * 1e3:8.2f} ms  "
+              f"mean {base['mean']:.7f}")
+        for m in args.chunks:
+            r, img = run_variant(sc, m, args.repeats)
+            d = np.abs(img - ref)
+            same = "equal" if not d.any() else f"max |diff| {d.max():.2e} on {np.mean(d > 0):.1e} of values"
+            print(f"{name:8s} {m:<2d} chunks first {r['first_s']:6.2f} s  pass {r['pass_s'] * 1e3:8.2f} ms  "
+                  f"mean {r['mean']:.7f}  ({r['pass_s'] / base['pass_s']:.3f} of off; pixels {same})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

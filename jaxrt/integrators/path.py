@@ -285,9 +285,18 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     def uniforms(keys, k):
         return counter_uniforms(keys, k, _NU)
 
+    # A bounce's random numbers are made at the end of the bounce before and stored in the paths'
+    # state on the CPU, where XLA would otherwise recompute the Threefry blocks in each of their
+    # consuming loops; on a GPU recomputing is cheap and storing them is 8 more words per path that
+    # every bounce reads, gathers and scatters (None: made where the bounce starts). The first hits
+    # are kept only where they are asked for (aovs).
+    store_u = on_cpu
+
     def work(k, carry, last: bool = False):
         o, d, alive, tput, specular, pdf_prev, L, first, u, keys = carry
         B = o.shape[0]  # the paths of one chunk
+        if u is None:
+            u = uniforms(keys, k)
         if on_cpu:
             # the hit point and geometric normal come with the hit (Embree computes them from the
             # triangle it holds, on both cores; `geometry.intersect_surface`), so the glue gathers no
@@ -297,8 +306,9 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             hit = intersect_active(geo, o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0
-        first = jax.tree.map(lambda a, b: jnp.where(k == 0, b, a), first,
-                             dict(prim=prim, u=hit.u, v=hit.v, t=jnp.where(found, hit.t, 0.0), d=d))
+        if first is not None:
+            first = jax.tree.map(lambda a, b: jnp.where(k == 0, b, a), first,
+                                 dict(prim=prim, u=hit.u, v=hit.v, t=jnp.where(found, hit.t, 0.0), d=d))
         if not on_cpu:
             s = geo.surface(prim, hit.u, hit.v)
         s = eqx.tree_at(lambda x: x.material, s, jnp.where(found, s.material, 0))
@@ -319,7 +329,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         if last:
             # vertex max_depth + 1 only collects the emission its ray found: no light sample, no
             # next direction (in the loop they would all be masked off by k < D)
-            return (o, d, jnp.zeros_like(alive), tput, specular, pdf_prev, L, first, u, keys)
+            return (o, d, jnp.zeros_like(alive), tput, specular, pdf_prev, L, first, u if store_u else None, keys)
         cont = found & (k < D)
         ng, ns, _ = oriented(s, d)
         frame = local_frame(ns, s.tangent)
@@ -444,7 +454,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         good = alive & jnp.all(jnp.isfinite(tput), axis=-1)
         tput = jnp.where(good[:, None], tput, 0.0)
         # the next bounce's numbers, made here so that they are stored in the loop state
-        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first, uniforms(keys, k + 1),
+        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first,
+                uniforms(keys, k + 1) if store_u else None,
                 keys)
 
     def trace(o0, d0, alive0, key_data, chunk):
@@ -452,11 +463,12 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         # bounce runs on the batch's live paths only, in chunks of `chunk` (`_compacted`)
         B = o0.shape[0]
         keys = jax.random.wrap_key_data(key_data, impl=jax.random.key_impl(kpath))
-        first = dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
+        first = (dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
+                 if aovs else None)
         # the throughput's dtype follows the material values so float64 tests stay float64
         one = jnp.ones((B, 3), jnp.result_type(float))
-        carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, uniforms(keys, 0),
-                 keys)
+        carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first,
+                 uniforms(keys, 0) if store_u else None, keys)
         carry = lax.fori_loop(0, D, lambda k, c: _compacted(lambda x: work(k, x), c, chunk), carry)
         carry = _compacted(lambda x: work(D, x, last=True), carry, chunk)
         return carry[6], carry[7]

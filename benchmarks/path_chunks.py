@@ -33,8 +33,8 @@ import path as bench  # noqa: E402  (benchmarks/path.py)
 from jaxrt.integrators import path as P  # noqa: E402
 
 
-def _uncompacted(fn, carry, chunk):
-    return fn(carry)
+def _uncompacted(fn, packed, chunk, rows):
+    return rows.pack(fn(rows.unpack(packed)))
 
 
 def run_variant(sc, chunks: int | None, repeats: int) -> tuple[dict, np.ndarray]:

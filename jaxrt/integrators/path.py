@@ -57,6 +57,8 @@ f is). Geometry and the camera are stop_gradient'ed (edge terms are not modelled
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -179,11 +181,64 @@ def _batch_sizes(n: int, triangles: int) -> tuple[int, int]:
     return -(-m // batches) * chunk, chunk
 
 
-def _compacted(fn, carry, chunk: int):
-    """One bounce (`fn` over a path-state tuple whose third entry is `alive` and whose last, the
-    paths' keys, fn does not change) over the live paths of `carry` only: their indices are gathered
-    in order (a prefix sum, so neighbouring paths stay neighbours), then fn runs on `chunk` of them at
-    a time and its results are scattered back; chunks past the live count are skipped (`lax.cond`).
+class _Rows:
+    """A pytree of per-path arrays (leading axis: the path; typed PRNG keys allowed) as the rows of a
+    few matrices: the floating-point leaves in one (n, W) matrix per float type (values as they are,
+    so gradients flow through), the others (ints, bools widened, keys' words) bit for bit in one
+    uint32 matrix. Moving paths (`_compacted`) is then a row gather and a row scatter per matrix
+    rather than one of each per leaf (on the CPU a leaf's gather moves element by element)."""
+
+    def __init__(self, tree):
+        leaves, self.treedef = jax.tree.flatten(tree)
+        self.specs, widths = [], {}
+        for x in leaves:
+            impl = jax.random.key_impl(x) if jnp.issubdtype(x.dtype, jax.dtypes.prng_key) else None
+            data = jax.random.key_data(x) if impl is not None else x
+            group = data.dtype if jnp.issubdtype(data.dtype, jnp.floating) else jnp.dtype(jnp.uint32)
+            words = 1 if group != jnp.uint32 else max(1, data.dtype.itemsize // 4)
+            width = words * math.prod(data.shape[1:])
+            col = widths.get(group, 0)
+            self.specs.append((impl, data.dtype, data.shape[1:], words, group, col, width))
+            widths[group] = col + width
+        self.groups = tuple(widths)
+        self.widths = tuple(widths.values())
+
+    def pack(self, tree) -> tuple:
+        cols = {g: [] for g in self.groups}
+        for x, (impl, dtype, _, _, group, _, width) in zip(jax.tree.leaves(tree), self.specs, strict=True):
+            x = jax.random.key_data(x) if impl is not None else x
+            if group == jnp.uint32 and dtype != jnp.uint32:
+                x = x.astype(jnp.uint32) if dtype == jnp.bool_ or dtype.itemsize < 4 else lax.bitcast_convert_type(
+                    x, jnp.uint32)
+            cols[group].append(x.reshape(x.shape[0], width))
+        return tuple(jnp.concatenate(cols[g], axis=1) for g in self.groups)
+
+    def leaf(self, packed: tuple, i: int):
+        impl, dtype, inner, words, group, col, width = self.specs[i]
+        x = packed[self.groups.index(group)][:, col:col + width]
+        if words > 1:
+            x = lax.bitcast_convert_type(x.reshape((-1,) + inner + (words,)), dtype)
+        else:
+            x = x.reshape((-1,) + inner)
+            if dtype == jnp.bool_:
+                x = x != 0
+            elif dtype.itemsize < 4:
+                x = x.astype(dtype)
+            elif dtype != group:
+                x = lax.bitcast_convert_type(x, dtype)
+        return x if impl is None else jax.random.wrap_key_data(x, impl=impl)
+
+    def unpack(self, packed: tuple):
+        return jax.tree.unflatten(self.treedef, [self.leaf(packed, i) for i in range(len(self.specs))])
+
+
+def _compacted(fn, packed, chunk: int, rows: _Rows, alive: int = 2):
+    """One bounce over the live paths of a batch only. `packed`: the batch's path states as rows
+    (`rows.pack`); fn maps a chunk's state tree to its next state, its `alive` leaf (a bool per path)
+    saying which paths are live. The live paths' indices are found in order (a prefix sum, so
+    neighbouring paths stay neighbours), then fn runs on `chunk` of them at a time (their rows
+    gathered) and its results are scattered back; chunks past the live count are skipped
+    (`lax.cond`); the rows of dead paths are left as they are.
 
     Why (Laine, Karras and Aila 2013, "Megakernels considered harmful: wavefront path tracing on
     GPUs"): a wavefront bounce costs every path of the batch its state's memory traffic, dead or
@@ -194,34 +249,34 @@ def _compacted(fn, carry, chunk: int):
     arithmetic and random numbers (`counter_uniforms`, by key and bounce) never depend on the paths
     beside it. The loops are a scan (reverse-differentiable); a skipped chunk's results are zeros
     that the scatter drops."""
-    alive = carry[2]
-    n_all = alive.shape[0]
+    live = rows.leaf(packed, alive)
+    n_all = live.shape[0]
     m = -(-n_all // chunk)
-    n = jnp.sum(alive, dtype=jnp.int32)
-    pos = jnp.cumsum(alive, dtype=jnp.int32) - 1
-    idx = jnp.zeros(m * chunk, jnp.int32).at[jnp.where(alive, pos, m * chunk)].set(
+    packed = tuple(packed)
+    n = jnp.sum(live, dtype=jnp.int32)
+    pos = jnp.cumsum(live, dtype=jnp.int32) - 1
+    idx = jnp.zeros(m * chunk, jnp.int32).at[jnp.where(live, pos, m * chunk)].set(
         jnp.arange(n_all, dtype=jnp.int32), mode="drop", unique_indices=True)
-    state, keys = carry[:-1], carry[-1]
     lane = jnp.arange(chunk, dtype=jnp.int32)
 
-    def run(rows, valid, state):
-        sub = jax.tree.map(lambda x: x[rows], state)
-        sub = sub[:2] + (sub[2] & valid,) + sub[3:]
-        return fn(sub + (keys[rows],))[:-1]
+    def run(sel, valid, packed):
+        state = rows.unpack(tuple(p[sel] for p in packed))
+        leaves = jax.tree.leaves(state)
+        leaves[alive] = leaves[alive] & valid
+        return rows.pack(fn(jax.tree.unflatten(rows.treedef, leaves)))
 
-    def skip(rows, valid, state):
-        return jax.tree.map(lambda x: jnp.zeros((chunk,) + x.shape[1:], x.dtype), state)
+    def skip(sel, valid, packed):
+        return tuple(jnp.zeros((chunk, p.shape[1]), p.dtype) for p in packed)
 
-    def step(c, state):
+    def step(c, packed):
         start = c * chunk
-        rows = lax.dynamic_slice(idx, (start,), (chunk,))
+        sel = lax.dynamic_slice(idx, (start,), (chunk,))
         valid = start + lane < n
-        out = lax.cond(start < n, run, skip, rows, valid, state)
-        dest = jnp.where(valid, rows, n_all)
-        return jax.tree.map(lambda x, y: x.at[dest].set(y, mode="drop", unique_indices=True), state, out)
+        out = lax.cond(start < n, run, skip, sel, valid, packed)
+        dest = jnp.where(valid, sel, n_all)
+        return tuple(p.at[dest].set(o, mode="drop", unique_indices=True) for p, o in zip(packed, out, strict=True))
 
-    state = step(0, state) if m == 1 else lax.fori_loop(0, m, step, state)
-    return state + (keys,)
+    return step(0, packed) if m == 1 else lax.fori_loop(0, m, step, packed)
 
 
 def _in_chunks(fn, xs, n: int, chunk: int):
@@ -469,8 +524,9 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         one = jnp.ones((B, 3), jnp.result_type(float))
         carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first,
                  uniforms(keys, 0) if store_u else None, keys)
-        carry = lax.fori_loop(0, D, lambda k, c: _compacted(lambda x: work(k, x), c, chunk), carry)
-        carry = _compacted(lambda x: work(D, x, last=True), carry, chunk)
+        rows = _Rows(carry)
+        packed = lax.fori_loop(0, D, lambda k, p: _compacted(lambda x: work(k, x), p, chunk, rows), rows.pack(carry))
+        carry = rows.unpack(_compacted(lambda x: work(D, x, last=True), packed, chunk, rows))
         return carry[6], carry[7]
 
     xs = (o0, d0, alive0, jax.random.key_data(path_keys))

@@ -146,9 +146,9 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates():
             return jnp.where(live[:, None], x * p + k, x), ids, live, keys
         return bounce
 
-    def compacted(p):
+    def compacted(p, merge=True):
         carry = (x, ids, jnp.asarray(alive), keys)
-        rows = path._Rows(carry)
+        rows = path._Rows(carry, merge=merge)
         return rows.unpack(path._compacted(fn(p), rows.pack(carry), chunk, rows))
 
     out = compacted(jnp.float32(2.0))
@@ -161,8 +161,11 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates():
     assert len(seen) == 2
     np.testing.assert_array_equal(np.concatenate(seen), np.flatnonzero(alive))
     seen.clear()
-    g = jax.grad(lambda p: jnp.sum(compacted(p)[0]))(jnp.float32(2.0))
-    np.testing.assert_allclose(float(g), float(np.asarray(x)[alive].sum()), rtol=1e-5)
+    for merge in (True, False):
+        out = compacted(jnp.float32(2.0), merge)
+        np.testing.assert_array_equal(np.asarray(out[0]), want)
+        g = jax.grad(lambda p: jnp.sum(compacted(p, merge)[0]))(jnp.float32(2.0))
+        np.testing.assert_allclose(float(g), float(np.asarray(x)[alive].sum()), rtol=1e-5)
 
 
 def test_rows_round_trip_every_dtype_bit_for_bit():
@@ -174,9 +177,15 @@ def test_rows_round_trip_every_dtype_bit_for_bit():
                 b=jnp.array([True, False]), k=jax.random.split(jax.random.key(7), 2), none=None)
     with jax.enable_x64(True):
         tree["d"] = jnp.array([np.pi, -1e300], jnp.float64)
-        rows = path._Rows(tree)
+        rows = path._Rows(tree, merge=True)
         packed = rows.pack(tree)
         back = rows.unpack(packed)
+        apart = path._Rows(tree, merge=False)
+        assert len(apart.pack(tree)) == 5
+        for a, b in zip(jax.tree.leaves(apart.unpack(apart.pack(tree))), jax.tree.leaves(tree), strict=True):
+            a, b = (jax.random.key_data(v) if jnp.issubdtype(v.dtype, jax.dtypes.prng_key) else v for v in (a, b))
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(np.asarray(a).view(np.uint8), np.asarray(b).view(np.uint8))
         # one matrix per float type, one of uint32 words for the rest
         assert {str(p.dtype): p.shape for p in packed} == dict(float32=(2, 3), uint32=(2, 4), float64=(2, 1))
         assert back["none"] is None and back["d"].dtype == jnp.float64

@@ -170,9 +170,9 @@ PY
                       stage "caustic-alpha$al" 75 python3 benchmarks/sppm.py --equal-time 0.25,0.5,1,2,4 \
                           --reference .gpudata/caustic_ref.npz --alpha "$al" --bias-seeds 0
                   done ;;
-        chunks)   # live-path compaction (`benchmarks/path_chunks.py`): uncompacted, 4 and 8 chunks per pass (rows merged or apart),
+        chunks)   # live-path compaction (`benchmarks/path_chunks.py`): uncompacted, 2, 3 and 4 chunks per pass (first bounce whole or compacted),
                   # then the dragon pass's kernels with the default
-                  stage path-chunks 330 python3 benchmarks/path_chunks.py --size 512 --repeats 5 --chunks 4 8 --rows merged apart
+                  stage path-chunks 330 python3 benchmarks/path_chunks.py --size 512 --repeats 5 --chunks 2 3 4 --first whole compacted
                   stage profile-path-dragon 70 python3 benchmarks/gpu_profile.py path-dragon --size 512 --repeats 5 ;;
         profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;

@@ -10,7 +10,8 @@ load), then the median wall time of --repeats passes (different random streams, 
 the image mean, and whether its pixels equal the uncompacted pass's (the largest difference where
 they do not: compaction changes which paths run beside which, never a path's own arithmetic, so at
 most a rounding difference from a different fusion). "off" runs every bounce on every path, as the
-tracer did before compaction. --rows also compares how the compacted state moves (`path._Rows`). On the CPU the variants set the chunks per batch
+tracer did before compaction. --first also compares the GPU's first bounce on the whole batch
+against compacted as the others (`path.GPU_WHOLE_FIRST_BOUNCE`). On the CPU the variants set the chunks per batch
 (`path.CPU_BATCH_CHUNKS`); on a GPU the chunks per pass (`path.GPU_CHUNKS`).
 """
 
@@ -33,15 +34,15 @@ import path as bench  # noqa: E402  (benchmarks/path.py)
 from jaxrt.integrators import path as P  # noqa: E402
 
 
-def _uncompacted(fn, packed, chunk, rows):
-    return rows.pack(fn(rows.unpack(packed)))
+def _uncompacted(fn, carry, chunk):
+    return fn(carry)
 
 
-def run_variant(sc, chunks: int | None, repeats: int, merge: bool | None = None) -> tuple[dict, np.ndarray]:
+def run_variant(sc, chunks: int | None, repeats: int, whole_first: bool = True) -> tuple[dict, np.ndarray]:
     attr = "CPU_BATCH_CHUNKS" if jax.default_backend() == "cpu" else "GPU_CHUNKS"
-    saved = getattr(P, attr), P._compacted, P.MERGE_ROWS
+    saved = getattr(P, attr), P._compacted, P.GPU_WHOLE_FIRST_BOUNCE
     try:
-        P.MERGE_ROWS = merge
+        P.GPU_WHOLE_FIRST_BOUNCE = whole_first
         if chunks is None:
             P._compacted = _uncompacted
         else:
@@ -59,7 +60,7 @@ def run_variant(sc, chunks: int | None, repeats: int, merge: bool | None = None)
             times.append(time.perf_counter() - t)
     finally:
         setattr(P, attr, saved[0])
-        P._compacted, P.MERGE_ROWS = saved[1:]
+        P._compacted, P.GPU_WHOLE_FIRST_BOUNCE = saved[1:]
     assert np.all(np.isfinite(first))
     return dict(first_s=first_s, pass_s=statistics.median(times), mean=float(first.mean())), first
 
@@ -71,9 +72,9 @@ def main(argv=None) -> int:
     ap.add_argument("--depth", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--chunks", type=int, nargs="+", default=[1, 2, 4, 8])
-    ap.add_argument("--rows", nargs="+", default=["default"], choices=["default", "merged", "apart"],
-                    help="how the compacted paths' state moves (`path._Rows`): the platform's default, merged "
-                         "into a few matrices, or a matrix per leaf")
+    ap.add_argument("--first", nargs="+", default=["whole"], choices=["whole", "compacted"],
+                    help="on a GPU, the first bounce on the whole batch (`path.GPU_WHOLE_FIRST_BOUNCE`) or "
+                         "compacted as the others")
     ap.add_argument("--scenes", nargs="+", default=["cornell", "dragon"], choices=["cornell", "dragon"])
     ap.add_argument("--mesh", default="dragon")
     args = ap.parse_args(argv)
@@ -86,11 +87,11 @@ def main(argv=None) -> int:
         base, ref = run_variant(sc, None, args.repeats)
         print(f"{name:8s} off      first {base['first_s']:6.2f} s  pass {base['pass_s'] * 1e3:8.2f} ms  "
               f"mean {base['mean']:.7f}")
-        for m, how in [(m, how) for how in args.rows for m in args.chunks]:
-            r, img = run_variant(sc, m, args.repeats, dict(default=None, merged=True, apart=False)[how])
+        for m, how in [(m, how) for how in args.first for m in args.chunks]:
+            r, img = run_variant(sc, m, args.repeats, how == "whole")
             d = np.abs(img - ref)
             same = "equal" if not d.any() else f"max |diff| {d.max():.2e} on {np.mean(d > 0):.1e} of values"
-            print(f"{name:8s} {m:<2d} chunks {how:7s} first {r['first_s']:6.2f} s  pass {r['pass_s'] * 1e3:8.2f} ms  "
+            print(f"{name:8s} {m:<2d} chunks, 1st {how:9s} first {r['first_s']:6.2f} s  pass {r['pass_s'] * 1e3:8.2f} ms  "
                   f"mean {r['mean']:.7f}  ({r['pass_s'] / base['pass_s']:.3f} of off; pixels {same})")
     return 0
 

@@ -57,8 +57,6 @@ f is). Geometry and the camera are stop_gradient'ed (edge terms are not modelled
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -80,7 +78,11 @@ _NU = 8  # uniforms per path and bounce (see module docstring)
 CPU_CHUNK = 16384  # live paths per chunk of a bounce on the CPU (`_batch_sizes`)
 CPU_BATCH_CHUNKS = 8  # chunks per batch of paths on the CPU (`_batch_sizes`)
 GPU_CHUNKS = 4  # chunks per pass on a GPU (`_batch_sizes`)
-MERGE_ROWS = None  # paths' state moved as merged rows (`_Rows`): None for off the CPU only
+# On a GPU the first bounce runs on the whole batch (its paths all start alive), outside the loop
+# of compacted bounces: the program holds the bounce twice (a longer compilation) and spares the
+# first bounce's gathers, scatters and per-chunk conditionals. On the CPU chunks keep the state in
+# cache, so the first bounce goes through `_compacted` there too.
+GPU_WHOLE_FIRST_BOUNCE = True
 _sg = lax.stop_gradient
 
 
@@ -182,71 +184,11 @@ def _batch_sizes(n: int, triangles: int) -> tuple[int, int]:
     return -(-m // batches) * chunk, chunk
 
 
-class _Rows:
-    """A pytree of per-path arrays (leading axis: the path; typed PRNG keys allowed) as the rows of a
-    few matrices, for moving paths (`_compacted`) by rows.
-
-    merge=True: the floating-point leaves in one (n, W) matrix per float type (values as they are,
-    so gradients flow through), the others (ints, bools widened, keys' words) bit for bit in one
-    uint32 matrix: a row gather and a row scatter per matrix rather than one of each per leaf (a GPU
-    launches fewer kernels). merge=False: a matrix per leaf (keys as their words), no packing: on the
-    CPU, XLA's concatenation of many operands into one matrix costs more than the gathers it saves
-    (the Cornell box at 256², 16 spp: a pass +17 % CPU time merged against +2 % per leaf, both
-    against no compaction)."""
-
-    def __init__(self, tree, merge: bool):
-        leaves, self.treedef = jax.tree.flatten(tree)
-        self.specs, widths = [], {}
-        for i, x in enumerate(leaves):
-            impl = jax.random.key_impl(x) if jnp.issubdtype(x.dtype, jax.dtypes.prng_key) else None
-            data = jax.random.key_data(x) if impl is not None else x
-            words, bits = 1, False
-            if not merge:
-                group = i
-            elif jnp.issubdtype(data.dtype, jnp.floating):
-                group = data.dtype
-            else:  # ints and bools as uint32 words
-                group, words, bits = jnp.dtype(jnp.uint32), max(1, data.dtype.itemsize // 4), bool(data.dtype != jnp.uint32)
-            width = words * math.prod(data.shape[1:])
-            col = widths.get(group, 0)
-            self.specs.append((impl, data.dtype, data.shape[1:], words, bits, group, col, width))
-            widths[group] = col + width
-        self.groups = tuple(widths)
-
-    def pack(self, tree) -> tuple:
-        cols = {g: [] for g in self.groups}
-        for x, (impl, dtype, _, _, bits, group, _, width) in zip(jax.tree.leaves(tree), self.specs, strict=True):
-            x = jax.random.key_data(x) if impl is not None else x
-            if bits:
-                x = x.astype(jnp.uint32) if dtype == jnp.bool_ or dtype.itemsize < 4 else lax.bitcast_convert_type(
-                    x, jnp.uint32)
-            cols[group].append(x.reshape(x.shape[0], width))
-        return tuple(c[0] if len(c) == 1 else jnp.concatenate(c, axis=1) for c in cols.values())
-
-    def leaf(self, packed: tuple, i: int):
-        impl, dtype, inner, words, bits, group, col, width = self.specs[i]
-        m = packed[self.groups.index(group)]
-        x = m if m.shape[1] == width else m[:, col:col + width]
-        if words > 1:
-            x = lax.bitcast_convert_type(x.reshape((-1,) + inner + (words,)), dtype)
-        else:
-            x = x.reshape((-1,) + inner)
-            if bits:
-                x = x != 0 if dtype == jnp.bool_ else (
-                    x.astype(dtype) if dtype.itemsize < 4 else lax.bitcast_convert_type(x, dtype))
-        return x if impl is None else jax.random.wrap_key_data(x, impl=impl)
-
-    def unpack(self, packed: tuple):
-        return jax.tree.unflatten(self.treedef, [self.leaf(packed, i) for i in range(len(self.specs))])
-
-
-def _compacted(fn, packed, chunk: int, rows: _Rows, alive: int = 2):
-    """One bounce over the live paths of a batch only. `packed`: the batch's path states as rows
-    (`rows.pack`); fn maps a chunk's state tree to its next state, its `alive` leaf (a bool per path)
-    saying which paths are live. The live paths' indices are found in order (a prefix sum, so
-    neighbouring paths stay neighbours), then fn runs on `chunk` of them at a time (their rows
-    gathered) and its results are scattered back; chunks past the live count are skipped
-    (`lax.cond`); the rows of dead paths are left as they are.
+def _compacted(fn, carry, chunk: int):
+    """One bounce (`fn` over a path-state tuple whose third entry is `alive` and whose last, the
+    paths' keys, fn does not change) over the live paths of `carry` only: their indices are gathered
+    in order (a prefix sum, so neighbouring paths stay neighbours), then fn runs on `chunk` of them at
+    a time and its results are scattered back; chunks past the live count are skipped (`lax.cond`).
 
     Why (Laine, Karras and Aila 2013, "Megakernels considered harmful: wavefront path tracing on
     GPUs"): a wavefront bounce costs every path of the batch its state's memory traffic, dead or
@@ -256,35 +198,39 @@ def _compacted(fn, packed, chunk: int, rows: _Rows, alive: int = 2):
     pass handles ~1.9 batches of paths instead of 5. The results are the uncompacted ones: a path's
     arithmetic and random numbers (`counter_uniforms`, by key and bounce) never depend on the paths
     beside it. The loops are a scan (reverse-differentiable); a skipped chunk's results are zeros
-    that the scatter drops."""
-    live = rows.leaf(packed, alive)
-    n_all = live.shape[0]
+    that the scatter drops. Each leaf moves by its own gather and scatter: packing the ~15 leaves
+    into one matrix first (one gather, one scatter) cost more than it saved on both platforms (one
+    NVIDIA H200, 512², 16 spp: the dragon's pass 25.5 ms packed against 22.3 ms per leaf, the Cornell
+    box 18.6 against 13.7; the 2-core CPU, Cornell box at 256²: +17 % CPU time against +5 %, both
+    against no compaction)."""
+    alive = carry[2]
+    n_all = alive.shape[0]
     m = -(-n_all // chunk)
-    packed = tuple(packed)
-    n = jnp.sum(live, dtype=jnp.int32)
-    pos = jnp.cumsum(live, dtype=jnp.int32) - 1
-    idx = jnp.zeros(m * chunk, jnp.int32).at[jnp.where(live, pos, m * chunk)].set(
+    n = jnp.sum(alive, dtype=jnp.int32)
+    pos = jnp.cumsum(alive, dtype=jnp.int32) - 1
+    idx = jnp.zeros(m * chunk, jnp.int32).at[jnp.where(alive, pos, m * chunk)].set(
         jnp.arange(n_all, dtype=jnp.int32), mode="drop", unique_indices=True)
+    state, keys = carry[:-1], carry[-1]
     lane = jnp.arange(chunk, dtype=jnp.int32)
 
-    def run(sel, valid, packed):
-        state = rows.unpack(tuple(p[sel] for p in packed))
-        leaves = jax.tree.leaves(state)
-        leaves[alive] = leaves[alive] & valid
-        return rows.pack(fn(jax.tree.unflatten(rows.treedef, leaves)))
+    def run(rows, valid, state):
+        sub = jax.tree.map(lambda x: x[rows], state)
+        sub = sub[:2] + (sub[2] & valid,) + sub[3:]
+        return fn(sub + (keys[rows],))[:-1]
 
-    def skip(sel, valid, packed):
-        return tuple(jnp.zeros((chunk, p.shape[1]), p.dtype) for p in packed)
+    def skip(rows, valid, state):
+        return jax.tree.map(lambda x: jnp.zeros((chunk,) + x.shape[1:], x.dtype), state)
 
-    def step(c, packed):
+    def step(c, state):
         start = c * chunk
-        sel = lax.dynamic_slice(idx, (start,), (chunk,))
+        rows = lax.dynamic_slice(idx, (start,), (chunk,))
         valid = start + lane < n
-        out = lax.cond(start < n, run, skip, sel, valid, packed)
-        dest = jnp.where(valid, sel, n_all)
-        return tuple(p.at[dest].set(o, mode="drop", unique_indices=True) for p, o in zip(packed, out, strict=True))
+        out = lax.cond(start < n, run, skip, rows, valid, state)
+        dest = jnp.where(valid, rows, n_all)
+        return jax.tree.map(lambda x, y: x.at[dest].set(y, mode="drop", unique_indices=True), state, out)
 
-    return step(0, packed) if m == 1 else lax.fori_loop(0, m, step, packed)
+    state = step(0, state) if m == 1 else lax.fori_loop(0, m, step, state)
+    return state + (keys,)
 
 
 def _in_chunks(fn, xs, n: int, chunk: int):
@@ -511,7 +457,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         alive = cont & ok
         # ---- Russian roulette
         q_rr = jnp.clip(jnp.max(_sg(tput), axis=-1), 0.05, 0.95)
-        rr = k >= RR_DEPTH
+        rr = jnp.asarray(k >= RR_DEPTH)  # (a bool array also where k is a Python int: ~rr below)
         alive = alive & (~rr | (u[:, 7] < q_rr))
         tput = jnp.where(rr, tput / q_rr[:, None], tput)
         good = alive & jnp.all(jnp.isfinite(tput), axis=-1)
@@ -532,9 +478,12 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         one = jnp.ones((B, 3), jnp.result_type(float))
         carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first,
                  uniforms(keys, 0) if store_u else None, keys)
-        rows = _Rows(carry, merge=MERGE_ROWS if MERGE_ROWS is not None else not on_cpu)
-        packed = lax.fori_loop(0, D, lambda k, p: _compacted(lambda x: work(k, x), p, chunk, rows), rows.pack(carry))
-        carry = rows.unpack(_compacted(lambda x: work(D, x, last=True), packed, chunk, rows))
+        k0 = 0
+        if GPU_WHOLE_FIRST_BOUNCE and not on_cpu and D > 0:
+            # every path starts alive: its first bounce needs no compaction (see GPU_WHOLE_FIRST_BOUNCE)
+            carry, k0 = work(0, carry), 1
+        carry = lax.fori_loop(k0, D, lambda k, c: _compacted(lambda x: work(k, x), c, chunk), carry)
+        carry = _compacted(lambda x: work(D, x, last=True), carry, chunk)
         return carry[6], carry[7]
 
     xs = (o0, d0, alive0, jax.random.key_data(path_keys))

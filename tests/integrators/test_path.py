@@ -106,7 +106,7 @@ def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
     # chunks of dead paths in the later bounces (the furnace's sphere is convex) that are skipped.
     sc = _with_material(furnace, "glossy")
     n = 16 * 16 * sc.settings.spp
-    monkeypatch.setattr(path, "_compacted", lambda fn, p, chunk, rows: rows.pack(fn(rows.unpack(p))))
+    monkeypatch.setattr(path, "_compacted", lambda fn, carry, chunk: fn(carry))
     whole = jax.jit(lambda s: path.samples(s, 3, jitter=True, aovs=True))(sc)
     monkeypatch.undo()
     monkeypatch.setattr(path, "CPU_CHUNK", 1500)
@@ -125,10 +125,8 @@ def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
 def test_compacted_bounce_runs_live_paths_in_order_and_differentiates():
     # `path._compacted` against what it stands for, an elementwise bounce over the live paths only:
     # 13 live of 37 paths in chunks of 8 (5 chunks): fn runs twice (the chunks past the live count
-    # are skipped), on the live paths in their order; dead paths keep their state, bit for bit
-    # through the rows (`path._Rows`: float32, int32, bool, typed keys, and float64 under x64
-    # elsewhere); the gradient through the gathers, the skipped chunks' conditionals and the
-    # scatters is the closed form.
+    # are skipped), on the live paths in their order; dead paths keep their state; the gradient
+    # through the gathers, the skipped chunks' conditionals and the scatters is the closed form.
     rng = np.random.default_rng(0)
     n, chunk = 37, 8
     alive = np.zeros(n, bool)
@@ -146,10 +144,8 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates():
             return jnp.where(live[:, None], x * p + k, x), ids, live, keys
         return bounce
 
-    def compacted(p, merge=True):
-        carry = (x, ids, jnp.asarray(alive), keys)
-        rows = path._Rows(carry, merge=merge)
-        return rows.unpack(path._compacted(fn(p), rows.pack(carry), chunk, rows))
+    def compacted(p):
+        return path._compacted(fn(p), (x, ids, jnp.asarray(alive), keys), chunk)
 
     out = compacted(jnp.float32(2.0))
     k = np.asarray(jax.random.key_data(keys))[:, 0].astype(np.float32)[:, None]
@@ -157,43 +153,11 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates():
     np.testing.assert_array_equal(np.asarray(out[0]), want)
     np.testing.assert_array_equal(np.asarray(out[1]), np.arange(n))
     np.testing.assert_array_equal(np.asarray(out[2]), alive)
-    np.testing.assert_array_equal(np.asarray(jax.random.key_data(out[3])), np.asarray(jax.random.key_data(keys)))
     assert len(seen) == 2
     np.testing.assert_array_equal(np.concatenate(seen), np.flatnonzero(alive))
     seen.clear()
-    for merge in (True, False):
-        out = compacted(jnp.float32(2.0), merge)
-        np.testing.assert_array_equal(np.asarray(out[0]), want)
-        g = jax.grad(lambda p: jnp.sum(compacted(p, merge)[0]))(jnp.float32(2.0))
-        np.testing.assert_allclose(float(g), float(np.asarray(x)[alive].sum()), rtol=1e-5)
-
-
-def test_rows_round_trip_every_dtype_bit_for_bit():
-    # `path._Rows` packs the float leaves into a matrix per float type and the others' bits into
-    # uint32 columns: NaN payloads, -0.0, int extremes, bools, keys and (under x64) float64 come
-    # back unchanged
-    f32 = np.array([[np.nan, -0.0, np.inf], [1e-45, -3.4e38, 1.0]], np.float32)
-    tree = dict(f=jnp.asarray(f32), i=jnp.array([np.iinfo(np.int32).min, np.iinfo(np.int32).max], jnp.int32),
-                b=jnp.array([True, False]), k=jax.random.split(jax.random.key(7), 2), none=None)
-    with jax.enable_x64(True):
-        tree["d"] = jnp.array([np.pi, -1e300], jnp.float64)
-        rows = path._Rows(tree, merge=True)
-        packed = rows.pack(tree)
-        back = rows.unpack(packed)
-        apart = path._Rows(tree, merge=False)
-        assert len(apart.pack(tree)) == 5
-        for a, b in zip(jax.tree.leaves(apart.unpack(apart.pack(tree))), jax.tree.leaves(tree), strict=True):
-            a, b = (jax.random.key_data(v) if jnp.issubdtype(v.dtype, jax.dtypes.prng_key) else v for v in (a, b))
-            assert a.dtype == b.dtype
-            np.testing.assert_array_equal(np.asarray(a).view(np.uint8), np.asarray(b).view(np.uint8))
-        # one matrix per float type, one of uint32 words for the rest
-        assert {str(p.dtype): p.shape for p in packed} == dict(float32=(2, 3), uint32=(2, 4), float64=(2, 1))
-        assert back["none"] is None and back["d"].dtype == jnp.float64
-        np.testing.assert_array_equal(np.asarray(back["d"]), np.asarray(tree["d"]))
-    np.testing.assert_array_equal(np.asarray(back["f"]).view(np.uint32), f32.view(np.uint32))
-    np.testing.assert_array_equal(np.asarray(back["i"]), np.asarray(tree["i"]))
-    np.testing.assert_array_equal(np.asarray(back["b"]), [True, False])
-    np.testing.assert_array_equal(np.asarray(jax.random.key_data(back["k"])), np.asarray(jax.random.key_data(tree["k"])))
+    g = jax.grad(lambda p: jnp.sum(compacted(p)[0]))(jnp.float32(2.0))
+    np.testing.assert_allclose(float(g), float(np.asarray(x)[alive].sum()), rtol=1e-5)
 
 
 @pytest.mark.slow  # 17-20 s on 2 cores

@@ -294,18 +294,15 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     def uniforms(keys, k):
         return counter_uniforms(keys, k, _NU)
 
-    # A bounce's random numbers are made at the end of the bounce before and stored in the paths'
-    # state on the CPU, where XLA would otherwise recompute the Threefry blocks in each of their
-    # consuming loops; on a GPU recomputing is cheap and storing them is 8 more words per path that
-    # every bounce reads, gathers and scatters (None: made where the bounce starts). The first hits
-    # are kept only where they are asked for (aovs).
-    store_u = on_cpu
 
     def work(k, carry, last: bool = False):
-        o, d, alive, tput, specular, pdf_prev, L, first, u, keys = carry
+        o, d, alive, tput, specular, pdf_prev, L, first, keys = carry
         B = o.shape[0]  # the paths of one chunk
-        if u is None:
-            u = uniforms(keys, k)
+        # the bounce's random numbers, by key and bounce: on the CPU made once into a buffer
+        # (`_stored`: XLA would otherwise remake the Threefry blocks in each consuming loop), on a GPU
+        # remade where used (cheap there); neither stores them in the paths' state, which every
+        # bounce would read, gather and scatter
+        u = _stored(uniforms(keys, k), alive)
         if on_cpu:
             # the hit point and geometric normal come with the hit (Embree computes them from the
             # triangle it holds, on both cores; `geometry.intersect_surface`), so the glue gathers no
@@ -338,7 +335,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         if last:
             # vertex max_depth + 1 only collects the emission its ray found: no light sample, no
             # next direction (in the loop they would all be masked off by k < D)
-            return (o, d, jnp.zeros_like(alive), tput, specular, pdf_prev, L, first, u if store_u else None, keys)
+            return (o, d, jnp.zeros_like(alive), tput, specular, pdf_prev, L, first, keys)
         cont = found & (k < D)
         ng, ns, _ = oriented(s, d)
         frame = local_frame(ns, s.tangent)
@@ -462,10 +459,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         tput = jnp.where(rr, tput / q_rr[:, None], tput)
         good = alive & jnp.all(jnp.isfinite(tput), axis=-1)
         tput = jnp.where(good[:, None], tput, 0.0)
-        # the next bounce's numbers, made here so that they are stored in the loop state
-        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first,
-                uniforms(keys, k + 1) if store_u else None,
-                keys)
+        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first, keys)
 
     def trace(o0, d0, alive0, key_data, chunk):
         # the paths of one batch, from their camera rays to their ends: (radiance, first hits); each
@@ -476,8 +470,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
                  if aovs else None)
         # the throughput's dtype follows the material values so float64 tests stay float64
         one = jnp.ones((B, 3), jnp.result_type(float))
-        carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first,
-                 uniforms(keys, 0) if store_u else None, keys)
+        carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, keys)
         k0 = 0
         if GPU_WHOLE_FIRST_BOUNCE and not on_cpu and D > 0:
             # every path starts alive: its first bounce needs no compaction (see GPU_WHOLE_FIRST_BOUNCE)

@@ -34,7 +34,7 @@ import path as bench  # noqa: E402  (benchmarks/path.py)
 from jaxrt.integrators import path as P  # noqa: E402
 
 
-def _uncompacted(fn, carry, chunk):
+def _uncompacted(fn, carry, chunk, dense_at=None):
     return fn(carry)
 
 

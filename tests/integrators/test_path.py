@@ -106,7 +106,7 @@ def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
     # chunks of dead paths in the later bounces (the furnace's sphere is convex) that are skipped.
     sc = _with_material(furnace, "glossy")
     n = 16 * 16 * sc.settings.spp
-    monkeypatch.setattr(path, "_compacted", lambda fn, carry, chunk: fn(carry))
+    monkeypatch.setattr(path, "_compacted", lambda fn, carry, chunk, dense_at=None: fn(carry))
     whole = jax.jit(lambda s: path.samples(s, 3, jitter=True, aovs=True))(sc)
     monkeypatch.undo()
     monkeypatch.setattr(path, "CPU_CHUNK", 1500)
@@ -122,15 +122,18 @@ def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
     assert float(jnp.mean(whole[0])) > 0
 
 
-def test_compacted_bounce_runs_live_paths_in_order_and_differentiates():
+@pytest.mark.parametrize("live, dense_at, calls", [(13, None, 2), (13, 0.8, 2), (36, 0.8, 5)])
+def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dense_at, calls):
     # `path._compacted` against what it stands for, an elementwise bounce over the live paths only:
-    # 13 live of 37 paths in chunks of 8 (5 chunks): fn runs twice (the chunks past the live count
-    # are skipped), on the live paths in their order; dead paths keep their state; the gradient
-    # through the gathers, the skipped chunks' conditionals and the scatters is the closed form.
+    # 40 paths in chunks of 8. 13 live: fn runs twice (the chunks past the live count are
+    # skipped), on the live paths in their order; 36 live with dense_at 0.8 (the CPU's dense mode):
+    # on the batch's own five blocks of rows, the dead masked. Either way dead paths keep their
+    # state, and the gradient through the gathers or slices, the skipped chunks' conditionals and
+    # the scatters is the closed form.
     rng = np.random.default_rng(0)
-    n, chunk = 37, 8
+    n, chunk = 40, 8
     alive = np.zeros(n, bool)
-    alive[rng.choice(n, 13, replace=False)] = True
+    alive[rng.choice(n, live, replace=False)] = True
     x = jnp.asarray(rng.normal(size=(n, 3)), jnp.float32)
     ids = jnp.arange(n, dtype=jnp.int32)
     keys = jax.random.split(jax.random.key(1), n)
@@ -139,13 +142,13 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates():
     def fn(p):
         def bounce(carry):
             x, ids, live, keys = carry
-            jax.debug.callback(lambda i, a: seen.append(np.asarray(i)[np.asarray(a)]), ids, live)
+            jax.debug.callback(lambda i, a: seen.append((np.asarray(i), np.asarray(a))), ids, live)
             k = jax.random.key_data(keys)[:, 0].astype(jnp.float32)[:, None]
             return jnp.where(live[:, None], x * p + k, x), ids, live, keys
         return bounce
 
     def compacted(p):
-        return path._compacted(fn(p), (x, ids, jnp.asarray(alive), keys), chunk)
+        return path._compacted(fn(p), (x, ids, jnp.asarray(alive), keys), chunk, dense_at)
 
     out = compacted(jnp.float32(2.0))
     k = np.asarray(jax.random.key_data(keys))[:, 0].astype(np.float32)[:, None]
@@ -153,8 +156,13 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates():
     np.testing.assert_array_equal(np.asarray(out[0]), want)
     np.testing.assert_array_equal(np.asarray(out[1]), np.arange(n))
     np.testing.assert_array_equal(np.asarray(out[2]), alive)
-    assert len(seen) == 2
-    np.testing.assert_array_equal(np.concatenate(seen), np.flatnonzero(alive))
+    assert len(seen) == calls
+    np.testing.assert_array_equal(np.concatenate([i[a] for i, a in seen]), np.flatnonzero(alive))
+    rows = np.concatenate([i for i, _ in seen])
+    if live == 36:  # dense: the batch's rows in order, dead ones among them
+        np.testing.assert_array_equal(rows, np.arange(n))
+    else:  # compacted: the live rows first in each chunk
+        assert not np.array_equal(rows[:live], np.arange(live))
     seen.clear()
     g = jax.grad(lambda p: jnp.sum(compacted(p)[0]))(jnp.float32(2.0))
     np.testing.assert_allclose(float(g), float(np.asarray(x)[alive].sum()), rtol=1e-5)

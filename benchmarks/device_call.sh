@@ -174,6 +174,12 @@ PY
                   # then the dragon pass's kernels with the default
                   stage path-chunks 330 python3 benchmarks/path_chunks.py --size 512 --repeats 5 --chunks 2 3 4 --first whole compacted
                   stage profile-path-dragon 70 python3 benchmarks/gpu_profile.py path-dragon --size 512 --repeats 5 ;;
+        chunks-compile)  # the GPU's first bounce on the whole batch or compacted: first-call time (compilation,
+                  # no persistent cache) of each in its own process, after an uncompacted pass in the same process
+                  for how in whole compacted; do
+                      JAXRT_CACHE=off stage "path-first-$how" 120 python3 benchmarks/path_chunks.py --size 512 --repeats 3 \
+                          --chunks 4 --first "$how"
+                  done ;;
         profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac

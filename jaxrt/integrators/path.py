@@ -81,11 +81,13 @@ CPU_CHUNK = 16384  # live paths per chunk of a bounce on the CPU (`_batch_sizes`
 CPU_BATCH_CHUNKS = 8  # chunks per batch of paths on the CPU (`_batch_sizes`)
 CPU_DENSE_AT = 0.8  # live share of a batch from which the CPU's bounce runs uncompacted (`_compacted`)
 GPU_CHUNKS = 4  # chunks per pass on a GPU (`_batch_sizes`)
-# On a GPU the first bounce runs on the whole batch (its paths all start alive), outside the loop
-# of compacted bounces: the program holds the bounce twice (a longer compilation) and spares the
-# first bounce's gathers, scatters and per-chunk conditionals. On the CPU chunks keep the state in
-# cache, so the first bounce goes through `_compacted` there too.
-GPU_WHOLE_FIRST_BOUNCE = True
+# Whether a GPU's first bounce runs on the whole batch (its paths all start alive), outside the loop
+# of compacted bounces: that spares its gathers, scatters and per-chunk conditionals (one NVIDIA
+# H200, 512², 16 spp: 0.9-1.2 ms of a 13-22 ms pass) but the program then holds the bounce three
+# times, a longer first compilation (+1.3 s for the Cornell box, +4.6 s for the environment-lit
+# dragon): off, as a render would need over a thousand such passes to win the wait back. On the
+# CPU chunks keep the state in cache, so the first bounce is compacted there regardless.
+GPU_WHOLE_FIRST_BOUNCE = False
 _sg = lax.stop_gradient
 
 

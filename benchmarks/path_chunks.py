@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     ap.add_argument("--depth", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--chunks", type=int, nargs="+", default=[1, 2, 4, 8])
-    ap.add_argument("--first", nargs="+", default=["whole"], choices=["whole", "compacted"],
+    ap.add_argument("--first", nargs="+", default=["compacted"], choices=["whole", "compacted"],
                     help="on a GPU, the first bounce on the whole batch (`path.GPU_WHOLE_FIRST_BOUNCE`) or "
                          "compacted as the others")
     ap.add_argument("--scenes", nargs="+", default=["cornell", "dragon"], choices=["cornell", "dragon"])

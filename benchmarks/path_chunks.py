@@ -11,8 +11,8 @@ the image mean, and whether its pixels equal the uncompacted pass's (the largest
 they do not: compaction changes which paths run beside which, never a path's own arithmetic, so at
 most a rounding difference from a different fusion). "off" runs every bounce on every path, as the
 tracer did before compaction. --first also compares the GPU's first bounce on the whole batch
-against compacted as the others (`path.GPU_WHOLE_FIRST_BOUNCE`). On the CPU the variants set the chunks per batch
-(`path.CPU_BATCH_CHUNKS`); on a GPU the chunks per pass (`path.GPU_CHUNKS`).
+against compacted as the others (`path.GPU_WHOLE_FIRST_BOUNCE`). On the CPU the variants set the
+chunks per batch (`path.CPU_BATCH_CHUNKS`); on a GPU the chunks per pass (`path.GPU_CHUNKS`).
 """
 
 from __future__ import annotations
@@ -91,7 +91,8 @@ def main(argv=None) -> int:
             r, img = run_variant(sc, m, args.repeats, how == "whole")
             d = np.abs(img - ref)
             same = "equal" if not d.any() else f"max |diff| {d.max():.2e} on {np.mean(d > 0):.1e} of values"
-            print(f"{name:8s} {m:<2d} chunks, 1st {how:9s} first {r['first_s']:6.2f} s  pass {r['pass_s'] * 1e3:8.2f} ms  "
+            print(f"{name:8s} {m:<2d} chunks, 1st {how:9s} first {r['first_s']:6.2f} s  "
+                  f"pass {r['pass_s'] * 1e3:8.2f} ms  "
                   f"mean {r['mean']:.7f}  ({r['pass_s'] / base['pass_s']:.3f} of off; pixels {same})")
     return 0
 

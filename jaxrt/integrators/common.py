@@ -21,7 +21,9 @@ from jaxrt.shading.surface import dot, normalize
 def on_cpu() -> bool:
     """Whether the integrators' programs are made for the CPU: there a conditional that skips dead
     work pays off and loops keep XLA:CPU from fusing a chain into each consumer; on a GPU each
-    conditional or loop step is a host round trip, so the integrators take branch-free forms."""
+    conditional or loop step is a host round trip, so the integrators take branch-free forms (the path
+    tracer's live-path chunks are the exception: `path._compacted`'s conditionals skip more work than
+    they cost there)."""
     return jax.default_backend() == "cpu"
 
 

@@ -503,7 +503,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, keys)
         k0 = 0
         if GPU_WHOLE_FIRST_BOUNCE and not on_cpu and D > 0:
-            # every path starts alive: its first bounce needs no compaction (see GPU_WHOLE_FIRST_BOUNCE)
+            # the paths start alive (a tile's padding samples excepted, masked): no compaction
+            # (see GPU_WHOLE_FIRST_BOUNCE)
             carry, k0 = work(0, carry), 1
         dense_at = CPU_DENSE_AT if on_cpu else None
         carry = lax.fori_loop(k0, D, lambda k, c: _compacted(lambda x: work(k, x), c, chunk, dense_at), carry)

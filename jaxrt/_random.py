@@ -5,8 +5,8 @@ Threefry-2x32 (Salmon et al., "Parallel random numbers: as easy as 1, 2, 3", SC 
 function of JAX's default PRNG (20 rounds). JAX lowers its primitive on the CPU as a loop of 5
 iterations (a `while` whose every iteration copies its state through memory) to keep compile times
 short, and a path-tracing pass draws its camera jitter and its paths' keys over every path of the
-pass at once, so each iteration copies the whole pass's state. Written out, the hash and what consumes it fuse into one loop over the batch: the
-same uint32 arithmetic, so the same bits.
+pass at once, so each iteration copies the whole pass's state. Written out, the hash and what
+consumes it fuse into one loop over the batch: the same uint32 arithmetic, so the same bits.
 """
 
 from __future__ import annotations

@@ -324,7 +324,6 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     def uniforms(keys, k):
         return counter_uniforms(keys, k, _NU)
 
-
     def work(k, carry, last: bool = False):
         o, d, alive, tput, specular, pdf_prev, L, first, keys = carry
         B = o.shape[0]  # the paths of one chunk

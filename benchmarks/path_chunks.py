@@ -18,6 +18,7 @@ chunks per batch (`path.CPU_BATCH_CHUNKS`); on a GPU the chunks per pass (`path.
 from __future__ import annotations
 
 import argparse
+import ast
 import statistics
 import sys
 import tempfile
@@ -34,22 +35,52 @@ import path as bench  # noqa: E402  (benchmarks/path.py)
 from jaxrt.integrators import path as P  # noqa: E402
 
 
-def _uncompacted(fn, carry, chunk, dense_at=None):
+def _uncompacted(fn, carry, chunk, dense_at=None, order=None):
     return fn(carry)
 
 
-def run_variant(sc, chunks: int | None, repeats: int, whole_first: bool = True) -> tuple[dict, np.ndarray]:
+# XLA:GPU command buffers (CUDA graphs) that also record conditionals and while loops: their
+# predicates are then evaluated on the device (graph conditional nodes) instead of copied to the host
+GRAPH_OPTIONS = {"xla_gpu_enable_command_buffer": "FUSION,CUBLAS,CUBLASLT,CUDNN,CUSTOM_CALL,CONDITIONAL,WHILE",
+                 "xla_gpu_graph_min_graph_size": 1}
+
+
+def _knobs(text: str) -> dict:
+    """"NAME=value,NAME=value" (module constants of `jaxrt.integrators.path`; values are Python
+    literals, or strings); GRAPHS=1 compiles with `GRAPH_OPTIONS`."""
+    out = {}
+    for item in filter(None, text.split(",")):
+        name, _, value = item.partition("=")
+        if name == "GRAPHS":
+            out[name] = value == "1"
+            continue
+        if not hasattr(P, name):
+            raise SystemExit(f"--knobs: jaxrt.integrators.path has no {name}")
+        try:
+            out[name] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            out[name] = value
+    return out
+
+
+def run_variant(sc, chunks: int | None, repeats: int, whole_first: bool = False,
+                knobs: dict | None = None) -> tuple[dict, np.ndarray]:
     attr = "CPU_BATCH_CHUNKS" if jax.default_backend() == "cpu" else "GPU_CHUNKS"
+    knobs = dict(knobs or {})
+    options = GRAPH_OPTIONS if knobs.pop("GRAPHS", False) else None
     saved = getattr(P, attr), P._compacted, P.GPU_WHOLE_FIRST_BOUNCE
+    saved_knobs = {k: getattr(P, k) for k in knobs}
     try:
         P.GPU_WHOLE_FIRST_BOUNCE = whole_first
+        for k, v in knobs.items():
+            setattr(P, k, v)
         if chunks is None:
             P._compacted = _uncompacted
-        else:
+        elif chunks:
             setattr(P, attr, chunks)
         # a new function object: jit's trace cache is keyed by it, and the module's knobs are read
         # while tracing
-        f = jax.jit(lambda s, i: P.samples(s, i, jitter=True))
+        f = jax.jit(lambda s, i: P.samples(s, i, jitter=True), compiler_options=options)
         t0 = time.perf_counter()
         first = np.asarray(f(sc, 0))
         first_s = time.perf_counter() - t0
@@ -61,6 +92,8 @@ def run_variant(sc, chunks: int | None, repeats: int, whole_first: bool = True) 
     finally:
         setattr(P, attr, saved[0])
         P._compacted, P.GPU_WHOLE_FIRST_BOUNCE = saved[1:]
+        for k, v in saved_knobs.items():
+            setattr(P, k, v)
     assert np.all(np.isfinite(first))
     return dict(first_s=first_s, pass_s=statistics.median(times), mean=float(first.mean())), first
 
@@ -75,6 +108,9 @@ def main(argv=None) -> int:
     ap.add_argument("--first", nargs="+", default=["compacted"], choices=["whole", "compacted"],
                     help="on a GPU, the first bounce on the whole batch (`path.GPU_WHOLE_FIRST_BOUNCE`) or "
                          "compacted as the others")
+    ap.add_argument("--knobs", nargs="+", default=None, metavar="NAME=V,...",
+                    help="instead of --chunks/--first: one variant per argument, each setting module constants "
+                         "of jaxrt.integrators.path (e.g. GPU_ORDER=two-point,GPU_DENSE_AT=0.8; '' = the defaults)")
     ap.add_argument("--scenes", nargs="+", default=["cornell", "dragon"], choices=["cornell", "dragon"])
     ap.add_argument("--mesh", default="dragon")
     args = ap.parse_args(argv)
@@ -87,11 +123,20 @@ def main(argv=None) -> int:
         base, ref = run_variant(sc, None, args.repeats)
         print(f"{name:8s} off      first {base['first_s']:6.2f} s  pass {base['pass_s'] * 1e3:8.2f} ms  "
               f"mean {base['mean']:.7f}")
-        for m, how in [(m, how) for how in args.first for m in args.chunks]:
-            r, img = run_variant(sc, m, args.repeats, how == "whole")
+        if args.knobs is not None:
+            variants = [(f"{text or 'default':36s}", dict(chunks=0, knobs=_knobs(text))) for text in args.knobs]
+        else:
+            variants = [(f"{m:<2d} chunks, 1st {how:9s}", dict(chunks=m, whole_first=how == "whole"))
+                        for how in args.first for m in args.chunks]
+        for label, kw in variants:
+            try:
+                r, img = run_variant(sc, repeats=args.repeats, **kw)
+            except Exception as e:  # noqa: BLE001 -- one variant's failure (an XLA option, say) is reported
+                print(f"{name:8s} {label} failed: {type(e).__name__}: {str(e)[:300]}")
+                continue
             d = np.abs(img - ref)
             same = "equal" if not d.any() else f"max |diff| {d.max():.2e} on {np.mean(d > 0):.1e} of values"
-            print(f"{name:8s} {m:<2d} chunks, 1st {how:9s} first {r['first_s']:6.2f} s  "
+            print(f"{name:8s} {label} first {r['first_s']:6.2f} s  "
                   f"pass {r['pass_s'] * 1e3:8.2f} ms  "
                   f"mean {r['mean']:.7f}  ({r['pass_s'] / base['pass_s']:.3f} of off; pixels {same})")
     return 0

@@ -187,8 +187,13 @@ def prepare(
                     m = sc.materials.index(mat_name)
                     shading = edit.set_material_row(sc, int(sc.materials.model_id[m]), int(sc.materials.row[m]),
                                                     model.params())
-                    # not joined first: `_trace` compiles the shade program while this one finishes
-                    gb = _trace(to_trace, shading)
+                    # not joined first: `_trace` compiles the shade program while this one finishes;
+                    # but lowered first, so that the program is the ahead thread's to compile (a
+                    # loaded machine can keep that thread from reaching it before this one does)
+                    started = [t for t in ahead if t is not None]
+                    for t in started:
+                        t.lowered.wait()
+                    gb = _trace(to_trace, shading, compiling_ahead=bool(started))
                     for t in ahead:
                         if t is not None:
                             t.join()
@@ -235,7 +240,8 @@ def _compile_trace_ahead(shapes):
     (`jaxrt.render_tiles.compile_ahead`): XLA compiles with the GIL released while the host builds the
     BVH. The stored program (`jaxrt.programs`) is kept per shapes, so `_trace` finds it compiled. Only
     with the cache on (with it off, `jax.jit` would compile the call again); errors are left to the
-    trace itself to raise."""
+    trace itself to raise. The thread's `lowered` event is set once the program is lowered: the
+    caller's own `lower` then finds it claimed and waits for this compilation instead of starting one."""
     import threading
 
     from jaxrt import _config
@@ -243,24 +249,35 @@ def _compile_trace_ahead(shapes):
     if not _config.config().cache:
         return None
 
+    lowered = threading.Event()  # set once the program is lowered (claimed) or failed to be
+
     def work():
         try:
-            integrators.trace.lower(shapes).compile()
+            program = integrators.trace.lower(shapes)
+        except Exception:  # noqa: BLE001 -- see the docstring
+            return
+        finally:
+            lowered.set()
+        try:
+            program.compile()
         except Exception:  # noqa: BLE001 -- see the docstring
             pass
 
     t = threading.Thread(target=work, name="fitting-trace-ahead", daemon=True)
+    t.lowered = lowered
     t.start()
     return t
 
 
-def _trace(scene, shading):
+def _trace(scene, shading, compiling_ahead: bool = False):
     """`integrators.trace(scene)`, with the program `compact.build` shades the trace with (for the
     constant image, on the scene `shading`) compiled while the trace program compiles: XLA compiles
     with the GIL released, so on a first run the two compilations overlap. Both are stored programs
     (`jaxrt.programs`): a later process reads them without tracing, and the shade program compiles
     from the trace's output shapes (`out_info`). With the cache off the shade program compiles at
-    its call, as before. The trace itself is the same call either way, so its results are the same bits."""
+    its call, as before. The trace itself is the same call either way, so its results are the same bits.
+    compiling_ahead: `_compile_trace_ahead`'s thread is compiling the trace program; none is started
+    here (the call waits for that one's)."""
     import threading
 
     from jaxrt import _config
@@ -268,13 +285,16 @@ def _trace(scene, shading):
     # the call below runs this program, compiled once (where `_compile_trace_ahead` is compiling it,
     # `lower` waits for its load, not its compilation, and the thread below for the compilation)
     lowered = integrators.trace.lower(scene)
-    compiling = threading.Thread(target=lowered.compile, name="fitting-trace-compile", daemon=True)
-    compiling.start()
+    compiling = None
+    if not compiling_ahead:
+        compiling = threading.Thread(target=lowered.compile, name="fitting-trace-compile", daemon=True)
+        compiling.start()
     try:
         if _config.config().cache:
             integrators.shade.lower(lowered.out_info, shading).compile()
     finally:
-        compiling.join()
+        if compiling is not None:
+            compiling.join()
     return integrators.trace(scene)
 
 

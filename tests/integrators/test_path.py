@@ -106,7 +106,7 @@ def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
     # chunks of dead paths in the later bounces (the furnace's sphere is convex) that are skipped.
     sc = _with_material(furnace, "glossy")
     n = 16 * 16 * sc.settings.spp
-    monkeypatch.setattr(path, "_compacted", lambda fn, carry, chunk, dense_at=None: fn(carry))
+    monkeypatch.setattr(path, "_compacted", lambda fn, carry, *args: fn(carry))
     whole = jax.jit(lambda s: path.samples(s, 3, jitter=True, aovs=True))(sc)
     monkeypatch.undo()
     monkeypatch.setattr(path, "CPU_CHUNK", 1500)
@@ -122,14 +122,18 @@ def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
     assert float(jnp.mean(whole[0])) > 0
 
 
-@pytest.mark.parametrize("live, dense_at, calls", [(13, None, 2), (13, 0.8, 2), (36, 0.8, 5)])
-def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dense_at, calls):
+@pytest.mark.parametrize("live, dense_at, calls, reverse", [(13, None, 2, False), (13, 0.8, 2, False),
+                                                            (36, 0.8, 5, False), (40, 1.0, 5, False),
+                                                            (36, 1.0, 5, False), (13, None, 2, True)])
+def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dense_at, calls, reverse):
     # `path._compacted` against what it stands for, an elementwise bounce over the live paths only:
     # 40 paths in chunks of 8. 13 live: fn runs twice (the chunks past the live count are
     # skipped), on the live paths in their order; 36 live with dense_at 0.8 (the CPU's dense mode):
     # on the batch's own five blocks of rows, the dead masked. Either way dead paths keep their
     # state, and the gradient through the gathers or slices, the skipped chunks' conditionals and
-    # the scatters is the closed form.
+    # the scatters is the closed form. 36 live with dense_at 1.0: compacted (five chunks, as 36 > 32);
+    # all 40 live: dense. `order` (the GPU's ray keys, `path._ray_keys`): the live paths in the
+    # order of their keys, here the reverse of their index.
     rng = np.random.default_rng(0)
     n, chunk = 40, 8
     alive = np.zeros(n, bool)
@@ -148,7 +152,8 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dens
         return bounce
 
     def compacted(p):
-        return path._compacted(fn(p), (x, ids, jnp.asarray(alive), keys), chunk, dense_at)
+        order = (lambda st: (n - st[1]).astype(jnp.uint32)) if reverse else None
+        return path._compacted(fn(p), (x, ids, jnp.asarray(alive), keys), chunk, dense_at, order)
 
     out = compacted(jnp.float32(2.0))
     k = np.asarray(jax.random.key_data(keys))[:, 0].astype(np.float32)[:, None]
@@ -157,9 +162,10 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dens
     np.testing.assert_array_equal(np.asarray(out[1]), np.arange(n))
     np.testing.assert_array_equal(np.asarray(out[2]), alive)
     assert len(seen) == calls
-    np.testing.assert_array_equal(np.concatenate([i[a] for i, a in seen]), np.flatnonzero(alive))
+    live_rows = np.flatnonzero(alive)
+    np.testing.assert_array_equal(np.concatenate([i[a] for i, a in seen]), live_rows[::-1] if reverse else live_rows)
     rows = np.concatenate([i for i, _ in seen])
-    if live == 36:  # dense: the batch's rows in order, dead ones among them
+    if dense_at is not None and live >= dense_at * n:  # dense: the batch's rows in order, dead ones among them
         np.testing.assert_array_equal(rows, np.arange(n))
     else:  # compacted: the live rows first in each chunk
         assert not np.array_equal(rows[:live], np.arange(live))

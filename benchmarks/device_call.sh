@@ -180,13 +180,12 @@ PY
                       JAXRT_CACHE=off stage "path-first-$how" 120 python3 benchmarks/path_chunks.py --size 512 --repeats 3 \
                           --chunks 4 --first "$how"
                   done ;;
-        order)    # the GPU's bounce rays sorted by a ray key before each compacted bounce (`path.GPU_ORDER`), and the
-                  # dense mode (`path.GPU_DENSE_AT`), against the default, in one process per scene
-                  # (GRAPHS=1: conditionals and loops recorded in CUDA graphs, `path_chunks.GRAPH_OPTIONS`)
-                  stage path-order 500 python3 benchmarks/path_chunks.py --size 512 --repeats 5 --knobs "" GRAPHS=1 \
-                      GPU_ORDER=two-point GPU_ORDER=two-point,GRAPHS=1 GPU_ORDER=origin GPU_ORDER=origin-dir \
-                      GPU_DENSE_AT=1.0 GPU_DENSE_AT=0.8,GRAPHS=1 GPU_CHUNKS=8,GRAPHS=1 \
-                      GPU_CHUNKS=8,GPU_ORDER=two-point,GRAPHS=1 ;;
+        compact)  # the GPU's bounces compacted in every scene (`path.GPU_COMPACT_MIN_TRIANGLES` 0), in none (10^9), and
+                  # the default rule, on the Cornell box, the environment-lit dragon and the same with the bunny
+                  stage path-compact 300 python3 benchmarks/path_chunks.py --size 512 --repeats 7 --knobs "" \
+                      GPU_COMPACT_MIN_TRIANGLES=0 GPU_COMPACT_MIN_TRIANGLES=1000000000
+                  stage path-compact-bunny 120 python3 benchmarks/path_chunks.py --size 512 --repeats 7 --scenes dragon \
+                      --mesh bunny --knobs GPU_COMPACT_MIN_TRIANGLES=0 GPU_COMPACT_MIN_TRIANGLES=1000000000 ;;
         profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac

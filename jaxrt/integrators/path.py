@@ -5,8 +5,9 @@
 once, not once per bounce, and the loop is reverse-differentiable), then one last ray query that only
 collects the emission found after max_depth vertices (no light sample or next direction there). Each
 bounce runs on the live paths only, compacted into chunks (`_compacted`: the dead ones cost neither
-memory traffic nor traversal lanes), so short paths cost little whatever max_depth is. On the CPU the
-paths go in batches of a few chunks, one after another (`_batch_sizes`).
+memory traffic nor traversal lanes), so short paths cost little whatever max_depth is; on a GPU only
+in scenes of at least `GPU_COMPACT_MIN_TRIANGLES` triangles, where traversal outweighs moving the
+paths' state. On the CPU the paths go in batches of a few chunks, one after another (`_batch_sizes`).
 
 Estimator (pbrt-v4's PathIntegrator, power heuristic with β = 2). At each path vertex:
 
@@ -79,10 +80,9 @@ RR_DEPTH = 3
 _NU = 8  # uniforms per path and bounce (see module docstring)
 CPU_CHUNK = 16384  # live paths per chunk of a bounce on the CPU (`_batch_sizes`)
 CPU_BATCH_CHUNKS = 8  # chunks per batch of paths on the CPU (`_batch_sizes`)
-CPU_DENSE_AT = 1.0  # live share of a batch from which the CPU's bounce runs uncompacted (`_compacted`)
-# (dense only where every path lives, the first bounce: the Cornell box at 256², one device, spent
-# 4-5.5 % more CPU time a pass with 0.8, where its second bounce (93 % alive) ran dense, and 6 % more
-# with 0.5; the dragon's later bounces are below half alive either way)
+CPU_DENSE_AT = 0.8  # live share of a batch from which the CPU's bounce runs uncompacted (`_compacted`)
+# (the Cornell box, whose second bounce starts 93 % alive: 1.0 spent 4-5.5 % less CPU time a pass at
+# 256² on one device but ~7 % more wall time at 512² on two (`benchmarks/peers.py`); 0.5: +6 % at 256²)
 GPU_CHUNKS = 4  # chunks per pass on a GPU (`_batch_sizes`)
 # Whether a GPU's first bounce runs on the whole batch (its paths all start alive), outside the loop
 # of compacted bounces: that spares its gathers, scatters and per-chunk conditionals (one NVIDIA
@@ -91,9 +91,14 @@ GPU_CHUNKS = 4  # chunks per pass on a GPU (`_batch_sizes`)
 # dragon): off, as a render would need over a thousand such passes to win the wait back. On the
 # CPU chunks keep the state in cache, so the first bounce is compacted there regardless.
 GPU_WHOLE_FIRST_BOUNCE = False
-GPU_DENSE_AT = None  # the GPU's `dense_at` (`_compacted`); None: every bounce compacted
-GPU_ORDER = None  # the GPU's order of a bounce's live paths: None (index) or a `_ray_keys` kind
-GPU_ORDER_MIN_TRIANGLES = 0  # scenes with fewer triangles keep the index order
+# The GPU compacts the bounces of scenes with at least this many triangles, and runs every bounce of
+# smaller ones on the whole batch: compaction moves each live path's state twice a bounce (gather,
+# scatter) to spare dead paths' traversal and shading, which pays only where traversal is dear. One
+# NVIDIA H200, 512², 16 spp, depth 4, pass medians (BENCHMARKS.md, "Path tracing: ray order, ..."):
+# the Cornell box (32 triangles; paths live long) 13.9 ms compacted against 12.0-12.5 ms whole; the
+# environment-lit bunny (69k) 15.0 against 15.3-15.4; the dragon (871k) 22.9 against 23.0-23.2.
+# The crossover between 32 and 69k triangles is not measured.
+GPU_COMPACT_MIN_TRIANGLES = 10_000
 _sg = lax.stop_gradient
 
 
@@ -195,46 +200,7 @@ def _batch_sizes(n: int, triangles: int) -> tuple[int, int]:
     return -(-m // batches) * chunk, chunk
 
 
-def _interleave(qs, bits: int):
-    """Morton code (Z-order) of the uint32 coordinates qs (each < 2**bits), first coordinate highest."""
-    key = jnp.zeros_like(qs[0])
-    nd = len(qs)
-    for b in range(bits):
-        for j, q in enumerate(qs):
-            key = key | (((q >> b) & 1) << (b * nd + nd - 1 - j))
-    return key
-
-
-def _ray_keys(kind: str, o, d, alive):
-    """uint32 sort keys (< 2**30) of rays that put rays likely to visit the same BVH nodes next to
-    each other (Meister et al. 2020, "On ray reordering techniques for faster GPU ray tracing"):
-    "origin": the direction's octant, then the origin's Morton code (9 bits per axis) in the live
-    origins' bounds; "two-point": the 6D Morton code (5 bits each) of the origin and of the point a
-    quarter of the bounds' extent along the ray; "origin-dir": the 6D Morton code of the origin and
-    the direction."""
-    big = jnp.finfo(o.dtype).max
-    lo = jnp.min(jnp.where(alive[:, None], o, big), axis=0)
-    hi = jnp.max(jnp.where(alive[:, None], o, -big), axis=0)
-    ext = jnp.maximum(jnp.max(hi - lo), 1e-30)
-
-    def quant(p, lo, ext, bits):
-        x = jnp.clip((p - lo) / ext * (1 << bits), 0, (1 << bits) - 1)
-        return [x[:, i].astype(jnp.uint32) for i in range(3)]
-
-    if kind == "origin":
-        octant = ((d[:, 0] < 0).astype(jnp.uint32) << 2) | ((d[:, 1] < 0).astype(jnp.uint32) << 1) | (
-            d[:, 2] < 0).astype(jnp.uint32)
-        return (octant << 27) | _interleave(quant(o, lo, ext, 9), 9)
-    if kind == "two-point":
-        reach = 0.25 * ext
-        p2 = o + d * reach
-        return _interleave(quant(o, lo - reach, ext + 2 * reach, 5) + quant(p2, lo - reach, ext + 2 * reach, 5), 5)
-    if kind == "origin-dir":
-        return _interleave(quant(o, lo, ext, 5) + quant(d, -1.0, 2.0, 5), 5)
-    raise ValueError(kind)
-
-
-def _compacted(fn, carry, chunk: int, dense_at: float | None = None, order=None):
+def _compacted(fn, carry, chunk: int, dense_at: float | None = None):
     """One bounce (`fn` over a path-state tuple whose third entry is `alive` and whose last, the
     paths' keys, fn does not change) over the live paths of `carry` only: their indices are gathered
     in order (a prefix sum, so neighbouring paths stay neighbours), then fn runs on `chunk` of them at
@@ -254,9 +220,9 @@ def _compacted(fn, carry, chunk: int, dense_at: float | None = None, order=None)
     box 18.6 against 13.7; the 2-core CPU, Cornell box at 256²: +17 % CPU time against +5 %, both
     against no compaction).
 
-    dense_at (`CPU_DENSE_AT`, `GPU_DENSE_AT`): where at least this share of the batch is alive, the
-    chunks are the batch's own consecutive rows, sliced and written back in place, their dead paths
-    masked (a chunk with none alive still skipped): on the CPU a gather and a scatter move element by
+    dense_at (the CPU's `CPU_DENSE_AT`): where at least this share of the batch is alive, the chunks
+    are the batch's own consecutive rows, sliced and written back in place, their dead paths masked
+    (a chunk with none alive still skipped): on the CPU a gather and a scatter move element by
     element, which costs a bounce whose paths nearly all live more than the dead ones' work (the
     Cornell box at 256²: +6.6 % wall time compacted at every bounce against uncompacted chunks).
     Needs chunk to divide the batch."""
@@ -265,15 +231,9 @@ def _compacted(fn, carry, chunk: int, dense_at: float | None = None, order=None)
     m = -(-n_all // chunk)
     n = jnp.sum(alive, dtype=jnp.int32)
     state, keys = carry[:-1], carry[-1]
-    if order is None:
-        pos = jnp.cumsum(alive, dtype=jnp.int32) - 1
-        idx = jnp.zeros(m * chunk, jnp.int32).at[jnp.where(alive, pos, m * chunk)].set(
-            jnp.arange(n_all, dtype=jnp.int32), mode="drop", unique_indices=True)
-    else:
-        # live paths first (dead ones get the largest key), in the order of their keys
-        skey = jnp.where(alive, order(state), jnp.uint32(0xFFFFFFFF))
-        idx = jnp.argsort(skey, stable=True).astype(jnp.int32)
-        idx = jnp.pad(idx, (0, m * chunk - n_all))
+    pos = jnp.cumsum(alive, dtype=jnp.int32) - 1
+    idx = jnp.zeros(m * chunk, jnp.int32).at[jnp.where(alive, pos, m * chunk)].set(
+        jnp.arange(n_all, dtype=jnp.int32), mode="drop", unique_indices=True)
     lane = jnp.arange(chunk, dtype=jnp.int32)
     if dense_at is not None:
         assert n_all % chunk == 0, (n_all, chunk)
@@ -297,9 +257,9 @@ def _compacted(fn, carry, chunk: int, dense_at: float | None = None, order=None)
             some = start < n
         else:
             rows, valid = lax.cond(dense, lambda: (start + lane, lax.dynamic_slice(alive, (start,), (chunk,))),
-                                   lambda: sparse_rows(start))
+                                 lambda: sparse_rows(start))
             sub = lax.cond(dense, lambda: jax.tree.map(lambda x: lax.dynamic_slice_in_dim(x, start, chunk), state),
-                           lambda: jax.tree.map(lambda x: x[rows], state))
+                         lambda: jax.tree.map(lambda x: x[rows], state))
             some = jnp.any(valid)
         out = lax.cond(some, run, skip, rows, valid, sub)
         dest = jnp.where(valid, rows, n_all)
@@ -308,7 +268,7 @@ def _compacted(fn, carry, chunk: int, dense_at: float | None = None, order=None)
             return scatter()
         # (dense: the chunk's dead paths come back as fn left them, as in an uncompacted pass)
         return lax.cond(dense, lambda: jax.tree.map(lambda x, y: lax.dynamic_update_slice_in_dim(x, y, start, 0),
-                                                    state, out), scatter)
+                                                  state, out), scatter)
 
     state = step(0, state) if m == 1 else lax.fori_loop(0, m, step, state)
     return state + (keys,)
@@ -552,18 +512,18 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         one = jnp.ones((B, 3), jnp.result_type(float))
         carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, keys)
         k0 = 0
+        if not on_cpu and geo.triangle_count < GPU_COMPACT_MIN_TRIANGLES:
+            # a small scene on a GPU: every bounce on the whole batch (GPU_COMPACT_MIN_TRIANGLES)
+            carry = lax.fori_loop(0, D, work, carry)
+            carry = work(D, carry, last=True)
+            return carry[6], carry[7]
         if GPU_WHOLE_FIRST_BOUNCE and not on_cpu and D > 0:
             # the paths start alive (a tile's padding samples excepted, masked): no compaction
             # (see GPU_WHOLE_FIRST_BOUNCE)
             carry, k0 = work(0, carry), 1
-        dense_at = CPU_DENSE_AT if on_cpu else GPU_DENSE_AT
-        if dense_at is not None and B % chunk:
-            dense_at = None
-        order = None
-        if not on_cpu and GPU_ORDER is not None and geo.triangle_count >= GPU_ORDER_MIN_TRIANGLES:
-            order = lambda st: _ray_keys(GPU_ORDER, st[0], st[1], st[2])  # noqa: E731
-        carry = lax.fori_loop(k0, D, lambda k, c: _compacted(lambda x: work(k, x), c, chunk, dense_at, order), carry)
-        carry = _compacted(lambda x: work(D, x, last=True), carry, chunk, dense_at, order)
+        dense_at = CPU_DENSE_AT if on_cpu else None
+        carry = lax.fori_loop(k0, D, lambda k, c: _compacted(lambda x: work(k, x), c, chunk, dense_at), carry)
+        carry = _compacted(lambda x: work(D, x, last=True), carry, chunk, dense_at)
         return carry[6], carry[7]
 
     xs = (o0, d0, alive0, jax.random.key_data(path_keys))

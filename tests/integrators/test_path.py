@@ -122,18 +122,16 @@ def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
     assert float(jnp.mean(whole[0])) > 0
 
 
-@pytest.mark.parametrize("live, dense_at, calls, reverse", [(13, None, 2, False), (13, 0.8, 2, False),
-                                                            (36, 0.8, 5, False), (40, 1.0, 5, False),
-                                                            (36, 1.0, 5, False), (13, None, 2, True)])
-def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dense_at, calls, reverse):
+@pytest.mark.parametrize("live, dense_at, calls", [(13, None, 2), (13, 0.8, 2), (36, 0.8, 5), (40, 1.0, 5),
+                                                   (36, 1.0, 5)])
+def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dense_at, calls):
     # `path._compacted` against what it stands for, an elementwise bounce over the live paths only:
     # 40 paths in chunks of 8. 13 live: fn runs twice (the chunks past the live count are
     # skipped), on the live paths in their order; 36 live with dense_at 0.8 (the CPU's dense mode):
     # on the batch's own five blocks of rows, the dead masked. Either way dead paths keep their
     # state, and the gradient through the gathers or slices, the skipped chunks' conditionals and
     # the scatters is the closed form. 36 live with dense_at 1.0: compacted (five chunks, as 36 > 32);
-    # all 40 live: dense. `order` (the GPU's ray keys, `path._ray_keys`): the live paths in the
-    # order of their keys, here the reverse of their index.
+    # all 40 live: dense.
     rng = np.random.default_rng(0)
     n, chunk = 40, 8
     alive = np.zeros(n, bool)
@@ -152,8 +150,7 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dens
         return bounce
 
     def compacted(p):
-        order = (lambda st: (n - st[1]).astype(jnp.uint32)) if reverse else None
-        return path._compacted(fn(p), (x, ids, jnp.asarray(alive), keys), chunk, dense_at, order)
+        return path._compacted(fn(p), (x, ids, jnp.asarray(alive), keys), chunk, dense_at)
 
     out = compacted(jnp.float32(2.0))
     k = np.asarray(jax.random.key_data(keys))[:, 0].astype(np.float32)[:, None]
@@ -163,7 +160,7 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dens
     np.testing.assert_array_equal(np.asarray(out[2]), alive)
     assert len(seen) == calls
     live_rows = np.flatnonzero(alive)
-    np.testing.assert_array_equal(np.concatenate([i[a] for i, a in seen]), live_rows[::-1] if reverse else live_rows)
+    np.testing.assert_array_equal(np.concatenate([i[a] for i, a in seen]), live_rows)
     rows = np.concatenate([i for i, _ in seen])
     if dense_at is not None and live >= dense_at * n:  # dense: the batch's rows in order, dead ones among them
         np.testing.assert_array_equal(rows, np.arange(n))
@@ -172,6 +169,39 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dens
     seen.clear()
     g = jax.grad(lambda p: jnp.sum(compacted(p)[0]))(jnp.float32(2.0))
     np.testing.assert_allclose(float(g), float(np.asarray(x)[alive].sum()), rtol=1e-5)
+
+
+@pytest.mark.slow  # ~20 s on 2 cores (two programs with the XLA traversal)
+def test_gpu_bounce_layouts_trace_the_same_paths(monkeypatch):
+    # The GPU's two layouts of a pass, made here by telling the path tracer it is not on the CPU:
+    # every bounce compacted (scenes of at least GPU_COMPACT_MIN_TRIANGLES), and every bounce on the
+    # whole batch (smaller scenes: `_compacted` is not called).
+    # A path's arithmetic and random numbers never depend on its neighbours, so radiance and first
+    # hits agree to the rounding of differently fused programs. The furnace's glossy sphere, 8x8
+    # pixels at 16 spp, depth 4 (paths die at different bounces: the later ones are compacted).
+    sc = _with_material(scene.load("furnace", overrides={"camera.width": 8, "camera.height": 8, "render.spp": 16,
+                                                         "render.max_depth": 4}), "glossy")
+    monkeypatch.setattr(path, "_on_cpu", lambda: False)
+    calls = []
+    orig = path._compacted
+    monkeypatch.setattr(path, "_compacted", lambda fn, carry, *a: calls.append(a) or orig(fn, carry, *a))
+
+    def run(**knobs):
+        for k, v in knobs.items():
+            monkeypatch.setattr(path, k, v)
+        calls.clear()
+        out = jax.jit(lambda s: path.samples(s, 2, jitter=True, aovs=True))(sc)
+        return out, list(calls)
+
+    (compacted, c0) = run(GPU_COMPACT_MIN_TRIANGLES=sc.geometry.triangle_count)
+    (whole, c1) = run(GPU_COMPACT_MIN_TRIANGLES=sc.geometry.triangle_count + 1)
+    assert len(c0) == 2 and len(c1) == 0  # (the loop's body is traced once, then the last bounce)
+    for a, b in zip(jax.tree.leaves(compacted), jax.tree.leaves(whole), strict=True):
+        if np.issubdtype(np.asarray(a).dtype, np.integer):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        else:
+            np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-5, atol=1e-6)
+    assert float(jnp.mean(compacted[0])) > 0
 
 
 @pytest.mark.slow  # 17-20 s on 2 cores

@@ -186,6 +186,9 @@ PY
                       GPU_COMPACT_MIN_TRIANGLES=0 GPU_COMPACT_MIN_TRIANGLES=1000000000
                   stage path-compact-bunny 120 python3 benchmarks/path_chunks.py --size 512 --repeats 7 --scenes dragon \
                       --mesh bunny --knobs GPU_COMPACT_MIN_TRIANGLES=0 GPU_COMPACT_MIN_TRIANGLES=1000000000 ;;
+        profile-path)  # the kernels of a path-tracing pass with the default, Cornell box then dragon
+                  stage profile-path-cornell 70 python3 benchmarks/gpu_profile.py path-cornell --size 512 --repeats 5
+                  stage profile-path-dragon 70 python3 benchmarks/gpu_profile.py path-dragon --size 512 --repeats 5 ;;
         profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac

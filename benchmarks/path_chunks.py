@@ -35,7 +35,7 @@ import path as bench  # noqa: E402  (benchmarks/path.py)
 from jaxrt.integrators import path as P  # noqa: E402
 
 
-def _uncompacted(fn, carry, chunk, dense_at=None, order=None):
+def _uncompacted(fn, carry, chunk, dense_at=None):
     return fn(carry)
 
 
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
                          "compacted as the others")
     ap.add_argument("--knobs", nargs="+", default=None, metavar="NAME=V,...",
                     help="instead of --chunks/--first: one variant per argument, each setting module constants "
-                         "of jaxrt.integrators.path (e.g. GPU_ORDER=two-point,GPU_DENSE_AT=0.8; '' = the defaults)")
+                         "of jaxrt.integrators.path (e.g. GPU_COMPACT_MIN_TRIANGLES=0,GPU_CHUNKS=8; '' = the defaults)")
     ap.add_argument("--scenes", nargs="+", default=["cornell", "dragon"], choices=["cornell", "dragon"])
     ap.add_argument("--mesh", default="dragon")
     args = ap.parse_args(argv)

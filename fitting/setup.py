@@ -194,9 +194,8 @@ def prepare(
                     for t in started:
                         t.lowered.wait()
                     gb = _trace(to_trace, shading, compiling_ahead=bool(started))
-                    for t in ahead:
-                        if t is not None:
-                            t.join()
+                    for t in started:
+                        t.join()
                 else:
                     sc = _scene.build(spec)
                 built.append(sc)

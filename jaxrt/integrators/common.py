@@ -57,8 +57,8 @@ def counter_uniforms(keys: Key[Array, " B"], k: int | Array, n: int) -> Float[Ar
     Why not `fold_in_uniforms` (JAX's fold_in then uniform, 9 blocks of 20 rounds for 8 numbers):
     these 8 numbers cost 4 blocks of 13 rounds, about a quarter of the integer work (on a CPU the
     difference is 5-10 % of a path-tracing pass: BENCHMARKS.md, "Path tracing: cheaper random
-    numbers"). Other key types than Threefry's go through `fold_in_uniforms`. The floats have the default float type's width (float64 under x64: the
-    float32 values, widened)."""
+    numbers"). Other key types than Threefry's go through `fold_in_uniforms`. The floats have the
+    default float type's width (float64 under x64: the float32 values, widened)."""
     if str(jax.random.key_impl(keys)) != "threefry2x32":
         return fold_in_uniforms(keys, k, n)
     key_data = jax.random.key_data(keys)

@@ -230,10 +230,10 @@ def _compacted(fn, carry, chunk: int, dense_at: float | None = None):
     n_all = alive.shape[0]
     m = -(-n_all // chunk)
     n = jnp.sum(alive, dtype=jnp.int32)
-    state, keys = carry[:-1], carry[-1]
     pos = jnp.cumsum(alive, dtype=jnp.int32) - 1
     idx = jnp.zeros(m * chunk, jnp.int32).at[jnp.where(alive, pos, m * chunk)].set(
         jnp.arange(n_all, dtype=jnp.int32), mode="drop", unique_indices=True)
+    state, keys = carry[:-1], carry[-1]
     lane = jnp.arange(chunk, dtype=jnp.int32)
     if dense_at is not None:
         assert n_all % chunk == 0, (n_all, chunk)
@@ -257,9 +257,9 @@ def _compacted(fn, carry, chunk: int, dense_at: float | None = None):
             some = start < n
         else:
             rows, valid = lax.cond(dense, lambda: (start + lane, lax.dynamic_slice(alive, (start,), (chunk,))),
-                                 lambda: sparse_rows(start))
+                                   lambda: sparse_rows(start))
             sub = lax.cond(dense, lambda: jax.tree.map(lambda x: lax.dynamic_slice_in_dim(x, start, chunk), state),
-                         lambda: jax.tree.map(lambda x: x[rows], state))
+                           lambda: jax.tree.map(lambda x: x[rows], state))
             some = jnp.any(valid)
         out = lax.cond(some, run, skip, rows, valid, sub)
         dest = jnp.where(valid, rows, n_all)
@@ -268,7 +268,7 @@ def _compacted(fn, carry, chunk: int, dense_at: float | None = None):
             return scatter()
         # (dense: the chunk's dead paths come back as fn left them, as in an uncompacted pass)
         return lax.cond(dense, lambda: jax.tree.map(lambda x, y: lax.dynamic_update_slice_in_dim(x, y, start, 0),
-                                                  state, out), scatter)
+                                                    state, out), scatter)
 
     state = step(0, state) if m == 1 else lax.fori_loop(0, m, step, state)
     return state + (keys,)
@@ -503,7 +503,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
 
     def trace(o0, d0, alive0, key_data, chunk):
         # the paths of one batch, from their camera rays to their ends: (radiance, first hits); each
-        # bounce runs on the batch's live paths only, in chunks of `chunk` (`_compacted`)
+        # bounce runs on the batch's live paths only, in chunks of `chunk` (`_compacted`), except a
+        # small scene's on a GPU, which run on the whole batch (GPU_COMPACT_MIN_TRIANGLES)
         B = o0.shape[0]
         keys = jax.random.wrap_key_data(key_data, impl=jax.random.key_impl(kpath))
         first = (dict(prim=jnp.full(B, -1, jnp.int32), u=jnp.zeros(B), v=jnp.zeros(B), t=jnp.zeros(B), d=d0)
@@ -512,18 +513,19 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         one = jnp.ones((B, 3), jnp.result_type(float))
         carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, keys)
         k0 = 0
-        if not on_cpu and geo.triangle_count < GPU_COMPACT_MIN_TRIANGLES:
-            # a small scene on a GPU: every bounce on the whole batch (GPU_COMPACT_MIN_TRIANGLES)
-            carry = lax.fori_loop(0, D, work, carry)
-            carry = work(D, carry, last=True)
-            return carry[6], carry[7]
+        dense_at = CPU_DENSE_AT if on_cpu else None
+        if on_cpu or geo.triangle_count >= GPU_COMPACT_MIN_TRIANGLES:
+            def bounce(fn, c):
+                return _compacted(fn, c, chunk, dense_at)
+        else:
+            def bounce(fn, c):
+                return fn(c)
         if GPU_WHOLE_FIRST_BOUNCE and not on_cpu and D > 0:
             # the paths start alive (a tile's padding samples excepted, masked): no compaction
             # (see GPU_WHOLE_FIRST_BOUNCE)
             carry, k0 = work(0, carry), 1
-        dense_at = CPU_DENSE_AT if on_cpu else None
-        carry = lax.fori_loop(k0, D, lambda k, c: _compacted(lambda x: work(k, x), c, chunk, dense_at), carry)
-        carry = _compacted(lambda x: work(D, x, last=True), carry, chunk, dense_at)
+        carry = lax.fori_loop(k0, D, lambda k, c: bounce(lambda x: work(k, x), c), carry)
+        carry = bounce(lambda x: work(D, x, last=True), carry)
         return carry[6], carry[7]
 
     xs = (o0, d0, alive0, jax.random.key_data(path_keys))

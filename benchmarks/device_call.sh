@@ -189,6 +189,11 @@ PY
         profile-path)  # the kernels of a path-tracing pass with the default, Cornell box then dragon
                   stage profile-path-cornell 70 python3 benchmarks/gpu_profile.py path-cornell --size 512 --repeats 5
                   stage profile-path-dragon 70 python3 benchmarks/gpu_profile.py path-dragon --size 512 --repeats 5 ;;
+        brute)    # brute force against the tree for small scenes (`benchmarks/brute_force.py`), then the Cornell box's
+                  # pass with the tree (the default) and with brute force
+                  stage brute-force 240 python3 benchmarks/brute_force.py
+                  stage path-brute 120 python3 benchmarks/path_chunks.py --size 512 --repeats 7 --scenes cornell \
+                      --knobs "" traverse_pallas.BRUTE_FORCE_MAX_TRIANGLES=64 ;;
         profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac

@@ -32,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import path as bench  # noqa: E402  (benchmarks/path.py)
+from jaxrt.accel import traverse_pallas as TP  # noqa: E402
 from jaxrt.integrators import path as P  # noqa: E402
 
 
@@ -45,22 +46,33 @@ GRAPH_OPTIONS = {"xla_gpu_enable_command_buffer": "FUSION,CUBLAS,CUBLASLT,CUDNN,
                  "xla_gpu_graph_min_graph_size": 1}
 
 
+# modules whose constants --knobs may set, as "traverse_pallas.NAME=V" (a bare NAME is `path`'s)
+KNOB_MODULES = {"path": P, "traverse_pallas": TP}
+
+
 def _knobs(text: str) -> dict:
-    """"NAME=value,NAME=value" (module constants of `jaxrt.integrators.path`; values are Python
-    literals, or strings); GRAPHS=1 compiles with `GRAPH_OPTIONS`."""
+    """"NAME=value,NAME=value" (module constants of `jaxrt.integrators.path`, or of another module of
+    `KNOB_MODULES` as "module.NAME"; values are Python literals, or strings); GRAPHS=1 compiles with
+    `GRAPH_OPTIONS`. Returns {name: value} with names as given."""
     out = {}
     for item in filter(None, text.split(",")):
         name, _, value = item.partition("=")
         if name == "GRAPHS":
             out[name] = value == "1"
             continue
-        if not hasattr(P, name):
-            raise SystemExit(f"--knobs: jaxrt.integrators.path has no {name}")
+        module, _, attr = name.rpartition(".")
+        if module not in ("", *KNOB_MODULES) or not hasattr(KNOB_MODULES[module or "path"], attr):
+            raise SystemExit(f"--knobs: no constant {name} (modules: {', '.join(KNOB_MODULES)})")
         try:
             out[name] = ast.literal_eval(value)
         except (ValueError, SyntaxError):
             out[name] = value
     return out
+
+
+def _knob_target(name: str):
+    module, _, attr = name.rpartition(".")
+    return KNOB_MODULES[module or "path"], attr
 
 
 def run_variant(sc, chunks: int | None, repeats: int, whole_first: bool = False,
@@ -69,11 +81,11 @@ def run_variant(sc, chunks: int | None, repeats: int, whole_first: bool = False,
     knobs = dict(knobs or {})
     options = GRAPH_OPTIONS if knobs.pop("GRAPHS", False) else None
     saved = getattr(P, attr), P._compacted, P.GPU_WHOLE_FIRST_BOUNCE
-    saved_knobs = {k: getattr(P, k) for k in knobs}
+    saved_knobs = {k: getattr(*_knob_target(k)) for k in knobs}
     try:
         P.GPU_WHOLE_FIRST_BOUNCE = whole_first
         for k, v in knobs.items():
-            setattr(P, k, v)
+            setattr(*_knob_target(k), v)
         if chunks is None:
             P._compacted = _uncompacted
         elif chunks:
@@ -93,7 +105,7 @@ def run_variant(sc, chunks: int | None, repeats: int, whole_first: bool = False,
         setattr(P, attr, saved[0])
         P._compacted, P.GPU_WHOLE_FIRST_BOUNCE = saved[1:]
         for k, v in saved_knobs.items():
-            setattr(P, k, v)
+            setattr(*_knob_target(k), v)
     assert np.all(np.isfinite(first))
     return dict(first_s=first_s, pass_s=statistics.median(times), mean=float(first.mean())), first
 
@@ -110,7 +122,8 @@ def main(argv=None) -> int:
                          "compacted as the others")
     ap.add_argument("--knobs", nargs="+", default=None, metavar="NAME=V,...",
                     help="instead of --chunks/--first: one variant per argument, each setting module constants "
-                         "of jaxrt.integrators.path (e.g. GPU_COMPACT_MIN_TRIANGLES=0,GPU_CHUNKS=8; '' = the defaults)")
+                         "of jaxrt.integrators.path (e.g. GPU_COMPACT_MIN_TRIANGLES=0,GPU_CHUNKS=8; '' = the defaults), "
+                         "or of another module as traverse_pallas.BRUTE_FORCE_MAX_TRIANGLES=0")
     ap.add_argument("--scenes", nargs="+", default=["cornell", "dragon"], choices=["cornell", "dragon"])
     ap.add_argument("--mesh", default="dragon")
     args = ap.parse_args(argv)

@@ -49,9 +49,12 @@ _SKIP_DEPTH = 31
 
 def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *, any_hit: bool,
             leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str, gate_exact: bool, skip_tri: bool,
-            trail: int, block: int):
+            trail: int, block: int, scalar_loads: bool, unroll: int):
 
-    def tri_test(ray, vs, valid, t_best):
+    def tri_test(ray, vs, valid, t_best, signs=None):
+        # signs: None = exact where a tie of rounded products occurs in the warp (gate_exact) or
+        # always; "rounded" = from the rounded products only, the pair's tie flag returned last;
+        # "exact" = always exact.
         ox, oy, oz, _, _, _, sx, sy, sz, kx, ky, kz, _, t_lo = ray
         zero = opaque_zero(kz)
         px, py, pz = [], [], []
@@ -66,7 +69,11 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         (ax, bx, cx), (ay, by, cy), (az, bz, cz) = x, y, z
         edges = ((cx, cy, bx, by), (ax, ay, cx, cy), (bx, by, ax, ay))
         prods = [edge_products(*e, zero) for e in edges]
-        if gate_exact:
+        tie = None
+        if signs == "rounded":
+            tie = valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1]) | (prods[2][0] == prods[2][1]))
+            su, sv, sw = (edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods))
+        elif gate_exact and signs is None:
             # Tied rounded products are rare: the exact-sign arithmetic runs only for programs where
             # some tested ray/triangle pair needs it (a warp-uniform branch), as the XLA path's cond.
             tie = valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1]) | (prods[2][0] == prods[2][1]))
@@ -83,7 +90,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         t = (U * az + V * bz + W * cz) / det_safe
         hit = valid & ok & (t >= t_lo) & (t <= t_best)
         # u = V/det and v = W/det are divided once per ray at the end (same values), not per test.
-        return hit, t, V, W, det_safe
+        return (hit, t, V, W, det_safe) + ((tie,) if signs == "rounded" else ())
 
     def slab(ray, bb, t_best):
         ox, oy, oz, ix, iy, iz = ray[:6]
@@ -219,6 +226,51 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
             nxt = jnp.where(any_h, -1, nxt)
         return jnp.where(active, nxt, -1), hit, bits
 
+    def brute(ray, hit):
+        # Every ray against every triangle of the (leaf-order) table, in index order: no tree, no
+        # divergence, and the warp's rays all read the same triangle at once (a broadcast load).
+        # For a few dozen triangles this is less work than walking a tree whose boxes overlap every
+        # ray: a step's two slab tests, dependent row loads and the warp's wait for its slowest ray.
+        # Exact edge signs: a first sweep uses the rounded products only and notes whether any
+        # tested pair tied; only a block where one did sweeps again with exact signs (a warp vote per
+        # block, not per triangle; the same hits, since the two signs differ only at ties).
+        valid = jnp.ones(shape, jnp.bool_)
+
+        def test(i, hit, tied, signs):
+            if scalar_loads:
+                vs = [jnp.full(shape, tri_r[i * 9 + k]) for k in range(9)]
+            else:
+                i9 = jnp.full(shape, i * 9, jnp.int32)
+                vs = [tri_r[i9 + k] for k in range(9)]
+            h, t, *rest = tri_test(ray, vs, valid, hit[0], signs=signs)
+            if signs == "rounded":
+                tied = tied | rest.pop()
+            return keep(h, t, tuple(rest), jnp.full(shape, i, jnp.int32), hit), tied
+
+        def tests(first, count, hit, tied, signs):
+            for j in range(count):  # unrolled: the loads of the next triangles issue early
+                hit, tied = test(first + j, hit, tied, signs)
+            return hit, tied
+
+        def sweep(hit, signs):
+            tied = jnp.zeros(shape, jnp.bool_)
+            step = max(1, min(unroll, nf))
+            full = nf // step
+            if any_hit:
+                # stop once every ray of the block has a hit (the padding rays of the last block never
+                # do; that block tests every triangle)
+                k, hit, tied = lax.while_loop(
+                    lambda s: (s[0] < full) & (jnp.min(s[1][1]) < 0),
+                    lambda s: (s[0] + 1, *tests(s[0] * step, step, s[1], s[2], signs)), (jnp.int32(0), hit, tied))
+            else:
+                hit, tied = lax.fori_loop(0, full, lambda k, s: tests(k * step, step, *s, signs), (hit, tied))
+            return tests(full * step, nf - full * step, hit, tied, signs)
+
+        if not gate_exact:
+            return sweep(hit, "exact")[0]
+        first, tied = sweep(hit, "rounded")
+        return lax.cond(jnp.max(tied.astype(jnp.int32)) > 0, lambda: sweep(hit, "exact")[0], lambda: first)
+
     step = step_childbox if layout == "childbox" else step_nodes
 
     def finish(hit):
@@ -241,6 +293,9 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
     shape = ray[0].shape
     z = jnp.zeros(shape, jnp.float32)
     hit = (tmax_r[...], jnp.full(shape, -1, jnp.int32), z, z, z + 1.0)
+    if layout == "brute":
+        t_o[...], best_o[...], u_o[...], v_o[...] = finish(brute(ray, hit))
+        return
     _, hit, _ = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s),
                                (jnp.zeros(shape, jnp.int32), hit, jnp.zeros(shape, jnp.int32)))
     t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
@@ -316,16 +371,33 @@ def pack_tables(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Flo
     return pack_rows(node_box, node_leaf, links, triangles, depth), pack_skips(node_leaf, links, depth)
 
 
-LAYOUTS = ("childbox", "inline", "tables")
+LAYOUTS = ("childbox", "inline", "tables", "brute")
 TRAIL_DEPTH = 31  # the bit trail covers depths 0-30 (one int32 per ray)
 
+#: Tables of at most this many triangles are traced by brute force (layout "brute": every ray
+#: against every triangle) when a call names no layout. 0, so never: on an H200 brute force beat the
+#: tree on incoherent rays in the 32-triangle Cornell box (3.6-4.4 against 2.1-2.8 Grays/s) but lost
+#: on camera rays and on occlusion queries, and the Cornell box's path-tracing pass was slower with it
+#: (12.5 against 12.1 ms; its kernel also compiles 4-5 s longer). BENCHMARKS.md, "Path tracing:
+#: brute force for small scenes"; `benchmarks/brute_force.py` measures it again.
+BRUTE_FORCE_MAX_TRIANGLES = 0
+#: Triangles a brute-force loop iteration tests (written out in the kernel).
+BRUTE_FORCE_UNROLL = 4
 
-@functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
-                                             "interpret", "layout", "gate_exact", "skip_tri", "trail"))
+
+def default_layout(num_triangles: int, leaf_size: int) -> str:
+    """The node table `traverse` reads when a call names none: brute force for tables of at most
+    `BRUTE_FORCE_MAX_TRIANGLES` triangles, else "childbox" (leaf size 1) or "tables"."""
+    if num_triangles <= BRUTE_FORCE_MAX_TRIANGLES:
+        return "brute"
+    return "childbox" if leaf_size == 1 else "tables"
+
+
 def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"], tmin: Float[Array, " N"],
              tmax: Float[Array, " N"], *, any_hit: bool, leaf_size: int, block: int = 32,
              steps_per_iter: int = 1, num_warps: int = 1, interpret: bool = False, layout: str | None = None,
-             gate_exact: bool = True, skip_tri: bool = True, trail: int = TRAIL_DEPTH):
+             gate_exact: bool = True, skip_tri: bool = True, trail: int = TRAIL_DEPTH, scalar_loads: bool = False,
+             unroll: int | None = None):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `traverse_xla.traverse` (without the step counts).
 
@@ -335,25 +407,42 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     checks of the loop predicate; num_warps: Triton warps per program; interpret: run the kernel
     with the Pallas interpreter (any backend; slow, for tests). gate_exact: evaluate the exact
     edge signs only in programs where a rounded-product tie occurs (else always).
-    layout (default "childbox" for leaf_size 1, else "tables"): the node table a step reads —
+    layout (default `default_layout`): the table a step reads —
       "childbox": each node's row holds its children's boxes (`pack_tables`: arrays["rows"] and
                   arrays["skips"] when present, else packed per call): a step tests both children and moves straight
                   to the nearer one that is hit, so missed children are never loaded;
       "inline":   one 12-word row per node, an interior node's box or a leaf's triangle (packed
                   per call);
-      "tables":   separate box / leaf-range / triangle tables, any leaf size.
+      "tables":   separate box / leaf-range / triangle tables, any leaf size;
+      "brute":    no tree: every ray tests every triangle of the table, in index order (an exact tie
+                  in t keeps the lower index; the tree layouts keep the first one visited).
     skip_tri: a warp none of whose rays is at a leaf skips the triangle test's arithmetic (a
     warp-uniform branch). trail (child-box layout): levels of the tree covered by the bit trail that
-    skips farther children known to be missed (0 to 31; 0 = no trail). All options give the same
-    results; BENCHMARKS.md has their speeds.
+    skips farther children known to be missed (0 to 31; 0 = no trail). scalar_loads (brute force):
+    read each triangle as scalars rather than as a gather whose lanes share one address; unroll
+    (brute force): triangles tested per loop iteration (default `BRUTE_FORCE_UNROLL`). All options
+    give the same results; BENCHMARKS.md has their speeds.
     """
-    layout = layout or ("childbox" if leaf_size == 1 else "tables")
+    # The default is resolved here, outside the jitted function, so that it is part of its static
+    # arguments (a module constant read while tracing would not be part of the jit cache's key).
+    layout = layout or default_layout(arrays["triangles"].shape[0], leaf_size)
     if layout not in LAYOUTS:
         raise ValueError(f"traverse_pallas: layout must be one of {LAYOUTS}, got {layout!r}")
     if not 0 <= trail <= TRAIL_DEPTH:
         raise ValueError(f"traverse_pallas: trail must be in [0, {TRAIL_DEPTH}], got {trail}")
-    if layout != "tables" and leaf_size != 1:
+    if layout in ("childbox", "inline") and leaf_size != 1:
         raise ValueError(f"traverse_pallas: layout {layout!r} needs leaf_size 1")
+    return _traverse(arrays, origins, directions, tmin, tmax, any_hit=any_hit, leaf_size=leaf_size, block=block,
+                     steps_per_iter=steps_per_iter, num_warps=num_warps, interpret=interpret, layout=layout,
+                     gate_exact=gate_exact, skip_tri=skip_tri, trail=trail, scalar_loads=scalar_loads,
+                     unroll=BRUTE_FORCE_UNROLL if unroll is None else unroll)
+
+
+@functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
+                                             "interpret", "layout", "gate_exact", "skip_tri", "trail",
+                                             "scalar_loads", "unroll"))
+def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, block, steps_per_iter, num_warps,
+              interpret, layout, gate_exact, skip_tri, trail, scalar_loads, unroll):
     nn = arrays["node_box"].shape[0]
     nf = arrays["triangles"].shape[0]
     n = origins.shape[0]
@@ -372,6 +461,8 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
         else:
             box, links = pack_tables(box, leaf, links, tri)
         leaf, tri = leaf[:1], tri[:1]  # unused by this layout
+    elif layout == "brute":
+        box, leaf, links = box[:1], leaf[:1], links[:1]  # unused: the kernel reads only the triangles
     elif layout == "inline":
         is_leaf = (leaf[:, 1] > 0)[:, None]
         body = jnp.where(is_leaf, tri[jnp.where(is_leaf[:, 0], leaf[:, 0], 0)],
@@ -392,7 +483,8 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     if not interpret:
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
     static = dict(any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf, nn=nn, layout=layout,
-                  gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout == "childbox" else 0, block=block)
+                  gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout == "childbox" else 0, block=block,
+                  scalar_loads=scalar_loads, unroll=unroll if layout == "brute" else 1)
     name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
     ray_spec = pl.BlockSpec((block,), lambda i: (i,))
     t, best, u, v = pl.pallas_call(

@@ -33,7 +33,10 @@ def assert_same_hits(a, b):
     """Same triangle for every ray and the same t, u, v (the kernel runs the XLA loop's arithmetic)."""
     pa, pb = np.asarray(a.prim), np.asarray(b.prim)
     assert np.array_equal(pa, pb), f"{int(np.sum(pa != pb))} rays hit different triangles"
-    np.testing.assert_allclose(np.asarray(a.t), np.asarray(b.t), rtol=1e-6)
+    # atol: where t comes out of cancellation (a ray leaving a surface at a grazing angle: t ~ 1e-3 for
+    # terms ~ 1 in these unit-size meshes), a multiply-add contracted by one compiler and not by
+    # another moves it by an ulp of the terms, ~1e-8 absolute
+    np.testing.assert_allclose(np.asarray(a.t), np.asarray(b.t), rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(np.asarray(a.u), np.asarray(b.u), atol=1e-6)
     np.testing.assert_allclose(np.asarray(a.v), np.asarray(b.v), atol=1e-6)
 
@@ -83,6 +86,43 @@ def test_pallas_watertight_edges_and_vertices(fns, leaf_size):
     assert np.all(prim >= 0), f"{int(np.sum(prim < 0))} of {n} rays slipped through edges/vertices"
     assert np.all(np.abs(np.asarray(hit.t) - 1.0) < 1e-4)
     assert_same_hits(hit, fns["xla"][0](tree, o, d, lo, hi))
+
+
+def test_brute_force_layout_gets_the_trees_hits(fns, monkeypatch):
+    """The kernel's brute-force layout (every ray against every triangle; `traverse_pallas.default_layout`
+    picks it for tables of at most `BRUTE_FORCE_MAX_TRIANGLES`, 0 by default) gets the XLA loop's hits
+    from its tree on every kind of ray, closest and any hit (whose loop stops once a block's rays all
+    have one); rays aimed exactly at edges and vertices all hit (the same watertight test)."""
+    from jaxrt.accel import traverse_pallas as bvh_pallas
+
+    monkeypatch.setattr(bvh_pallas, "BRUTE_FORCE_MAX_TRIANGLES", 64)
+    assert bvh_pallas.default_layout(64, 1) == "brute" and bvh_pallas.default_layout(64, 4) == "brute"
+    assert bvh_pallas.default_layout(65, 1) == "childbox" and bvh_pallas.default_layout(65, 4) == "tables"
+    # new functions: jit's trace cache would keep a layout chosen before the patch
+    closest = jax.jit(lambda tr, o, d, lo, hi: bvh.intersect(tr, o, d, lo, hi, impl="pallas-interpret"))
+    anyhit = jax.jit(lambda tr, o, d, lo, hi: bvh.occluded(tr, o, d, hi, lo, impl="pallas-interpret"))
+    m = icosphere_mesh(0)
+    tree = bvh.build(m.vertices, m.faces)
+    assert bvh_pallas.default_layout(len(m.faces), tree.leaf_size) == "brute"
+    # 1500 rays: two of the interpreter's 1024-ray blocks, the second padded
+    o, d, tmin, tmax = ray_mix(m, 1500, seed=4)
+    hit_p = closest(tree, o, d, tmin, tmax)
+    # the tree's hits (the XLA loop is checked against float64 brute force in test_bvh.py)
+    assert_same_hits(hit_p, fns["xla"][0](tree, o, d, tmin, tmax))
+    assert 0.3 < np.mean(np.asarray(hit_p.prim) >= 0) < 0.95
+    occ_p = np.asarray(anyhit(tree, o, d, tmin, tmax))
+    assert np.array_equal(occ_p, np.asarray(fns["xla"][1](tree, o, d, tmin, tmax)))
+    assert np.array_equal(occ_p, np.asarray(hit_p.prim) >= 0)
+    # aimed at vertices and edge midpoints from outside: all hit at t = 1
+    v = m.vertices.astype(np.float32)
+    tgt = np.concatenate([v, (v[m.faces[:, 0]] + v[m.faces[:, 1]]) / 2]).astype(np.float32)
+    rng = np.random.default_rng(9)
+    o2 = (tgt * 3 + rng.normal(size=tgt.shape) * 0.5).astype(np.float32)
+    d2 = (tgt - o2).astype(np.float32)
+    lo, hi = np.zeros(len(o2), np.float32), np.full(len(o2), np.inf, np.float32)
+    hit = closest(tree, o2, d2, lo, hi)
+    assert np.all(np.asarray(hit.prim) >= 0) and np.all(np.abs(np.asarray(hit.t) - 1.0) < 1e-4)
+    assert np.all(np.asarray(anyhit(tree, o2, d2, lo, hi)))
 
 
 def test_traversal_switch(monkeypatch):
@@ -143,7 +183,8 @@ def test_pallas_layout_variants_agree():
     packed = dict(arrays, **dict(zip(("rows", "skips"), bvh_pallas.pack_tables(**arrays))))
     variants = (dict(arr=packed), dict(trail=0), dict(trail=2), dict(gate_exact=False), dict(layout="inline"),
                 dict(layout="tables"), dict(skip_tri=False), dict(layout="tables", block=32),
-                dict(layout="inline", steps_per_iter=3))
+                dict(layout="inline", steps_per_iter=3), dict(layout="brute"), dict(layout="brute", scalar_loads=True),
+                dict(layout="brute", block=32))
     for kw in variants:
         r = run(**kw)
         assert np.array_equal(r[0], found), kw

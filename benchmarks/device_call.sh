@@ -80,7 +80,8 @@ for s in "$@"; do
                   stage peers-path 120 python3 benchmarks/peers.py --rows path --repeats 5 ;;
         hlo)      # the optimised GPU programs of a path-tracing pass and an SPPM call, as text (xz) beside the
                   # kernel profiles: to read which fusions and copies the profiles' kernel names are
-                  for w in path-dragon path-cornell sppm; do
+                  # (HLO_WORKLOADS="path-cornell": only that one)
+                  for w in ${HLO_WORKLOADS:-path-dragon path-cornell sppm}; do
                       size=512; [ "$w" = sppm ] && size=96
                       XLA_FLAGS="--xla_dump_to=/tmp/hlo-$w --xla_dump_hlo_as_text --xla_dump_hlo_pass_re=^$" \
                           stage "hlo-$w" 70 python3 benchmarks/gpu_profile.py "$w" --size "$size" --repeats 3 --top 40
@@ -194,6 +195,9 @@ PY
                   stage brute-force 240 python3 benchmarks/brute_force.py
                   stage path-brute 120 python3 benchmarks/path_chunks.py --size 512 --repeats 7 --scenes cornell \
                       --knobs "" traverse_pallas.BRUTE_FORCE_MAX_TRIANGLES=64 ;;
+        pass-parts)  # a path pass's wall time beyond its kernels: samples, image, copy, host check, dispatch
+                  stage pass-parts-cornell 90 python3 benchmarks/pass_parts.py --scene cornell
+                  stage pass-parts-dragon 90 python3 benchmarks/pass_parts.py --scene dragon ;;
         profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac

@@ -192,7 +192,9 @@ def test_pallas_layout_variants_agree():
         # an ulp at a tie (rays aimed at shared edges and vertices): there both are hit at that t.
         np.testing.assert_allclose(r[1], t, rtol=1e-6, err_msg=str(kw))
         other = np.flatnonzero(r[2] != tri)
-        assert len(other) <= 0.1 * len(o), kw
+        # (brute force keeps the lowest index of triangles tied in t, the tree the first it visits:
+        # these rays, aimed at shared vertices and edges, tie by design)
+        assert len(other) <= (0.5 if kw.get("layout") == "brute" else 0.1) * len(o), kw
         for tri_ids in (tri[other], r[2][other]):
             t64 = plane_distance(np.asarray(tree.triangles, np.float64)[tri_ids], o[other], d[other])
             np.testing.assert_allclose(t64, t[other], rtol=1e-5, err_msg=str(kw))

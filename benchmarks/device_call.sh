@@ -197,7 +197,8 @@ PY
                       --knobs "" traverse_pallas.BRUTE_FORCE_MAX_TRIANGLES=64 ;;
         pass-parts)  # a path pass's wall time beyond its kernels: samples, image, copy, host check, dispatch
                   stage pass-parts-cornell 90 python3 benchmarks/pass_parts.py --scene cornell
-                  stage pass-parts-dragon 90 python3 benchmarks/pass_parts.py --scene dragon ;;
+                  stage pass-parts-dragon 90 python3 benchmarks/pass_parts.py --scene dragon
+                  stage profile-image-cornell 60 python3 benchmarks/gpu_profile.py image-cornell --size 512 --repeats 5 --top 12 ;;
         profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac

@@ -45,16 +45,19 @@ def _workload(name: str, size: int, photons: int, camera_samples: int, passes: i
         return run, (f"{passes} SPPM passes a call (a repetition), equal-time caustic scene {scn.camera.width}x{scn.camera.height}, "
                      f"{sppm.photons_per_pass(scn)} photons, {sppm.camera_samples(scn)} visible points/pixel, "
                      f"{sppm.grid_levels(scn)} grid levels")
-    if name.startswith("path-"):
+    if name.startswith(("path-", "image-")):
         import pathlib
         import path as bench  # benchmarks/path.py: the scenes of its table
         exr = bench.sky_exr(pathlib.Path(tempfile.mkdtemp()) / "sky.exr")
         scn = bench.load(name.split("-", 1)[1], size, 16, 4, exr, "dragon")
         i = [0]
 
+        # path-*: the per-sample radiance (`samples_jit`); image-*: the pass's image (`render_jit`)
+        fn = P.render_jit if name.startswith("image-") else P.samples_jit
+
         def run():
             i[0] += 1
-            return P.samples_jit(scn, i[0], jitter=True)
+            return fn(scn, i[0], jitter=True)
         return run, f"path-tracing pass, {name} {size}x{size}, 16 spp, depth 4 (benchmarks/path.py's)"
     if name.startswith("direct-"):
         from jaxrt.integrators import whitted

@@ -8,6 +8,8 @@ loops of --passes passes, each loop's median:
   +check         and between passes the host's check of the image (finite, mean), as path.py does
   dispatch       the time `render_jit` takes to return (the work is queued, not finished)
   copy           copying an image already on the device (a fresh array each time) to the host
+  copy via pinned   the same through page-locked host memory (`jax.device_put` to memory kind pinned_host)
+  render to pinned+copy   render+copy with the program writing its image to pinned host memory
 
     python benchmarks/pass_parts.py            # on a GPU
     python benchmarks/pass_parts.py --scene dragon --size 256
@@ -74,6 +76,22 @@ def main(argv=None) -> int:
         return time.perf_counter() - t
 
     dev = jax.devices()[0]
+    # the image written to page-locked host memory by the program itself (XLA copies it out at the end)
+    pinned = jax.sharding.SingleDeviceSharding(dev, memory_kind="pinned_host")
+    try:
+        render_pinned = jax.jit(P.render, static_argnames=("aovs", "jitter"), out_shardings=pinned)
+        np.asarray(render_pinned(sc, 0, jitter=True))
+    except Exception as e:  # noqa: BLE001 -- a backend without that memory kind: reported
+        print(f"pinned_host output: {type(e).__name__}: {str(e)[:200]}")
+        render_pinned = None
+
+    def copy_pinned(i):
+        x = plus(img, float(i))
+        x.block_until_ready()
+        t = time.perf_counter()
+        np.asarray(jax.device_put(x, pinned))
+        return time.perf_counter() - t
+
     print(f"{getattr(dev, 'device_kind', dev.platform)}, jax {jax.__version__}; {args.scene} {args.size}², 16 spp, "
           f"depth 4; medians of {args.passes} passes, ms")
     for r in range(args.rounds):
@@ -84,7 +102,10 @@ def main(argv=None) -> int:
             "+check": loop(lambda i: np.asarray(P.render_jit(sc, i, jitter=True)), args.passes, check),
             "dispatch": loop(dispatch, args.passes, lambda out: out.block_until_ready()),
             "copy": statistics.median(copy_only(i) for i in range(args.passes)),
+            "copy via pinned": statistics.median(copy_pinned(i) for i in range(args.passes)),
         }
+        if render_pinned is not None:
+            row["render to pinned+copy"] = loop(lambda i: np.asarray(render_pinned(sc, i, jitter=True)), args.passes)
         print(f"round {r}: " + "  ".join(f"{k} {v * 1e3:.3f}" for k, v in row.items()), flush=True)
     return 0
 

@@ -10,6 +10,9 @@ loops of --passes passes, each loop's median:
   copy           copying an image already on the device (a fresh array each time) to the host
   copy via pinned   the same through page-locked host memory (`jax.device_put` to memory kind pinned_host)
   render to pinned+copy   render+copy with the program writing its image to pinned host memory
+  render_host    `path.render_host` (what `benchmarks/path.py` times)
+  mean ...       `render` with the samples averaged in other ways (an optimisation barrier before the
+                 mean; a sum of slices; a matrix product at full precision; sum then multiply)
 
     python benchmarks/pass_parts.py            # on a GPU
     python benchmarks/pass_parts.py --scene dragon --size 256
@@ -92,6 +95,25 @@ def main(argv=None) -> int:
         np.asarray(jax.device_put(x, pinned))
         return time.perf_counter() - t
 
+    # other ways to average a pixel's samples (the per-sample radiance is (pixels, spp, 3))
+    import jax.numpy as jnp
+
+    def mean_slices(L):
+        return sum(L[:, k] for k in range(L.shape[1])) / L.shape[1]
+
+    def mean_matmul(L):
+        a = jnp.tile(jnp.eye(3, dtype=L.dtype), (L.shape[1], 1)) / L.shape[1]
+        return jnp.matmul(L.reshape(L.shape[0], -1), a, precision=jax.lax.Precision.HIGHEST)
+
+    means = {"mean barrier": lambda L: jnp.mean(jax.lax.optimization_barrier(L), axis=1),
+             "mean slices": mean_slices, "mean matmul": mean_matmul,
+             "mean sum*": lambda L: jnp.sum(L, axis=1) * (1.0 / L.shape[1])}
+    mean_fns = {k: jax.jit(lambda s, i, m=m: m(P.samples(s, i, jitter=True))) for k, m in means.items()}
+    ref = np.asarray(P.render_jit(sc, 3, jitter=True)).reshape(-1, 3)
+    for k, f in mean_fns.items():
+        d = np.abs(np.asarray(f(sc, 3)) - ref)
+        print(f"{k}: max |difference| from render's image {d.max():.3e}")
+
     print(f"{getattr(dev, 'device_kind', dev.platform)}, jax {jax.__version__}; {args.scene} {args.size}², 16 spp, "
           f"depth 4; medians of {args.passes} passes, ms")
     for r in range(args.rounds):
@@ -104,8 +126,11 @@ def main(argv=None) -> int:
             "copy": statistics.median(copy_only(i) for i in range(args.passes)),
             "copy via pinned": statistics.median(copy_pinned(i) for i in range(args.passes)),
         }
+        for k, f in mean_fns.items():
+            row[k] = loop(lambda i, f=f: f(sc, i).block_until_ready(), args.passes)
         if render_pinned is not None:
             row["render to pinned+copy"] = loop(lambda i: np.asarray(render_pinned(sc, i, jitter=True)), args.passes)
+        row["render_host"] = loop(lambda i: P.render_host(sc, i, jitter=True), args.passes)
         print(f"round {r}: " + "  ".join(f"{k} {v * 1e3:.3f}" for k, v in row.items()), flush=True)
     return 0
 

@@ -11,7 +11,7 @@ Scenes (Stanford meshes need $JAXRT_DATA):
            lat-long environment map synthesised here (a sky gradient with a sun blob, 64x128, written
            to a temporary EXR; nothing binary is committed).
 
-jaxrt: compile time of one pass (`jaxrt.integrators.path.render_jit`), then the median wall time of `passes`
+jaxrt: compile time of one pass (`jaxrt.integrators.path.render_host`), then the median wall time of `passes`
 passes (different random streams), each to its image on the host as Mitsuba's; samples/s = width·height·spp / time.
 Mitsuba 3 renders the same triangles, camera, resolution, spp and depth (its max_depth = ours + 1)
 with its `path` integrator, after a warm-up render (LLVM kernel compilation), timed the same way.
@@ -95,17 +95,18 @@ def bench_jaxrt(sc, passes: int, devices: int = 1) -> dict:
     if devices > 1:
         return bench_jaxrt_devices(sc, passes, devices)
     # A pass is timed as Mitsuba's is (`bench_mitsuba`): from the call to the pass's image on the host
-    # (`path.render_jit`: the spp samples of each pixel averaged on the device). The per-sample
+    # (`path.render_host`: the spp samples of each pixel averaged on the device). The per-sample
     # radiance (H·W·spp·3 floats) is not copied: reading 50 MB on the host between passes left the
     # GPU idle long enough to slow the next pass (one NVIDIA H200, Cornell box 512², 16 spp: 14.9 ms
     # a pass after such a read against 12.4 ms back to back).
+    # (`path.render_host`: on a GPU the program writes the image to page-locked host memory itself)
     t0 = time.perf_counter()
-    np.asarray(P.render_jit(sc, 0, jitter=True))
+    P.render_host(sc, 0, jitter=True)
     compile_s = time.perf_counter() - t0
     times, means = [], []
     for i in range(1, passes + 1):
         s = time.perf_counter()
-        a = np.asarray(P.render_jit(sc, i, jitter=True))
+        a = P.render_host(sc, i, jitter=True)
         times.append(time.perf_counter() - s)
         assert np.all(np.isfinite(a))
         means.append(a.mean())

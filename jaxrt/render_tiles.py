@@ -745,7 +745,7 @@ def _place(img, steps, th, tw, parts, where):
     h, w = img.shape[:2]
     for ((r, c), (r0, c0), (s0, _)), part in zip(steps, parts):
         rows, cols, local = _own_pixels(r, c, r0, c0, th, tw, h, w)
-        part = np.asarray(part)[local]
+        part = _devices.to_host(part)[local]
         _check_finite(part, where)
         if s0 == 0:
             img[rows, cols] = part
@@ -837,7 +837,7 @@ def _render_tiles(scene, p: Plan, aovs, bar, should_stop, where, pass_index: int
                      for j in range(len(steps))]
         for ((r, c), (r0, c0), (s0, _)), (part, part_aov) in zip(steps, parts):
             rows, cols, local = _own_pixels(r, c, r0, c0, th, tw, h, w)
-            part = np.asarray(part)[local]
+            part = _devices.to_host(part)[local]
             _check_finite(part, where)
             if s0 == 0:
                 img[rows, cols] = part

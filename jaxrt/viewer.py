@@ -248,7 +248,9 @@ class Viewer:
         return self.image
 
     def _show(self, img) -> None:
-        self.image = np.nan_to_num(np.asarray(img), nan=0.0, posinf=0.0, neginf=0.0)
+        from jaxrt import _devices  # (the viewer's module imports no JAX until a frame is made)
+
+        self.image = np.nan_to_num(_devices.to_host(img), nan=0.0, posinf=0.0, neginf=0.0)
         self._refresh()
 
     def set_param(self, name: str, value: float, channel: int | None = None) -> None:

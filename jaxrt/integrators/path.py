@@ -58,11 +58,13 @@ f is). Geometry and the camera are stop_gradient'ed (edge terms are not modelled
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int
 
@@ -557,6 +559,11 @@ def render(scene, pass_index: Int[Array, ""] | int = 0, *, aovs: bool = False, j
     cam = scene.camera
     out = samples(scene, pass_index, jitter=jitter, aovs=aovs, window=window)
     L, first = out if aovs else (out, None)
+    # The barrier keeps XLA from fusing the average into the last bounce's output: fused, XLA:GPU
+    # emitted it as one elementwise loop over the (pixels, spp, 3) radiance that took 0.67 ms of a
+    # 12.9 ms Cornell box pass on an H200 (512², 16 spp); apart, the pass takes 12.3 ms
+    # (`benchmarks/pass_parts.py`, "mean barrier").
+    L = lax.optimization_barrier(L)
     if window is None:
         img = jnp.mean(L, axis=1).reshape(cam.height, cam.width, 3)
     else:
@@ -594,3 +601,26 @@ def accumulate(scene, state: Accumulation | None = None) -> Accumulation:
 
 samples_jit = jax.jit(samples, static_argnames=("jitter", "aovs"))
 render_jit = jax.jit(render, static_argnames=("aovs", "jitter"))
+
+
+@functools.lru_cache(maxsize=8)
+def _render_to_host(device, jitter: bool | None):
+    # the jitted pass whose image XLA writes to the device's page-locked host memory (one per device,
+    # as jit keeps one compiled program per input placement)
+    return jax.jit(functools.partial(render, jitter=jitter),
+                   out_shardings=jax.sharding.SingleDeviceSharding(device, memory_kind="pinned_host"))
+
+
+def render_host(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None = None) -> np.ndarray:
+    """`render`'s image as a NumPy array (H, W, 3). On a GPU the pass's program copies its image to
+    page-locked host memory itself, at the end, so reading it costs next to nothing: on an H200 a
+    512² Cornell box pass read to the host this way took 12.9 ms against 13.5-13.9 ms for
+    `np.asarray(render_jit(...))`, whose copy goes to pageable memory after the program
+    (`benchmarks/pass_parts.py`). Elsewhere `np.asarray(render_jit(...))`. The scene's arrays are on
+    one device (the default device where they are not placed)."""
+    leaf = jax.tree.leaves(scene)[0]
+    devs = leaf.devices() if isinstance(leaf, jax.Array) else {jax.devices()[0]}
+    device = next(iter(devs))
+    if len(devs) != 1 or device.platform != "gpu":
+        return np.asarray(render_jit(scene, pass_index, jitter=jitter))
+    return np.asarray(_render_to_host(device, jitter)(scene, pass_index))

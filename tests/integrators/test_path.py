@@ -97,6 +97,26 @@ def test_progressive_accumulation_matches_passes(furnace):
     assert not np.allclose(passes[0], passes[1])  # different passes use different random streams
 
 
+def test_pass_image_on_the_host_is_the_mean_of_its_samples(furnace):
+    """`render`'s image (its samples averaged behind an optimisation barrier), `render_host` and the
+    program that writes the image to page-locked host memory (the GPU's route, built here for the
+    CPU device) all give the mean of the pass's per-sample radiance; `_devices.to_host` through
+    pinned memory gives the array's values."""
+    from jaxrt import _devices
+
+    sc = _with_material(furnace, "glossy")
+    want = np.asarray(path.samples_jit(sc, 3, jitter=True)).mean(1).reshape(16, 16, 3)
+    img = path.render_jit(sc, 3, jitter=True)
+    np.testing.assert_allclose(np.asarray(img), want, rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(path.render_host(sc, 3, jitter=True), np.asarray(img))
+    pinned = path._render_to_host(jax.devices()[0], True)(sc, 3)
+    assert pinned.sharding.memory_kind == "pinned_host"
+    np.testing.assert_array_equal(np.asarray(pinned), np.asarray(img))
+    np.testing.assert_array_equal(_devices.to_host(img, pinned=True), np.asarray(img))
+    assert isinstance(_devices.to_host(img), np.ndarray) and isinstance(_devices.to_host(want), np.ndarray)
+    assert not np.allclose(want, np.asarray(path.render_jit(sc, 4, jitter=True)))  # another pass, another image
+
+
 def test_chunks_trace_the_paths_of_the_whole_batch(furnace, monkeypatch):
     # On the CPU a pass's paths go in batches (`lax.map`), each bounce over a batch's live paths in
     # chunks (`path._batch_sizes`, `path._compacted`); each path keeps its own random numbers, so the

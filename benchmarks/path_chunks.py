@@ -53,12 +53,15 @@ KNOB_MODULES = {"path": P, "traverse_pallas": TP}
 def _knobs(text: str) -> dict:
     """"NAME=value,NAME=value" (module constants of `jaxrt.integrators.path`, or of another module of
     `KNOB_MODULES` as "module.NAME"; values are Python literals, or strings); GRAPHS=1 compiles with
-    `GRAPH_OPTIONS`. Returns {name: value} with names as given."""
+    `GRAPH_OPTIONS`; xla_*=value is an XLA compiler option of the pass's program. Returns {name: value} with names as given."""
     out = {}
     for item in filter(None, text.split(",")):
         name, _, value = item.partition("=")
         if name == "GRAPHS":
             out[name] = value == "1"
+            continue
+        if name.startswith("xla_"):  # an XLA compiler option of the pass's program, as a string
+            out[name] = value
             continue
         module, _, attr = name.rpartition(".")
         if module not in ("", *KNOB_MODULES) or not hasattr(KNOB_MODULES[module or "path"], attr):
@@ -79,7 +82,9 @@ def run_variant(sc, chunks: int | None, repeats: int, whole_first: bool = False,
                 knobs: dict | None = None) -> tuple[dict, np.ndarray]:
     attr = "CPU_BATCH_CHUNKS" if jax.default_backend() == "cpu" else "GPU_CHUNKS"
     knobs = dict(knobs or {})
-    options = GRAPH_OPTIONS if knobs.pop("GRAPHS", False) else None
+    options = dict(GRAPH_OPTIONS) if knobs.pop("GRAPHS", False) else {}
+    options.update({k: knobs.pop(k) for k in [k for k in knobs if k.startswith("xla_")]})
+    options = options or None
     saved = getattr(P, attr), P._compacted, P.GPU_WHOLE_FIRST_BOUNCE
     saved_knobs = {k: getattr(*_knob_target(k)) for k in knobs}
     try:

@@ -559,11 +559,13 @@ def render(scene, pass_index: Int[Array, ""] | int = 0, *, aovs: bool = False, j
     cam = scene.camera
     out = samples(scene, pass_index, jitter=jitter, aovs=aovs, window=window)
     L, first = out if aovs else (out, None)
-    # The barrier keeps XLA from fusing the average into the last bounce's output: fused, XLA:GPU
-    # emitted it as one elementwise loop over the (pixels, spp, 3) radiance that took 0.67 ms of a
-    # 12.9 ms Cornell box pass on an H200 (512², 16 spp); apart, the pass takes 12.3 ms
-    # (`benchmarks/pass_parts.py`, "mean barrier").
-    L = lax.optimization_barrier(L)
+    # On a GPU the barrier keeps XLA from fusing the average into the last bounce's output: fused,
+    # XLA:GPU emitted it as one elementwise loop over the (pixels, spp, 3) radiance that took 0.67 ms
+    # of a 12.9 ms Cornell box pass on an H200 (512², 16 spp); apart, the pass takes 12.3 ms
+    # (`benchmarks/pass_parts.py`, "mean barrier"). On the CPU the fused average is the faster (the
+    # barrier's pass was 3-6 % slower, Cornell box 256², one device).
+    if jax.default_backend() != "cpu":
+        L = lax.optimization_barrier(L)
     if window is None:
         img = jnp.mean(L, axis=1).reshape(cam.height, cam.width, 3)
     else:

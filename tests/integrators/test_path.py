@@ -98,7 +98,7 @@ def test_progressive_accumulation_matches_passes(furnace):
 
 
 def test_pass_image_on_the_host_is_the_mean_of_its_samples(furnace):
-    """`render`'s image (its samples averaged behind an optimisation barrier), `render_host` and the
+    """`render`'s image (on a GPU its samples averaged behind an optimisation barrier), `render_host` and the
     program that writes the image to page-locked host memory (the GPU's route, built here for the
     CPU device) all give the mean of the pass's per-sample radiance; `_devices.to_host` through
     pinned memory gives the array's values."""

@@ -53,7 +53,8 @@ KNOB_MODULES = {"path": P, "traverse_pallas": TP}
 def _knobs(text: str) -> dict:
     """"NAME=value,NAME=value" (module constants of `jaxrt.integrators.path`, or of another module of
     `KNOB_MODULES` as "module.NAME"; values are Python literals, or strings); GRAPHS=1 compiles with
-    `GRAPH_OPTIONS`; xla_*=value is an XLA compiler option of the pass's program. Returns {name: value} with names as given."""
+    `GRAPH_OPTIONS`; xla_*=value is an XLA compiler option of the pass's program. Returns {name: value}
+    with names as given."""
     out = {}
     for item in filter(None, text.split(",")):
         name, _, value = item.partition("=")
@@ -63,8 +64,7 @@ def _knobs(text: str) -> dict:
         if name.startswith("xla_"):  # an XLA compiler option of the pass's program, as a string
             out[name] = value
             continue
-        module, _, attr = name.rpartition(".")
-        if module not in ("", *KNOB_MODULES) or not hasattr(KNOB_MODULES[module or "path"], attr):
+        if not hasattr(*_knob_target(name)):
             raise SystemExit(f"--knobs: no constant {name} (modules: {', '.join(KNOB_MODULES)})")
         try:
             out[name] = ast.literal_eval(value)
@@ -74,7 +74,10 @@ def _knobs(text: str) -> dict:
 
 
 def _knob_target(name: str):
+    """(module, attribute) of a knob's "NAME" or "module.NAME" (`KNOB_MODULES`)."""
     module, _, attr = name.rpartition(".")
+    if module not in ("", *KNOB_MODULES):
+        raise SystemExit(f"--knobs: no module {module!r} (modules: {', '.join(KNOB_MODULES)})")
     return KNOB_MODULES[module or "path"], attr
 
 

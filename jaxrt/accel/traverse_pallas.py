@@ -69,14 +69,13 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         (ax, bx, cx), (ay, by, cy), (az, bz, cz) = x, y, z
         edges = ((cx, cy, bx, by), (ax, ay, cx, cy), (bx, by, ax, ay))
         prods = [edge_products(*e, zero) for e in edges]
-        tie = None
+        # a tested pair whose rounded products tie somewhere (unused, and so not computed, with "exact")
+        tie = valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1]) | (prods[2][0] == prods[2][1]))
         if signs == "rounded":
-            tie = valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1]) | (prods[2][0] == prods[2][1]))
             su, sv, sw = (edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods))
         elif gate_exact and signs is None:
             # Tied rounded products are rare: the exact-sign arithmetic runs only for programs where
             # some tested ray/triangle pair needs it (a warp-uniform branch), as the XLA path's cond.
-            tie = valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1]) | (prods[2][0] == prods[2][1]))
             su, sv, sw = lax.cond(jnp.max(tie.astype(jnp.int32)) > 0,
                                   lambda: tuple(edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)),
                                   lambda: tuple(edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods)))

@@ -1,13 +1,18 @@
-"""Brute force against the tree for small scenes: the GPU kernel's layouts (`jaxrt.accel.traverse_pallas`)
-on the Cornell box and on copies of it with every triangle split into 4 and 16, in Mrays/s.
+"""The GPU kernel's node layouts (`jaxrt.accel.traverse_pallas`) side by side, in Mrays/s: brute force
+against the tree for small scenes (the Cornell box and copies of it with every triangle split into 4
+and 16), and the binary tree's rows against the four-wide tree's, also on a mesh (--scene dragon).
 
     JAXRT_DATA=... python benchmarks/brute_force.py                 # on a GPU
+    JAXRT_DATA=... python benchmarks/brute_force.py --scene dragon --splits 0 --variants tree wide
     JAXRT_DATA=... python benchmarks/brute_force.py --interpret --rays 4096   # anywhere (slow; a check)
 
 Rays, like a path tracer's (4M of each kind unless --rays): "camera" a pinhole's primary rays, tile
 order (coherent); "bounce" rays leaving random points of the surfaces in uniform directions
 (incoherent: the later bounces), closest hit; "to light" segments from random surface points to
-the ceiling light's quad, "shadow" between random pairs of surface points, any hit. Variants: "tree" (the child-box node table, the layout larger scenes use), "brute"
+the ceiling light's quad, "shadow" between random pairs of surface points, any hit. For a mesh (--scene NAME, a data name), the
+camera looks at it along +z from 2.5 radii and the light is a small square 2 radii above it.
+Variants: "tree" (the binary child-box node table), "wide" (the four-wide tree's rows; "wide trail 0"
+without its trail), "brute"
 (every ray against every triangle; triangles read as gathers whose lanes share one address),
 "brute unroll k" (k triangles written out per loop iteration; default 4), "brute scalar"
 (read as scalars), and brute force with wider programs (block rays, warps). Each
@@ -38,6 +43,8 @@ from jaxrt.accel import traverse_pallas as TP  # noqa: E402
 
 VARIANTS = {
     "tree": dict(layout="childbox"),
+    "wide": dict(layout="wide"),
+    "wide trail 0": dict(layout="wide", trail=0),
     "brute": dict(layout="brute"),
     "brute unroll 1": dict(layout="brute", unroll=1),
     "brute unroll 8": dict(layout="brute", unroll=8),
@@ -65,12 +72,12 @@ def surface_points(tri: np.ndarray, n: int, rng) -> np.ndarray:
 
 
 def ray_sets(tri: np.ndarray, cam, n: int, rng) -> dict:
-    eye, fwd, right, up, res = cam
+    eye, fwd, right, up, res, _, tan_half = cam
     ys, xs = np.mgrid[0:res, 0:res]
     # tile order (16x16 tiles), as the renderer's camera rays are made
     order = np.lexsort((xs.ravel() % 16, ys.ravel() % 16, xs.ravel() // 16, ys.ravel() // 16))
-    sx = ((xs.ravel() + 0.5) / res * 2 - 1)[order] * np.tan(np.radians(19.65))
-    sy = (1 - (ys.ravel() + 0.5) / res * 2)[order] * np.tan(np.radians(19.65))
+    sx = ((xs.ravel() + 0.5) / res * 2 - 1)[order] * tan_half
+    sy = (1 - (ys.ravel() + 0.5) / res * 2)[order] * tan_half
     d = fwd + sx[:, None] * right + sy[:, None] * up
     cam_o = np.broadcast_to(eye, d.shape)
     p = surface_points(tri, n, rng)
@@ -79,9 +86,7 @@ def ray_sets(tri: np.ndarray, cam, n: int, rng) -> dict:
     q = surface_points(tri, n, rng)
     f32 = lambda x: jnp.asarray(np.ascontiguousarray(x), jnp.float32)  # noqa: E731
     m = len(d)
-    # shadow rays to the ceiling's light (the Cornell box's quad, 0.5 mm below the ceiling)
-    top = tri[..., 1].max()
-    lamp = np.stack([rng.uniform(0.213, 0.343, n), np.full(n, top - 0.0005), rng.uniform(0.227, 0.332, n)], 1)
+    lamp = cam[5](n)
     return {
         "camera": (False, (f32(cam_o), f32(d), jnp.zeros(m), jnp.full(m, jnp.inf))),
         "to light": (True, (f32(p), f32(lamp - p), jnp.full(n, 1e-4), jnp.full(n, 1 - 1e-4))),
@@ -98,13 +103,31 @@ def main():
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--interpret", action="store_true", help="the Pallas interpreter (any backend; for a check)")
+    ap.add_argument("--scene", default="cornell", help="cornell (the built-in Cornell box) or a mesh's data name")
     args = ap.parse_args()
     rng = np.random.default_rng(0)
-    sc = S.load("cornell_area")
-    tree0 = sc.geometry.tree
-    tri0 = np.asarray(tree0.triangles, np.float64).reshape(-1, 3, 3)
-    cam = (np.array([0.278, 0.273, -0.8]), np.array([0.0, 0.0, 1.0]), np.array([-1.0, 0.0, 0.0]),
-           np.array([0.0, 1.0, 0.0]), args.res)
+    if args.scene == "cornell":
+        tri0 = np.asarray(S.load("cornell_area").geometry.tree.triangles, np.float64).reshape(-1, 3, 3)
+        top = tri0[..., 1].max()
+
+        def lamp(n):  # the ceiling light's quad, 0.5 mm below the ceiling
+            return np.stack([rng.uniform(0.213, 0.343, n), np.full(n, top - 0.0005), rng.uniform(0.227, 0.332, n)], 1)
+
+        cam = (np.array([0.278, 0.273, -0.8]), np.array([0.0, 0.0, 1.0]), np.array([-1.0, 0.0, 0.0]),
+               np.array([0.0, 1.0, 0.0]), args.res, lamp, np.tan(np.radians(19.65)))
+    else:
+        from jaxrt.geometry import data, mesh
+
+        m = mesh.load(data.find(args.scene))
+        tri0 = np.asarray(m.vertices, np.float64)[np.asarray(m.faces)]
+        lo, hi = tri0.reshape(-1, 3).min(0), tri0.reshape(-1, 3).max(0)
+        c, r = (lo + hi) / 2, np.linalg.norm(hi - lo) / 2
+
+        def lamp(n):
+            return c + np.stack([rng.uniform(-0.05, 0.05, n) * r, np.full(n, 2 * r), rng.uniform(-0.05, 0.05, n) * r], 1)
+
+        cam = (c - np.array([0.0, 0.0, 2.5 * r]), np.array([0.0, 0.0, 1.0]), np.array([-1.0, 0.0, 0.0]),
+               np.array([0.0, 1.0, 0.0]), args.res, lamp, 0.45)
     print(f"# {jax.devices()[0].device_kind}, jax {jax.__version__}; Mrays/s, medians of {args.repeats}"
           f"{' (interpreter)' if args.interpret else ''}", flush=True)
     for k in args.splits:

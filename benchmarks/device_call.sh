@@ -195,6 +195,13 @@ PY
                   stage brute-force 240 python3 benchmarks/brute_force.py
                   stage path-brute 120 python3 benchmarks/path_chunks.py --size 512 --repeats 7 --scenes cornell \
                       --knobs "" traverse_pallas.BRUTE_FORCE_MAX_TRIANGLES=64 ;;
+        wide)     # the four-wide tree against the binary child-box rows: rays on the Cornell box and the dragon
+                  # (`benchmarks/brute_force.py`), then both path-tracing passes with each as the trees' tables
+                  stage wide-rays-cornell 150 python3 benchmarks/brute_force.py --splits 0 1 --variants tree wide "wide trail 0"
+                  stage wide-rays-dragon 200 python3 benchmarks/brute_force.py --scene dragon --splits 0 \
+                      --variants tree wide "wide trail 0"
+                  stage path-wide 240 python3 benchmarks/path_chunks.py --size 512 --repeats 7 \
+                      --knobs "" traverse_pallas.TREE_LAYOUT=wide ;;
         pass-parts)  # a path pass's wall time beyond its kernels: samples, image, copy, host check, dispatch
                   stage pass-parts-cornell 90 python3 benchmarks/pass_parts.py --scene cornell
                   stage pass-parts-dragon 90 python3 benchmarks/pass_parts.py --scene dragon

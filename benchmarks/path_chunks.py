@@ -81,6 +81,21 @@ def _knob_target(name: str):
     return KNOB_MODULES[module or "path"], attr
 
 
+def _retabled(sc):
+    """The scene with every BVH's kernel tables packed again for `traverse_pallas.TREE_LAYOUT`."""
+    import equinox as eqx
+
+    from jaxrt.accel import bvh
+
+    def pack(x):
+        if not isinstance(x, bvh.BVH) or x.rows is None:
+            return x
+        tables = bvh._pack_tables(x.node_box, x.node_leaf, x.links, x.triangles, layout=TP.TREE_LAYOUT)
+        return eqx.tree_at(lambda t: (t.rows, t.skips), x, tables)
+
+    return jax.tree.map(pack, sc, is_leaf=lambda x: isinstance(x, bvh.BVH))
+
+
 def run_variant(sc, chunks: int | None, repeats: int, whole_first: bool = False,
                 knobs: dict | None = None) -> tuple[dict, np.ndarray]:
     attr = "CPU_BATCH_CHUNKS" if jax.default_backend() == "cpu" else "GPU_CHUNKS"
@@ -94,6 +109,8 @@ def run_variant(sc, chunks: int | None, repeats: int, whole_first: bool = False,
         P.GPU_WHOLE_FIRST_BOUNCE = whole_first
         for k, v in knobs.items():
             setattr(*_knob_target(k), v)
+        if "traverse_pallas.TREE_LAYOUT" in knobs:
+            sc = _retabled(sc)  # the trees' GPU node tables in the knob's layout (the scene's are the default's)
         if chunks is None:
             P._compacted = _uncompacted
         elif chunks:

@@ -30,6 +30,7 @@ choose one.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import NamedTuple
 
 import equinox as eqx
@@ -59,12 +60,13 @@ class BVH(eqx.Module):
                                 (next node if the box is hit, next node if missed); -1 ends
     triangles (F, 9) float32    v0, v1, v2 of each triangle in leaf order
     prim_ids  (F,) int32        original face index of each leaf-order triangle
-    rows      (nn, 16) float32  the GPU kernel's node table (`traverse_pallas.pack_rows`: children's boxes
-                                in each interior row, the triangle in each leaf row), or None: packed
-                                once by `build` when the default backend is a GPU and leaf_size is 1
-                                (111 MB for the full dragon), else per call by the kernel.
-    skips     (6*nn,) int32     the same kernel's links: per class and node, miss link << 5 | depth of
-                                its node (`traverse_pallas.pack_skips`); None when rows is None
+    rows      (nn, 16 or 32) float32  the GPU kernel's node table for `traverse_pallas.TREE_LAYOUT`
+                                (`traverse_pallas.pack_tables`: children's boxes in each interior row, the
+                                triangle in each leaf row), or None: packed once by `build` when the
+                                default backend is a GPU and leaf_size is 1 (the full dragon's binary
+                                rows: 111 MB), else per call by the kernel.
+    skips     (6*nn,) int32     the same kernel's links: per class and node, the miss link and its
+                                node's depth (`traverse_pallas.pack_tables`); None when rows is None
     table_key (2,) uint32       Embree's key of `triangles` (`with_table_key`), made inside the traced
                                 program that traces the tree, or None (every Embree call hashes the table)
     leaf_size: static, the largest leaf
@@ -75,7 +77,7 @@ class BVH(eqx.Module):
     links: Int[Array, "nn6 2"]
     triangles: Float[Array, "F 9"]
     prim_ids: Int[Array, " F"]
-    rows: Float[Array, "nn 16"] | None
+    rows: Float[Array, "nn w"] | None
     skips: Int[Array, " nn6"] | None
     leaf_size: int = eqx.field(static=True)
     table_key: UInt32[Array, "2"] | None = None
@@ -137,11 +139,11 @@ def build(vertices: Float[np.ndarray, "V 3"], faces: Int[np.ndarray, "F 3"], *, 
     arrays = {k: put(a[k]) for k in ("node_box", "node_leaf", "links", "triangles")}
     rows = skips = None
     if leaf_size == 1 and jax.default_backend() == "gpu":
-        rows, skips = _pack_tables(**arrays)
+        rows, skips = _pack_tables(**arrays, layout=traverse_pallas.TREE_LAYOUT)
     return BVH(**arrays, prim_ids=put(a["prim_ids"]), rows=rows, skips=skips, leaf_size=leaf_size)
 
 
-_pack_tables = jax.jit(traverse_pallas.pack_tables)
+_pack_tables = jax.jit(traverse_pallas.pack_tables, static_argnames="layout")
 
 
 def shapes(num_faces: int, *, leaf_size: int = 1) -> BVH | None:
@@ -162,7 +164,7 @@ def shapes(num_faces: int, *, leaf_size: int = 1) -> BVH | None:
                   links=s((NUM_RAY_CLASSES * nn, 2), jnp.int32), triangles=s((num_faces, 9), jnp.float32))
     rows = skips = None
     if jax.default_backend() == "gpu":  # as `build`
-        rows, skips = jax.eval_shape(_pack_tables, **arrays)
+        rows, skips = jax.eval_shape(functools.partial(_pack_tables, layout=traverse_pallas.TREE_LAYOUT), **arrays)
     return BVH(**arrays, prim_ids=s((num_faces,), jnp.int32), rows=rows, skips=skips, leaf_size=leaf_size)
 
 

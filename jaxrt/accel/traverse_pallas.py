@@ -36,7 +36,7 @@ import functools
 import jax
 import jax.numpy as jnp
 from jax import lax
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from jaxrt.accel.predicates import FAR_SCALE, edge_products, edge_sign, opaque, opaque_zero, pick3, ray_constants
 from jaxrt.accel.builder import NUM_RAY_CLASSES as NUM_CLASSES
@@ -45,6 +45,9 @@ _ROW = 12  # words per node row with inline leaves: 9 (box or triangle), first, 
 _CB_ROW = 16  # words per node row with child boxes (see pack_rows)
 _SKIP_SHIFT = 5  # skip-table entries (`pack_skips`): miss link << 5 | depth of its node (31: deeper)
 _SKIP_DEPTH = 31
+_WIDE_ROW = 32  # words per node row of the four-wide tree (see pack_wide)
+_WIDE_SHIFT = 7  # its skip entries: miss link << 7 | depth << 2 | position among its siblings
+_WIDE_TRAIL = 20  # depths of the four-wide tree with trail fields (3 bits each, in two int32 words)
 
 
 def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *, any_hit: bool,
@@ -181,6 +184,79 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
                                              (nxt, sk & _SKIP_DEPTH, via, bits))
         return nxt, hit, bits
 
+    def field(d):
+        # the four-wide trail: 3 bits for each depth 1-20, depths 1-10 in the first word, 11-20 in the second
+        d = jnp.clip(d, 1, _WIDE_TRAIL)
+        low = d <= 10
+        return low, 3 * (jnp.where(low, d, d - 10) - 1)
+
+    def step_wide(ray, node, hit, bits):
+        # A four-wide node's row holds its (up to) four children's boxes: one load tests them all and
+        # the ray moves straight to the first child that is hit, in its class's order (a fixed order
+        # per ray class, as the binary tree's links: Ylitie et al. 2017 order a wide node's children by
+        # the ray's octant the same way). The children after it that were hit are noted in the trail
+        # (3 bits for the node's children's depth); the miss links lead from one child to the next in
+        # that order, and a child arrived at by a miss link whose bit is clear is skipped at once (its
+        # box was tested and missed). Half the binary tree's levels: fewer, wider steps for the warp.
+        cls = ray[12]
+        active = node >= 0
+        n = jnp.maximum(node, 0)
+        r = n * _WIDE_ROW
+        w = [box_r[r + k] for k in range(30)]
+        code = lax.bitcast_convert_type(w[29], jnp.int32)  # 1: leaf; -(depth + 1): interior
+        is_leaf = code > 0
+        kid = [lax.bitcast_convert_type(w[24 + s], jnp.int32) for s in range(4)]
+        hs = [slab(ray, w[6 * s:6 * s + 6], hit[0]) & (kid[s] >= 0) for s in range(4)]
+        order = lax.shift_right_logical(lax.bitcast_convert_type(w[28], jnp.int32), 3 * cls)
+        s0, s1, s2 = ((order & m) > 0 for m in (1, 2, 4))
+
+        def ordered(x):
+            # class order: pair (slots 0, 1) swapped where s1, pair (2, 3) where s2, the pairs where s0
+            a0, a1 = jnp.where(s1, x[1], x[0]), jnp.where(s1, x[0], x[1])
+            b0, b1 = jnp.where(s2, x[3], x[2]), jnp.where(s2, x[2], x[3])
+            return (jnp.where(s0, b0, a0), jnp.where(s0, b1, a1), jnp.where(s0, a0, b0), jnp.where(s0, a1, b1))
+
+        hp, kp = ordered(hs), ordered(kid)
+        mask = (hp[0].astype(jnp.int32) | (hp[1].astype(jnp.int32) << 1) | (hp[2].astype(jnp.int32) << 2)
+                | (hp[3].astype(jnp.int32) << 3))
+        first = jnp.where(hp[0], kp[0], jnp.where(hp[1], kp[1], jnp.where(hp[2], kp[2], kp[3])))
+        h, t, bary = test_leaf(ray, w[:9], active & is_leaf, hit)
+        hit = keep(h, t, bary, lax.bitcast_convert_type(w[9], jnp.int32), hit)
+        sk = links_r[cls * nn + n]
+        miss = lax.shift_right_arithmetic(sk, jnp.int32(_WIDE_SHIFT))
+        nxt_leaf = jnp.where(h, -1, miss) if any_hit else miss
+        nxt = jnp.where(is_leaf, nxt_leaf, jnp.where(mask != 0, first, miss))
+        nxt = jnp.where(active, nxt, -1)
+        if trail:
+            t0, t1 = bits
+            kd = -code  # the children's depth
+            low, sh = field(kd)
+            rest = lax.shift_left(lax.shift_right_logical(mask & (mask - 1), 1), sh)  # hit after the first
+            clear = ~lax.shift_left(jnp.int32(7), sh)
+            put = active & ~is_leaf & (kd <= min(trail, _WIDE_TRAIL))
+            t0 = jnp.where(put & low, (t0 & clear) | rest, t0)
+            t1 = jnp.where(put & ~low, (t1 & clear) | rest, t1)
+            via = (nxt >= 0) & (nxt == miss)
+
+            def hop(s):
+                m, md, pos, via, t0, t1 = s
+                low, sh = field(md)
+                f = lax.shift_right_logical(jnp.where(low, t0, t1), sh)
+                tracked = (md >= 1) & (md <= min(trail, _WIDE_TRAIL))
+                enter = ~tracked | ((lax.shift_right_logical(f, jnp.maximum(pos - 1, 0)) & 1) != 0)
+                skip = via & ~enter
+                sk = links_r[cls * nn + jnp.maximum(m, 0)]
+                m = jnp.where(skip, lax.shift_right_arithmetic(sk, jnp.int32(_WIDE_SHIFT)), m)
+                md = jnp.where(skip, lax.shift_right_logical(sk, 2) & _SKIP_DEPTH, md)
+                pos = jnp.where(skip, sk & 3, pos)
+                return m, md, pos, skip & (m >= 0), t0, t1
+
+            nxt, _, _, _, t0, t1 = lax.while_loop(
+                lambda s: jnp.max(s[3].astype(jnp.int32)) > 0, hop,
+                (nxt, lax.shift_right_logical(sk, 2) & _SKIP_DEPTH, sk & 3, via, t0, t1))
+            bits = (t0, t1)
+        return nxt, hit, bits
+
     def step_nodes(ray, node, hit, bits):
         # layout "inline": one 12-word row per node, an interior node's box or a leaf's triangle;
         # "tables": separate box, leaf-range and triangle tables (any leaf size).
@@ -270,7 +346,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         first, tied = sweep(hit, "rounded")
         return lax.cond(jnp.max(tied.astype(jnp.int32)) > 0, lambda: sweep(hit, "exact")[0], lambda: first)
 
-    step = step_childbox if layout == "childbox" else step_nodes
+    step = {"childbox": step_childbox, "wide": step_wide}.get(layout, step_nodes)
 
     def finish(hit):
         t, best, bv, bw, det = hit
@@ -295,8 +371,9 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
     if layout == "brute":
         t_o[...], best_o[...], u_o[...], v_o[...] = finish(brute(ray, hit))
         return
+    zi = jnp.zeros(shape, jnp.int32)
     _, hit, _ = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s),
-                               (jnp.zeros(shape, jnp.int32), hit, jnp.zeros(shape, jnp.int32)))
+                               (zi, hit, (zi, zi) if layout == "wide" else zi))
     t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
 
 
@@ -310,15 +387,20 @@ def _children(node_leaf, links):
     return is_leaf, a, b, lk
 
 
+def _parents(node_leaf, links) -> Array:
+    """(nn,) int32 parent of every node (the root's is 0)."""
+    nn = node_leaf.shape[0]
+    is_leaf, a, b, _ = _children(node_leaf, links)
+    inner = jnp.where(is_leaf, nn, jnp.arange(nn, dtype=jnp.int32))  # leaves' (meaningless) children: dropped
+    parent = jnp.zeros(nn, jnp.int32).at[jnp.where(is_leaf, nn, a)].set(inner, mode="drop")
+    return parent.at[jnp.where(is_leaf, nn, b)].set(inner, mode="drop")
+
+
 def node_depth(node_leaf, links) -> Array:
     """(nn,) int32 depth of every node (root 0), by pointer jumping over parent links (log2(nn) rounds)."""
     nn = node_leaf.shape[0]
-    is_leaf, a, b, _ = _children(node_leaf, links)
-    idx = jnp.arange(nn, dtype=jnp.int32)
-    inner = jnp.where(is_leaf, nn, idx)  # leaves' (meaningless) children are written out of range
-    parent = jnp.zeros(nn, jnp.int32).at[jnp.where(is_leaf, nn, a)].set(inner, mode="drop")
-    parent = parent.at[jnp.where(is_leaf, nn, b)].set(inner, mode="drop")
-    depth = (idx != 0).astype(jnp.int32)
+    parent = _parents(node_leaf, links)
+    depth = (jnp.arange(nn) != 0).astype(jnp.int32)
     for _ in range(max(1, (nn - 1).bit_length())):
         depth, parent = depth + depth[parent], parent[parent]
     return depth
@@ -364,13 +446,95 @@ def pack_skips(node_leaf, links, depth=None) -> Array:
     return lax.shift_left(miss, jnp.int32(_SKIP_SHIFT)) | jnp.where(miss >= 0, depth, 0)
 
 
-def pack_tables(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"]):
-    """(`pack_rows`, `pack_skips`) of one tree, its node depths computed once for both."""
+def pack_wide(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"],
+              depth=None) -> tuple[Float[Array, "nn 32"], Int[Array, " nn6"]]:
+    """The four-wide kernel's tables (layout "wide"): node rows (nn, 32) float32 and links (classes * nn,)
+    int32, from a binary BVH's arrays (leaf_size 1) and optionally `node_depth`'s result.
+
+    The four-wide tree is the binary tree with every other level collapsed: its nodes are the binary
+    tree's leaves and its interior nodes at even depths, numbered in the binary tree's order (rows past
+    their count are zero: the table keeps the binary tree's nn rows, so its shape is known before the
+    build). An interior node's children are its binary grandchildren, in slots (a's first, a's
+    second, b's first, b's second), where a, b are its binary children (a: ray class 0's first); a
+    leaf child fills the first slot of its pair and leaves the second empty. Rows:
+
+    interior: 4 boxes (24), 4 children (-1: empty), order bits, -(depth + 1), 0, 0 — per ray class c
+              three bits at 3c: swap the pairs, swap within a's pair, swap within b's pair, so that
+              the slots in the class's order are the binary tree's depth-first order for that class
+    leaf:     its triangle v0 v1 v2 (9), its leaf-order triangle index, 0 ... 0, 1 (word 29), 0, 0
+
+    Links: per class c and node m (entry c * nn + m), the node that follows m's subtree in class c's
+    order (the next child of m's parent, or an ancestor's next child; -1 at the end) << 7 | that
+    node's depth (31 for 31 and deeper) << 2 | its position (0-3) among its parent's children in that
+    order. The position of a leaf in an empty slot's pair counts the empty slot.
+    """
+    nn = node_box.shape[0]
+    if nn >= 1 << (31 - _WIDE_SHIFT):
+        raise ValueError(f"traverse_pallas: {nn} nodes do not fit the wide skip table's {31 - _WIDE_SHIFT}-bit links")
+    is_leaf, a, b, lk = _children(node_leaf, links)
+    depth = node_depth(node_leaf, links) if depth is None else depth
+    parent = _parents(node_leaf, links)
+    kept = is_leaf | (depth % 2 == 0)
+    new = jnp.cumsum(kept.astype(jnp.int32)) - 1
+    f32 = lambda x: lax.bitcast_convert_type(x.astype(jnp.int32), jnp.float32)  # noqa: E731
+
+    def pair(x):
+        return jnp.where(is_leaf[x], x, a[x]), jnp.where(is_leaf[x], -1, b[x])
+
+    slots = (*pair(a), *pair(b))
+    boxes = [jnp.where((s >= 0)[:, None], node_box[jnp.maximum(s, 0)], 0.0) for s in slots]
+    kids = [f32(jnp.where(s >= 0, new[jnp.maximum(s, 0)], -1))[:, None] for s in slots]
+    order = jnp.zeros(nn, jnp.int32)
+    for c in range(NUM_CLASSES):
+        swap = [lk[c, :, 0] != a, ~is_leaf[a] & (lk[c, a, 0] != a[a]), ~is_leaf[b] & (lk[c, b, 0] != a[b])]
+        bits = sum(x.astype(jnp.int32) << k for k, x in enumerate(swap))
+        order = order | jnp.where(is_leaf, 0, bits) << (3 * c)
+    z2 = jnp.zeros((nn, 2), jnp.float32)
+    inner = jnp.concatenate([*boxes, *kids, f32(order)[:, None], f32(-1 - depth // 2)[:, None], z2], axis=1)
+    first = jnp.where(is_leaf, node_leaf[:, 0], 0)
+    leaf = jnp.concatenate([triangles[first], f32(first)[:, None], jnp.zeros((nn, 19), jnp.float32),
+                            f32(jnp.ones(nn))[:, None], z2], axis=1)
+    at = jnp.where(kept, new, nn)
+    rows = jnp.zeros((nn, _WIDE_ROW), jnp.float32).at[at].set(jnp.where(is_leaf[:, None], leaf, inner), mode="drop")
+
+    # every kept node's position among its four-wide parent's children, per class: a leaf whose
+    # binary parent q is kept fills a pair (0 or 2); else q's own place among the pairs, then its order in q
+    q = parent
+    pos, skips = [], []
+    for c in range(NUM_CLASSES):
+        idx = jnp.arange(nn, dtype=jnp.int32)
+        second = (idx != lk[c, q, 0]).astype(jnp.int32)
+        q_second = (q != lk[c, parent[q], 0]).astype(jnp.int32)
+        pos.append(jnp.where(kept[q], 2 * second, 2 * q_second + second))
+    wide_depth = jnp.minimum((depth + 1) // 2, _SKIP_DEPTH)
+    for c in range(NUM_CLASSES):
+        y = lk[c, :, 1]  # the binary miss link; where it is a collapsed node, its first child in class c
+        y0 = jnp.maximum(y, 0)
+        tgt = jnp.where(kept[y0], y0, lk[c, y0, 0])
+        entry = (lax.shift_left(new[tgt], jnp.int32(_WIDE_SHIFT)) | lax.shift_left(wide_depth[tgt], jnp.int32(2))
+                 | pos[c][tgt])
+        entry = jnp.where(y >= 0, entry, lax.shift_left(jnp.int32(-1), jnp.int32(_WIDE_SHIFT)))
+        skips.append(jnp.full(nn, -1 << _WIDE_SHIFT, jnp.int32).at[at].set(entry, mode="drop"))
+    return rows, jnp.concatenate(skips)
+
+
+#: The node table that the GPU kernel reads for trees of one triangle per leaf, packed once per tree
+#: by `bvh.build` (`pack_tables`): "childbox" (binary, `pack_rows`) or "wide" (four-wide, `pack_wide`).
+TREE_LAYOUT = "childbox"
+
+
+def pack_tables(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float[Array, "F 9"],
+                layout: str | None = None):
+    """The node rows and links of one tree for `layout` (default `TREE_LAYOUT`): (`pack_rows`,
+    `pack_skips`) for "childbox", `pack_wide` for "wide"; node depths computed once for both."""
+    layout = layout or TREE_LAYOUT
     depth = node_depth(node_leaf, links)
+    if layout == "wide":
+        return pack_wide(node_box, node_leaf, links, triangles, depth)
     return pack_rows(node_box, node_leaf, links, triangles, depth), pack_skips(node_leaf, links, depth)
 
 
-LAYOUTS = ("childbox", "inline", "tables", "brute")
+LAYOUTS = ("childbox", "wide", "inline", "tables", "brute")
 TRAIL_DEPTH = 31  # the bit trail covers depths 0-30 (one int32 per ray)
 
 #: Tables of at most this many triangles are traced by brute force (layout "brute": every ray
@@ -389,7 +553,7 @@ def default_layout(num_triangles: int, leaf_size: int) -> str:
     `BRUTE_FORCE_MAX_TRIANGLES` triangles, else "childbox" (leaf size 1) or "tables"."""
     if num_triangles <= BRUTE_FORCE_MAX_TRIANGLES:
         return "brute"
-    return "childbox" if leaf_size == 1 else "tables"
+    return TREE_LAYOUT if leaf_size == 1 else "tables"
 
 
 def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"], tmin: Float[Array, " N"],
@@ -429,7 +593,7 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
         raise ValueError(f"traverse_pallas: layout must be one of {LAYOUTS}, got {layout!r}")
     if not 0 <= trail <= TRAIL_DEPTH:
         raise ValueError(f"traverse_pallas: trail must be in [0, {TRAIL_DEPTH}], got {trail}")
-    if layout in ("childbox", "inline") and leaf_size != 1:
+    if layout in ("childbox", "wide", "inline") and leaf_size != 1:
         raise ValueError(f"traverse_pallas: layout {layout!r} needs leaf_size 1")
     return _traverse(arrays, origins, directions, tmin, tmax, any_hit=any_hit, leaf_size=leaf_size, block=block,
                      steps_per_iter=steps_per_iter, num_warps=num_warps, interpret=interpret, layout=layout,
@@ -454,12 +618,13 @@ def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, bl
                jnp.pad(tmax.astype(jnp.float32), (0, pad), constant_values=0.0)]
     box, leaf, tri = arrays["node_box"], arrays["node_leaf"], arrays["triangles"]
     links = arrays["links"]
-    if layout == "childbox":
-        if "rows" in arrays:
+    if layout in ("childbox", "wide"):
+        width = _WIDE_ROW if layout == "wide" else _CB_ROW
+        if arrays.get("rows") is not None and arrays["rows"].shape[1] == width:  # the tree's own tables
             box, links = arrays["rows"], arrays["skips"]
         else:
-            box, links = pack_tables(box, leaf, links, tri)
-        leaf, tri = leaf[:1], tri[:1]  # unused by this layout
+            box, links = pack_tables(box, leaf, links, tri, layout)
+        leaf, tri = leaf[:1], tri[:1]  # unused by these layouts
     elif layout == "brute":
         box, leaf, links = box[:1], leaf[:1], links[:1]  # unused: the kernel reads only the triangles
     elif layout == "inline":
@@ -482,7 +647,7 @@ def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, bl
     if not interpret:
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
     static = dict(any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf, nn=nn, layout=layout,
-                  gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout == "childbox" else 0, block=block,
+                  gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout in ("childbox", "wide") else 0, block=block,
                   scalar_loads=scalar_loads, unroll=unroll if layout == "brute" else 1)
     name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
     ray_spec = pl.BlockSpec((block,), lambda i: (i,))

@@ -12,7 +12,7 @@ order (coherent); "bounce" rays leaving random points of the surfaces in uniform
 the ceiling light's quad, "shadow" between random pairs of surface points, any hit. For a mesh (--scene NAME, a data name), the
 camera looks at it along +z from 2.5 radii and the light is a small square 2 radii above it.
 Variants: "tree" (the binary child-box node table), "wide" (the four-wide tree's rows; "wide trail 0"
-without its trail), "brute"
+without its trail; "tree vec", "wide vec": rows read as 4-word vector loads), "brute"
 (every ray against every triangle; triangles read as gathers whose lanes share one address),
 "brute unroll k" (k triangles written out per loop iteration; default 4), "brute scalar"
 (read as scalars), and brute force with wider programs (block rays, warps). Each
@@ -45,6 +45,8 @@ VARIANTS = {
     "tree": dict(layout="childbox"),
     "wide": dict(layout="wide"),
     "wide trail 0": dict(layout="wide", trail=0),
+    "tree vec": dict(layout="childbox", vector_loads=True),
+    "wide vec": dict(layout="wide", vector_loads=True),
     "brute": dict(layout="brute"),
     "brute unroll 1": dict(layout="brute", unroll=1),
     "brute unroll 8": dict(layout="brute", unroll=8),

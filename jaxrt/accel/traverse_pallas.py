@@ -52,7 +52,24 @@ _WIDE_TRAIL = 20  # depths of the four-wide tree with trail fields (3 bits each,
 
 def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *, any_hit: bool,
             leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str, gate_exact: bool, skip_tri: bool,
-            trail: int, block: int, scalar_loads: bool, unroll: int):
+            trail: int, block: int, scalar_loads: bool, unroll: int, vector_loads: bool = False):
+
+    def row(n, width, words):
+        # The first `words` words of row n of a (rows, width) table, one (block,) array each. As
+        # 4-word vector loads (vector_loads: the table is 2-D, each lane reads 16 aligned bytes at once)
+        # or one gather per word (flat table). Incoherent rays read a different row in every lane, so
+        # the L1 cache serves each gather instruction as up to 32 separate requests: the kernel is
+        # bound by that throughput, and a 16-byte load asks it once for four words.
+        if not vector_loads:
+            r = n * width
+            return [box_r[r + k] for k in range(words)]
+        from jax.experimental import pallas as pl
+
+        out = []
+        for k in range(-(-words // 4)):
+            x = box_r[n, pl.ds(4 * k, 4)]  # (block, 4)
+            out += [c.reshape(c.shape[0]) for c in jnp.split(x, 4, axis=1)]
+        return out[:words]
 
     def tri_test(ray, vs, valid, t_best, signs=None):
         # signs: None = exact where a tie of rounded products occurs in the warp (gate_exact) or
@@ -137,8 +154,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         cls = ray[12]
         active = node >= 0
         n = jnp.maximum(node, 0)
-        r16 = n * _CB_ROW
-        w = [box_r[r16 + k] for k in range(_CB_ROW)]
+        w = row(n, _CB_ROW, _CB_ROW)
         code = lax.bitcast_convert_type(w[15], jnp.int32)  # 1: leaf; -(depth + 1): interior
         is_leaf = code > 0
         h_a = slab(ray, w[0:6], hit[0])
@@ -201,8 +217,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         cls = ray[12]
         active = node >= 0
         n = jnp.maximum(node, 0)
-        r = n * _WIDE_ROW
-        w = [box_r[r + k] for k in range(30)]
+        w = row(n, _WIDE_ROW, 30)
         code = lax.bitcast_convert_type(w[29], jnp.int32)  # 1: leaf; -(depth + 1): interior
         is_leaf = code > 0
         kid = [lax.bitcast_convert_type(w[24 + s], jnp.int32) for s in range(4)]
@@ -544,6 +559,8 @@ TRAIL_DEPTH = 31  # the bit trail covers depths 0-30 (one int32 per ray)
 #: (12.5 against 12.1 ms; its kernel also compiles 4-5 s longer). BENCHMARKS.md, "Path tracing:
 #: brute force for small scenes"; `benchmarks/brute_force.py` measures it again.
 BRUTE_FORCE_MAX_TRIANGLES = 0
+#: Node rows read as 4-word vector loads (`traverse`'s vector_loads) unless a call says otherwise.
+VECTOR_LOADS = False
 #: Triangles a brute-force loop iteration tests (written out in the kernel).
 BRUTE_FORCE_UNROLL = 4
 
@@ -560,7 +577,7 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
              tmax: Float[Array, " N"], *, any_hit: bool, leaf_size: int, block: int = 32,
              steps_per_iter: int = 1, num_warps: int = 1, interpret: bool = False, layout: str | None = None,
              gate_exact: bool = True, skip_tri: bool = True, trail: int = TRAIL_DEPTH, scalar_loads: bool = False,
-             unroll: int | None = None):
+             unroll: int | None = None, vector_loads: bool | None = None):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `traverse_xla.traverse` (without the step counts).
 
@@ -598,14 +615,16 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     return _traverse(arrays, origins, directions, tmin, tmax, any_hit=any_hit, leaf_size=leaf_size, block=block,
                      steps_per_iter=steps_per_iter, num_warps=num_warps, interpret=interpret, layout=layout,
                      gate_exact=gate_exact, skip_tri=skip_tri, trail=trail, scalar_loads=scalar_loads,
-                     unroll=BRUTE_FORCE_UNROLL if unroll is None else unroll)
+                     unroll=BRUTE_FORCE_UNROLL if unroll is None else unroll,
+                     vector_loads=(VECTOR_LOADS if vector_loads is None else vector_loads)
+                     and layout in ("childbox", "wide"))
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
                                              "interpret", "layout", "gate_exact", "skip_tri", "trail",
-                                             "scalar_loads", "unroll"))
+                                             "scalar_loads", "unroll", "vector_loads"))
 def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, block, steps_per_iter, num_warps,
-              interpret, layout, gate_exact, skip_tri, trail, scalar_loads, unroll):
+              interpret, layout, gate_exact, skip_tri, trail, scalar_loads, unroll, vector_loads):
     nn = arrays["node_box"].shape[0]
     nf = arrays["triangles"].shape[0]
     n = origins.shape[0]
@@ -639,8 +658,8 @@ def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, bl
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plgpu
 
-    tables = [box.reshape(-1), leaf.reshape(-1), links.reshape(-1), tri.reshape(-1)]
-    whole = lambda x: pl.BlockSpec(x.shape, lambda i: (0,))  # noqa: E731
+    tables = [box if vector_loads else box.reshape(-1), leaf.reshape(-1), links.reshape(-1), tri.reshape(-1)]
+    whole = lambda x: pl.BlockSpec(x.shape, lambda i: (0,) * x.ndim)  # noqa: E731
     f32 = jax.ShapeDtypeStruct((n_pad,), jnp.float32)
     i32 = jax.ShapeDtypeStruct((n_pad,), jnp.int32)
     kw = {}
@@ -648,7 +667,7 @@ def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, bl
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
     static = dict(any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf, nn=nn, layout=layout,
                   gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout in ("childbox", "wide") else 0, block=block,
-                  scalar_loads=scalar_loads, unroll=unroll if layout == "brute" else 1)
+                  scalar_loads=scalar_loads, unroll=unroll if layout == "brute" else 1, vector_loads=vector_loads)
     name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
     ray_spec = pl.BlockSpec((block,), lambda i: (i,))
     t, best, u, v = pl.pallas_call(

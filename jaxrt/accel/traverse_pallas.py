@@ -560,7 +560,7 @@ TRAIL_DEPTH = 31  # the bit trail covers depths 0-30 (one int32 per ray)
 #: brute force for small scenes"; `benchmarks/brute_force.py` measures it again.
 BRUTE_FORCE_MAX_TRIANGLES = 0
 #: Node rows read as 4-word vector loads (`traverse`'s vector_loads) unless a call says otherwise.
-VECTOR_LOADS = False
+VECTOR_LOADS = True
 #: Triangles a brute-force loop iteration tests (written out in the kernel).
 BRUTE_FORCE_UNROLL = 4
 

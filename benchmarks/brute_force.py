@@ -12,7 +12,8 @@ order (coherent); "bounce" rays leaving random points of the surfaces in uniform
 the ceiling light's quad, "shadow" between random pairs of surface points, any hit. For a mesh (--scene NAME, a data name), the
 camera looks at it along +z from 2.5 radii and the light is a small square 2 radii above it.
 Variants: "tree" (the binary child-box node table), "wide" (the four-wide tree's rows; "wide trail 0"
-without its trail; "tree vec", "wide vec": rows read as 4-word vector loads), "brute"
+without its trail; "tree vec", "wide vec": rows read as 4-word vector loads, the default; "tree scalar": one gather a word; "tree 2 steps": two
+steps between checks of the loop's predicate), "brute"
 (every ray against every triangle; triangles read as gathers whose lanes share one address),
 "brute unroll k" (k triangles written out per loop iteration; default 4), "brute scalar"
 (read as scalars), and brute force with wider programs (block rays, warps). Each
@@ -47,6 +48,9 @@ VARIANTS = {
     "wide trail 0": dict(layout="wide", trail=0),
     "tree vec": dict(layout="childbox", vector_loads=True),
     "wide vec": dict(layout="wide", vector_loads=True),
+    "tree scalar": dict(layout="childbox", vector_loads=False),
+    "tree 2 steps": dict(layout="childbox", steps_per_iter=2),
+    "tree block64 warps2": dict(layout="childbox", block=64, num_warps=2),
     "brute": dict(layout="brute"),
     "brute unroll 1": dict(layout="brute", unroll=1),
     "brute unroll 8": dict(layout="brute", unroll=8),

@@ -85,7 +85,12 @@ CPU_BATCH_CHUNKS = 8  # chunks per batch of paths on the CPU (`_batch_sizes`)
 CPU_DENSE_AT = 0.8  # live share of a batch from which the CPU's bounce runs uncompacted (`_compacted`)
 # (the Cornell box, whose second bounce starts 93 % alive: 1.0 spent 4-5.5 % less CPU time a pass at
 # 256² on one device but ~7 % more wall time at 512² on two (`benchmarks/peers.py`); 0.5: +6 % at 256²)
-GPU_CHUNKS = 4  # chunks per pass on a GPU (`_batch_sizes`)
+# Chunks per pass on a GPU (`_batch_sizes`): with a skipped chunk costing nothing, fewer and larger
+# chunks move less state (each live chunk's conditional copies the state arrays) against more dead
+# paths in the last live chunk of a bounce. One NVIDIA H200, the environment-lit dragon at 512², 16
+# spp: 3 chunks 19.1 ms a pass, 4 chunks 19.9, 6 21.6, 8 22.6 (BENCHMARKS.md, "Path tracing: vector
+# loads in the traversal, and skipped chunks").
+GPU_CHUNKS = 3
 # Whether a GPU's first bounce runs on the whole batch (its paths all start alive), outside the loop
 # of compacted bounces: that spares its gathers, scatters and per-chunk conditionals (one NVIDIA
 # H200, 512², 16 spp: 0.9-1.2 ms of a 13-22 ms pass) but the program then holds the bounce three

@@ -202,6 +202,13 @@ PY
                       --variants tree wide "wide trail 0"
                   stage path-wide 240 python3 benchmarks/path_chunks.py --size 512 --repeats 7 \
                       --knobs "" traverse_pallas.TREE_LAYOUT=wide ;;
+        ncu)      # hardware counters (Nsight Compute, from the machine's CUDA toolkit) of the closest-hit kernel on
+                  # the dragon's camera and bounce rays, a gather a word against vector loads and the four-wide tree
+                  stage ncu-dragon 400 /usr/local/cuda/bin/ncu --kernel-name regex:bvh_closest_hit --section SpeedOfLight \
+                      --section WarpStateStats --section SchedulerStats --section MemoryWorkloadAnalysis \
+                      --section InstructionStats --section LaunchStats --section Occupancy \
+                      python3 benchmarks/brute_force.py --scene dragon --splits 0 --variants "tree scalar" tree wide \
+                      --repeats 1 --rays 1048576 --res 1024 ;;
         pass-parts)  # a path pass's wall time beyond its kernels: samples, image, copy, host check, dispatch
                   stage pass-parts-cornell 90 python3 benchmarks/pass_parts.py --scene cornell
                   stage pass-parts-dragon 90 python3 benchmarks/pass_parts.py --scene dragon

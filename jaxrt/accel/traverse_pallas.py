@@ -26,7 +26,11 @@ the compiler contracts a multiply-add differently, so two triangles at the same 
 an ulp may be chosen differently (ties); `bvh.intersect` then refines t of the chosen triangle in
 double-float in XLA for both paths.
 
-Tables are read with vector gathers from flat row-major arrays (`ref[index_vector]`).
+Tables are read with gathers (`ref[index_vector]`); the child-box and four-wide node rows by default
+as 4-word vector loads from the 2-D table (`VECTOR_LOADS`): with incoherent rays every lane of a
+warp reads a different row, the L1 cache serves a gather as one request per row, and Nsight Compute
+showed the kernel bound by that (L1 throughput 91 % of peak on the dragon's bounce rays, one NVIDIA
+H200); a 16-byte load asks once for four words (the same rays 45-60 % faster; BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -559,7 +563,8 @@ TRAIL_DEPTH = 31  # the bit trail covers depths 0-30 (one int32 per ray)
 #: (12.5 against 12.1 ms; its kernel also compiles 4-5 s longer). BENCHMARKS.md, "Path tracing:
 #: brute force for small scenes"; `benchmarks/brute_force.py` measures it again.
 BRUTE_FORCE_MAX_TRIANGLES = 0
-#: Node rows read as 4-word vector loads (`traverse`'s vector_loads) unless a call says otherwise.
+#: Node rows read as 4-word vector loads (`traverse`'s vector_loads) unless a call says otherwise
+#: (one NVIDIA H200, the dragon's incoherent rays: 400-600 against 260-365 Mrays/s with a gather a word).
 VECTOR_LOADS = True
 #: Triangles a brute-force loop iteration tests (written out in the kernel).
 BRUTE_FORCE_UNROLL = 4

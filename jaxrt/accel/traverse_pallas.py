@@ -539,6 +539,9 @@ def pack_wide(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float
 
 #: The node table that the GPU kernel reads for trees of one triangle per leaf, packed once per tree
 #: by `bvh.build` (`pack_tables`): "childbox" (binary, `pack_rows`) or "wide" (four-wide, `pack_wide`).
+#: The four-wide tree takes 35-45 % fewer steps, but its steps cost more than that on an H200: every
+#: kind of ray was slower with it, on the dragon and on the Cornell box (BENCHMARKS.md, "Path tracing:
+#: vector loads in the traversal, and skipped chunks").
 TREE_LAYOUT = "childbox"
 
 
@@ -572,7 +575,7 @@ BRUTE_FORCE_UNROLL = 4
 
 def default_layout(num_triangles: int, leaf_size: int) -> str:
     """The node table `traverse` reads when a call names none: brute force for tables of at most
-    `BRUTE_FORCE_MAX_TRIANGLES` triangles, else "childbox" (leaf size 1) or "tables"."""
+    `BRUTE_FORCE_MAX_TRIANGLES` triangles, else `TREE_LAYOUT` (leaf size 1) or "tables"."""
     if num_triangles <= BRUTE_FORCE_MAX_TRIANGLES:
         return "brute"
     return TREE_LAYOUT if leaf_size == 1 else "tables"
@@ -596,6 +599,8 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
       "childbox": each node's row holds its children's boxes (`pack_tables`: arrays["rows"] and
                   arrays["skips"] when present, else packed per call): a step tests both children and moves straight
                   to the nearer one that is hit, so missed children are never loaded;
+      "wide":     the same with four children a row (`pack_wide`; the tree's own tables where it was
+                  packed with this layout, else packed per call);
       "inline":   one 12-word row per node, an interior node's box or a leaf's triangle (packed
                   per call);
       "tables":   separate box / leaf-range / triangle tables, any leaf size;
@@ -605,8 +610,9 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     warp-uniform branch). trail (child-box layout): levels of the tree covered by the bit trail that
     skips farther children known to be missed (0 to 31; 0 = no trail). scalar_loads (brute force):
     read each triangle as scalars rather than as a gather whose lanes share one address; unroll
-    (brute force): triangles tested per loop iteration (default `BRUTE_FORCE_UNROLL`). All options
-    give the same results; BENCHMARKS.md has their speeds.
+    (brute force): triangles tested per loop iteration (default `BRUTE_FORCE_UNROLL`). vector_loads
+    (child-box and wide rows; default `VECTOR_LOADS`): read a row as 4-word vector loads instead of a
+    gather a word. All options give the same results; BENCHMARKS.md has their speeds.
     """
     # The default is resolved here, outside the jitted function, so that it is part of its static
     # arguments (a module constant read while tracing would not be part of the jit cache's key).

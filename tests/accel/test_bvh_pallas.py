@@ -236,3 +236,60 @@ def test_node_depth_and_skip_table():
     assert len(sk) == bvh_build.NUM_RAY_CLASSES * nn
     assert np.array_equal(sk >> 5, miss)
     assert np.array_equal(sk & 31, np.where(miss >= 0, np.minimum(want[np.maximum(miss, 0)], 31), 0))
+
+
+def test_wide_tables_walk_the_binary_trees_order():
+    """The four-wide kernel's tables (`traverse_pallas.pack_wide`) against the binary tree, in numpy:
+    for every ray class, a depth-first walk of the wide rows (children in the class's order from the
+    order bits) visits the binary tree's leaves in the binary walk's order, and every node's link is
+    the node that follows its subtree in that walk, with that node's depth and its position among its
+    parent's four slots."""
+    from jaxrt.accel import builder as bvh_build
+    from jaxrt.accel import traverse_pallas as bvh_pallas
+
+    m = icosphere_mesh(2)
+    rng = np.random.default_rng(2)
+    v = np.concatenate([m.vertices, rng.normal(size=(60, 3)) * 0.01 + 2.0]).astype(np.float32)  # a dense clump: deep
+    f = np.concatenate([m.faces, len(m.vertices) + rng.integers(0, 60, size=(200, 3))])
+    tree = bvh.build(v, f)
+    rows, skips = (np.asarray(x) for x in bvh_pallas.pack_wide(tree.node_box, tree.node_leaf, tree.links,
+                                                                tree.triangles))
+    leaf = np.asarray(tree.node_leaf)
+    links = np.asarray(tree.links)
+    nn, classes = len(leaf), bvh_build.NUM_RAY_CLASSES
+    assert rows.shape == (nn, 32) and skips.shape == (classes * nn,)
+    as_int = rows.view(np.int32)
+    assert np.asarray(bvh.stats(tree).depth) > 8
+    for c in range(classes):
+        lk = links[c * nn:(c + 1) * nn]
+        want, stack = [], [0]  # binary walk: leaves in class c's order
+        while stack:
+            n = stack.pop()
+            if leaf[n, 1] > 0:
+                want.append(int(leaf[n, 0]))
+            else:
+                first = lk[n, 0]
+                stack += [lk[first, 1], first]  # the first child's miss link is its sibling
+        order, stack = [], [(0, 0, 0)]  # wide walk: (row, depth, position)
+        while stack:
+            w, depth, pos = stack.pop()
+            order.append((w, depth, pos))
+            if as_int[w, 29] == 1:
+                continue
+            assert as_int[w, 29] == -(depth + 1)
+            bits = (as_int[w, 28] >> (3 * c)) & 7
+            pair_a = as_int[w, 24:26][::-1] if bits & 2 else as_int[w, 24:26]
+            pair_b = as_int[w, 26:28][::-1] if bits & 4 else as_int[w, 26:28]
+            slots = np.concatenate([pair_b, pair_a] if bits & 1 else [pair_a, pair_b])
+            stack += [(int(k), depth + 1, p) for p, k in reversed(list(enumerate(slots))) if k >= 0]
+        got = [int(as_int[w, 9]) for w, _, _ in order if as_int[w, 29] == 1]
+        assert got == want, c
+        # links: the next node of the walk outside each node's subtree (subtree ends where depth returns)
+        for i, (w, depth, _) in enumerate(order):
+            j = next((j for j in range(i + 1, len(order)) if order[j][1] <= depth), None)
+            sk = int(skips[c * nn + w])
+            if j is None:
+                assert sk >> 7 == -1
+            else:
+                nxt, d, p = order[j]
+                assert (sk >> 7, (sk >> 2) & 31, sk & 3) == (nxt, min(d, 31), p), (c, w)

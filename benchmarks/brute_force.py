@@ -5,6 +5,8 @@ and 16), and the binary tree's rows against the four-wide tree's, also on a mesh
     JAXRT_DATA=... python benchmarks/brute_force.py                 # on a GPU
     JAXRT_DATA=... python benchmarks/brute_force.py --scene dragon --splits 0 --variants tree wide
     JAXRT_DATA=... python benchmarks/brute_force.py --interpret --rays 4096   # anywhere (slow; a check)
+    JAXRT_DATA=... python benchmarks/brute_force.py --scene dragon --splits 0 --variants tree wide \
+        --interpret --rays 2048 --res 64 --count                    # steps a ray (the interpreter: any machine)
 
 Rays, like a path tracer's (4M of each kind unless --rays): "camera" a pinhole's primary rays, tile
 order (coherent); "bounce" rays leaving random points of the surfaces in uniform directions
@@ -110,6 +112,9 @@ def main():
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--interpret", action="store_true", help="the Pallas interpreter (any backend; for a check)")
     ap.add_argument("--scene", default="cornell", help="cornell (the built-in Cornell box) or a mesh's data name")
+    ap.add_argument("--count", action="store_true",
+                    help="tree layouts: print steps a ray, loop iterations a program and the share of them that run "
+                         "the triangle test (`traverse(..., count_steps=True)`) instead of timing")
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     if args.scene == "cornell":
@@ -154,6 +159,17 @@ def main():
                 var.pop("num_warps", None)
             line = f"{len(f):5d} triangles  {name:24s}"
             for kind, (any_hit, rays) in sets.items():
+                if args.count:
+                    if var.get("layout") not in ("childbox", "wide") or var.get("steps_per_iter", 1) != 1:
+                        continue
+                    # the GPU's programs (the variant's block, not the interpreter's wider one)
+                    block = VARIANTS[name].get("block", 32)
+                    out = TP.traverse(arrays, *rays, any_hit=any_hit, leaf_size=1, count_steps=True,
+                                      **dict(var, block=block))
+                    n_steps, n_iter, n_leaf = (np.asarray(x, np.float64) for x in out[5:])
+                    line += (f"  {kind}: {n_steps.mean():.1f} steps a ray, {n_iter[::block].mean():.1f} iterations a "
+                             f"program, {n_leaf.sum() / n_iter.sum():.0%} with the triangle test")
+                    continue
                 fn = jax.jit(lambda arr, *a, ah=any_hit, var=var: TP.traverse(arr, *a, any_hit=ah, leaf_size=1, **var))
                 try:
                     t0 = time.perf_counter()

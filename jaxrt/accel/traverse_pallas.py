@@ -54,7 +54,7 @@ _WIDE_SHIFT = 7  # its skip entries: miss link << 7 | depth << 2 | position amon
 _WIDE_TRAIL = 20  # depths of the four-wide tree with trail fields (3 bits each, in two int32 words)
 
 
-def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *, any_hit: bool,
+def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *count_o, any_hit: bool,
             leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str, gate_exact: bool, skip_tri: bool,
             trail: int, block: int, scalar_loads: bool, unroll: int, vector_loads: bool = False):
 
@@ -391,9 +391,32 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         t_o[...], best_o[...], u_o[...], v_o[...] = finish(brute(ray, hit))
         return
     zi = jnp.zeros(shape, jnp.int32)
-    _, hit, _ = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s),
-                               (zi, hit, (zi, zi) if layout == "wide" else zi))
+    bits0 = (zi, zi) if layout == "wide" else zi
+    if not count_o:
+        _, hit, _ = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s), (zi, hit, bits0))
+        t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
+        return
+
+    # Counting (`traverse(..., count_steps=True)`, for measurements): the steps each ray takes, the
+    # loop iterations of its program and those in which some ray is at a leaf (the triangle test
+    # runs); a step's leaf test is read again from the row's code word.
+    code_word, width = {"childbox": (15, _CB_ROW), "wide": (29, _WIDE_ROW)}[layout]
+
+    def at_leaf(node):
+        n = jnp.maximum(node, 0)
+        code = box_r[n, code_word] if vector_loads else box_r[n * width + code_word]
+        return (node >= 0) & (lax.bitcast_convert_type(code, jnp.int32) > 0)
+
+    def counted(s):
+        node, hit, bits, n_steps, n_iter, n_leaf = s
+        leafy = jnp.max(at_leaf(node).astype(jnp.int32))
+        nxt, hit, bits = steps(ray, node, hit, bits)
+        return nxt, hit, bits, n_steps + (node >= 0), n_iter + 1, n_leaf + leafy
+
+    _, hit, _, n_steps, n_iter, n_leaf = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, counted,
+                                                        (zi, hit, bits0, zi, zi, zi))
     t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
+    count_o[0][...], count_o[1][...], count_o[2][...] = n_steps, n_iter, n_leaf
 
 
 def _children(node_leaf, links):
@@ -539,7 +562,7 @@ def pack_wide(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float
 
 #: The node table that the GPU kernel reads for trees of one triangle per leaf, packed once per tree
 #: by `bvh.build` (`pack_tables`): "childbox" (binary, `pack_rows`) or "wide" (four-wide, `pack_wide`).
-#: The four-wide tree takes 35-45 % fewer steps, but its steps cost more than that on an H200: every
+#: The four-wide tree takes 39-45 % fewer steps, but its steps cost more than that on an H200: every
 #: kind of ray was slower with it, on the dragon and on the Cornell box (BENCHMARKS.md, "Path tracing:
 #: vector loads in the traversal, and skipped chunks").
 TREE_LAYOUT = "childbox"
@@ -585,7 +608,7 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
              tmax: Float[Array, " N"], *, any_hit: bool, leaf_size: int, block: int = 32,
              steps_per_iter: int = 1, num_warps: int = 1, interpret: bool = False, layout: str | None = None,
              gate_exact: bool = True, skip_tri: bool = True, trail: int = TRAIL_DEPTH, scalar_loads: bool = False,
-             unroll: int | None = None, vector_loads: bool | None = None):
+             unroll: int | None = None, vector_loads: bool | None = None, count_steps: bool = False):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `traverse_xla.traverse` (without the step counts).
 
@@ -613,6 +636,9 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     (brute force): triangles tested per loop iteration (default `BRUTE_FORCE_UNROLL`). vector_loads
     (child-box and wide rows; default `VECTOR_LOADS`): read a row as 4-word vector loads instead of a
     gather a word. All options give the same results; BENCHMARKS.md has their speeds.
+    count_steps (child-box and wide layouts; with steps_per_iter 1): also return, per ray, the steps it
+    took, its program's loop iterations, and those iterations in which some ray of the program was at a
+    leaf (three (N,) int32 arrays after v) — a measurement, slower than the plain kernel.
     """
     # The default is resolved here, outside the jitted function, so that it is part of its static
     # arguments (a module constant read while tracing would not be part of the jit cache's key).
@@ -623,19 +649,22 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
         raise ValueError(f"traverse_pallas: trail must be in [0, {TRAIL_DEPTH}], got {trail}")
     if layout in ("childbox", "wide", "inline") and leaf_size != 1:
         raise ValueError(f"traverse_pallas: layout {layout!r} needs leaf_size 1")
+    if count_steps and (layout not in ("childbox", "wide") or steps_per_iter != 1):
+        raise ValueError(f"traverse_pallas: count_steps needs layout 'childbox' or 'wide' and steps_per_iter 1, "
+                         f"got {layout!r} and {steps_per_iter}")
     return _traverse(arrays, origins, directions, tmin, tmax, any_hit=any_hit, leaf_size=leaf_size, block=block,
                      steps_per_iter=steps_per_iter, num_warps=num_warps, interpret=interpret, layout=layout,
                      gate_exact=gate_exact, skip_tri=skip_tri, trail=trail, scalar_loads=scalar_loads,
                      unroll=BRUTE_FORCE_UNROLL if unroll is None else unroll,
                      vector_loads=(VECTOR_LOADS if vector_loads is None else vector_loads)
-                     and layout in ("childbox", "wide"))
+                     and layout in ("childbox", "wide"), count_steps=count_steps)
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
                                              "interpret", "layout", "gate_exact", "skip_tri", "trail",
-                                             "scalar_loads", "unroll", "vector_loads"))
+                                             "scalar_loads", "unroll", "vector_loads", "count_steps"))
 def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, block, steps_per_iter, num_warps,
-              interpret, layout, gate_exact, skip_tri, trail, scalar_loads, unroll, vector_loads):
+              interpret, layout, gate_exact, skip_tri, trail, scalar_loads, unroll, vector_loads, count_steps):
     nn = arrays["node_box"].shape[0]
     nf = arrays["triangles"].shape[0]
     n = origins.shape[0]
@@ -681,13 +710,14 @@ def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, bl
                   scalar_loads=scalar_loads, unroll=unroll if layout == "brute" else 1, vector_loads=vector_loads)
     name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
     ray_spec = pl.BlockSpec((block,), lambda i: (i,))
-    t, best, u, v = pl.pallas_call(
+    outs = (f32, i32, f32, f32) + ((i32,) * 3 if count_steps else ())
+    t, best, u, v, *counts = pl.pallas_call(
         functools.partial(_kernel, **static),
-        out_shape=(f32, i32, f32, f32),
+        out_shape=outs,
         grid=(n_pad // block,),
         in_specs=[whole(per_ray[0]), whole(per_ray[1]), ray_spec, ray_spec] + [whole(tb) for tb in tables],
-        out_specs=(ray_spec,) * 4,
+        out_specs=(ray_spec,) * len(outs),
         interpret=interpret, name=name, **kw,
     )(*per_ray, *tables)
     t, best, u, v = t[:n], best[:n], u[:n], v[:n]
-    return best >= 0, t, best, u, v
+    return (best >= 0, t, best, u, v, *(c[:n] for c in counts))

@@ -293,3 +293,33 @@ def test_wide_tables_walk_the_binary_trees_order():
             else:
                 nxt, d, p = order[j]
                 assert (sk >> 7, (sk >> 2) & 31, sk & 3) == (nxt, min(d, 31), p), (c, w)
+
+
+def test_kernel_counts_its_steps():
+    """`traverse(..., count_steps=True)` (a measurement): the same hits as the plain kernel; each
+    program loops as many times as its slowest ray steps; the triangle test's iterations are at
+    most all of them and at least one where a ray hits; the four-wide tree takes fewer steps."""
+    from jaxrt.accel import traverse_pallas as bvh_pallas
+
+    m = icosphere_mesh(2)
+    tree = bvh.build(m.vertices, m.faces)
+    arrays = dict(node_box=tree.node_box, node_leaf=tree.node_leaf, links=tree.links, triangles=tree.triangles)
+    o, d, lo, hi = ray_mix(m, 256, seed=4)
+    block = 64
+    steps = {}
+    for layout in ("childbox", "wide"):
+        plain = [np.asarray(x) for x in bvh_pallas.traverse(arrays, o, d, lo, hi, any_hit=False, leaf_size=1,
+                                                            block=block, interpret=True, layout=layout)]
+        found, t, tri, u, v, n_steps, n_iter, n_leaf = (np.asarray(x) for x in bvh_pallas.traverse(
+            arrays, o, d, lo, hi, any_hit=False, leaf_size=1, block=block, interpret=True, layout=layout,
+            count_steps=True))
+        for a, b in zip((found, t, tri, u, v), plain):
+            np.testing.assert_array_equal(a, b)
+        assert n_steps.min() >= 1
+        per_block = n_steps.reshape(-1, block)
+        np.testing.assert_array_equal(n_iter.reshape(-1, block), per_block.max(1, keepdims=True) + 0 * per_block)
+        assert np.all(n_leaf <= n_iter) and np.all(n_leaf.reshape(-1, block)[found.reshape(-1, block).any(1)] >= 1)
+        steps[layout] = n_steps.mean()
+    assert 0.4 * steps["childbox"] < steps["wide"] < 0.9 * steps["childbox"], steps
+    with pytest.raises(ValueError, match="count_steps"):
+        bvh_pallas.traverse(arrays, o, d, lo, hi, any_hit=False, leaf_size=1, layout="brute", count_steps=True)

@@ -81,6 +81,9 @@ def _knob_target(name: str):
     return KNOB_MODULES[module or "path"], attr
 
 
+_pack = jax.jit(TP.pack_tables, static_argnames="layout")
+
+
 def _retabled(sc):
     """The scene with every BVH's kernel tables packed again for `traverse_pallas.TREE_LAYOUT`."""
     import equinox as eqx
@@ -90,7 +93,7 @@ def _retabled(sc):
     def pack(x):
         if not isinstance(x, bvh.BVH) or x.rows is None:
             return x
-        tables = bvh._pack_tables(x.node_box, x.node_leaf, x.links, x.triangles, layout=TP.TREE_LAYOUT)
+        tables = _pack(x.node_box, x.node_leaf, x.links, x.triangles, layout=TP.TREE_LAYOUT)
         return eqx.tree_at(lambda t: (t.rows, t.skips), x, tables)
 
     return jax.tree.map(pack, sc, is_leaf=lambda x: isinstance(x, bvh.BVH))

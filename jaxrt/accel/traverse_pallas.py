@@ -52,20 +52,23 @@ _SKIP_DEPTH = 31
 _WIDE_ROW = 32  # words per node row of the four-wide tree (see pack_wide)
 _WIDE_SHIFT = 7  # its skip entries: miss link << 7 | depth << 2 | position among its siblings
 _WIDE_TRAIL = 20  # depths of the four-wide tree with trail fields (3 bits each, in two int32 words)
+# The layouts whose node table holds one row per node (packed once per tree by `pack_tables`): words a
+# row, and the word holding the row's code (1: leaf; -(depth + 1): interior).
+_ROW_TABLES = {"childbox": (_CB_ROW, 15), "wide": (_WIDE_ROW, 29)}
 
 
 def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *count_o, any_hit: bool,
             leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str, gate_exact: bool, skip_tri: bool,
             trail: int, block: int, scalar_loads: bool, unroll: int, vector_loads: bool = False):
 
-    def row(n, width, words):
-        # The first `words` words of row n of a (rows, width) table, one (block,) array each. As
+    def row(n, words):
+        # The first `words` words of row n of the layout's node table, one (block,) array each. As
         # 4-word vector loads (vector_loads: the table is 2-D, each lane reads 16 aligned bytes at once)
         # or one gather per word (flat table). Incoherent rays read a different row in every lane, so
         # the L1 cache serves each gather instruction as up to 32 separate requests: the kernel is
         # bound by that throughput, and a 16-byte load asks it once for four words.
         if not vector_loads:
-            r = n * width
+            r = n * _ROW_TABLES[layout][0]
             return [box_r[r + k] for k in range(words)]
         from jax.experimental import pallas as pl
 
@@ -158,7 +161,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         cls = ray[12]
         active = node >= 0
         n = jnp.maximum(node, 0)
-        w = row(n, _CB_ROW, _CB_ROW)
+        w = row(n, _CB_ROW)
         code = lax.bitcast_convert_type(w[15], jnp.int32)  # 1: leaf; -(depth + 1): interior
         is_leaf = code > 0
         h_a = slab(ray, w[0:6], hit[0])
@@ -221,7 +224,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         cls = ray[12]
         active = node >= 0
         n = jnp.maximum(node, 0)
-        w = row(n, _WIDE_ROW, 30)
+        w = row(n, 30)
         code = lax.bitcast_convert_type(w[29], jnp.int32)  # 1: leaf; -(depth + 1): interior
         is_leaf = code > 0
         kid = [lax.bitcast_convert_type(w[24 + s], jnp.int32) for s in range(4)]
@@ -400,7 +403,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
     # Counting (`traverse(..., count_steps=True)`, for measurements): the steps each ray takes, the
     # loop iterations of its program and those in which some ray is at a leaf (the triangle test
     # runs); a step's leaf test is read again from the row's code word.
-    code_word, width = {"childbox": (15, _CB_ROW), "wide": (29, _WIDE_ROW)}[layout]
+    width, code_word = _ROW_TABLES[layout]
 
     def at_leaf(node):
         n = jnp.maximum(node, 0)
@@ -542,9 +545,9 @@ def pack_wide(node_box: Float[Array, "nn 6"], node_leaf, links, triangles: Float
     # every kept node's position among its four-wide parent's children, per class: a leaf whose
     # binary parent q is kept fills a pair (0 or 2); else q's own place among the pairs, then its order in q
     q = parent
+    idx = jnp.arange(nn, dtype=jnp.int32)
     pos, skips = [], []
     for c in range(NUM_CLASSES):
-        idx = jnp.arange(nn, dtype=jnp.int32)
         second = (idx != lk[c, q, 0]).astype(jnp.int32)
         q_second = (q != lk[c, parent[q], 0]).astype(jnp.int32)
         pos.append(jnp.where(kept[q], 2 * second, 2 * q_second + second))
@@ -649,7 +652,7 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
         raise ValueError(f"traverse_pallas: trail must be in [0, {TRAIL_DEPTH}], got {trail}")
     if layout in ("childbox", "wide", "inline") and leaf_size != 1:
         raise ValueError(f"traverse_pallas: layout {layout!r} needs leaf_size 1")
-    if count_steps and (layout not in ("childbox", "wide") or steps_per_iter != 1):
+    if count_steps and (layout not in _ROW_TABLES or steps_per_iter != 1):
         raise ValueError(f"traverse_pallas: count_steps needs layout 'childbox' or 'wide' and steps_per_iter 1, "
                          f"got {layout!r} and {steps_per_iter}")
     return _traverse(arrays, origins, directions, tmin, tmax, any_hit=any_hit, leaf_size=leaf_size, block=block,
@@ -657,7 +660,7 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
                      gate_exact=gate_exact, skip_tri=skip_tri, trail=trail, scalar_loads=scalar_loads,
                      unroll=BRUTE_FORCE_UNROLL if unroll is None else unroll,
                      vector_loads=(VECTOR_LOADS if vector_loads is None else vector_loads)
-                     and layout in ("childbox", "wide"), count_steps=count_steps)
+                     and layout in _ROW_TABLES, count_steps=count_steps)
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
@@ -677,9 +680,8 @@ def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, bl
                jnp.pad(tmax.astype(jnp.float32), (0, pad), constant_values=0.0)]
     box, leaf, tri = arrays["node_box"], arrays["node_leaf"], arrays["triangles"]
     links = arrays["links"]
-    if layout in ("childbox", "wide"):
-        width = _WIDE_ROW if layout == "wide" else _CB_ROW
-        if arrays.get("rows") is not None and arrays["rows"].shape[1] == width:  # the tree's own tables
+    if layout in _ROW_TABLES:
+        if arrays.get("rows") is not None and arrays["rows"].shape[1] == _ROW_TABLES[layout][0]:  # the tree's own
             box, links = arrays["rows"], arrays["skips"]
         else:
             box, links = pack_tables(box, leaf, links, tri, layout)
@@ -706,7 +708,7 @@ def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, bl
     if not interpret:
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
     static = dict(any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf, nn=nn, layout=layout,
-                  gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout in ("childbox", "wide") else 0, block=block,
+                  gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout in _ROW_TABLES else 0, block=block,
                   scalar_loads=scalar_loads, unroll=unroll if layout == "brute" else 1, vector_loads=vector_loads)
     name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
     ray_spec = pl.BlockSpec((block,), lambda i: (i,))

@@ -259,14 +259,18 @@ def _compacted(fn, carry, chunk: int, dense_at: float | None = None):
     def sparse_rows(start):
         return lax.dynamic_slice(idx, (start,), (chunk,)), start + lane < n
 
+    def gather(state, rows):
+        return jax.tree.map(lambda x: x[rows], state)
+
+    def scatter(state, rows, valid, out):
+        dest = jnp.where(valid, rows, n_all)  # (dead lanes' rows dropped)
+        return jax.tree.map(lambda x, y: x.at[dest].set(y, mode="drop", unique_indices=True), state, out)
+
     def live_chunk(c, state):
         # gather, bounce and scatter of one chunk, all inside the conditional: a chunk past the live
         # count then costs no launch at all (its gathers and scatters of nothing included)
-        start = c * chunk
-        rows, valid = sparse_rows(start)
-        out = run(rows, valid, jax.tree.map(lambda x: x[rows], state))
-        dest = jnp.where(valid, rows, n_all)
-        return jax.tree.map(lambda x, y: x.at[dest].set(y, mode="drop", unique_indices=True), state, out)
+        rows, valid = sparse_rows(c * chunk)
+        return scatter(state, rows, valid, run(rows, valid, gather(state, rows)))
 
     def step(c, state):
         start = c * chunk
@@ -277,22 +281,20 @@ def _compacted(fn, carry, chunk: int, dense_at: float | None = None):
             return lax.cond(start < n, live_chunk, lambda c, state: state, c, state)
         if dense_at is None:
             rows, valid = sparse_rows(start)
-            sub = jax.tree.map(lambda x: x[rows], state)
+            sub = gather(state, rows)
             some = start < n
         else:
             rows, valid = lax.cond(dense, lambda: (start + lane, lax.dynamic_slice(alive, (start,), (chunk,))),
                                    lambda: sparse_rows(start))
             sub = lax.cond(dense, lambda: jax.tree.map(lambda x: lax.dynamic_slice_in_dim(x, start, chunk), state),
-                           lambda: jax.tree.map(lambda x: x[rows], state))
+                           lambda: gather(state, rows))
             some = jnp.any(valid)
         out = lax.cond(some, run, skip, rows, valid, sub)
-        dest = jnp.where(valid, rows, n_all)
-        scatter = lambda: jax.tree.map(lambda x, y: x.at[dest].set(y, mode="drop", unique_indices=True), state, out)
         if dense_at is None:
-            return scatter()
+            return scatter(state, rows, valid, out)
         # (dense: the chunk's dead paths come back as fn left them, as in an uncompacted pass)
         return lax.cond(dense, lambda: jax.tree.map(lambda x, y: lax.dynamic_update_slice_in_dim(x, y, start, 0),
-                                                    state, out), scatter)
+                                                    state, out), lambda: scatter(state, rows, valid, out))
 
     state = step(0, state) if m == 1 else lax.fori_loop(0, m, step, state)
     return state + (keys,)

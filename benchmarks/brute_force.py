@@ -15,7 +15,8 @@ the ceiling light's quad, "shadow" between random pairs of surface points, any h
 camera looks at it along +z from 2.5 radii and the light is a small square 2 radii above it.
 Variants: "tree" (the binary child-box node table), "wide" (the four-wide tree's rows; "wide trail 0"
 without its trail; "tree vec", "wide vec": rows read as 4-word vector loads, the default; "tree scalar": one gather a word; "tree 2 steps": two
-steps between checks of the loop's predicate), "brute"
+steps between checks of the loop's predicate; "tree postponed" / "tree immediate": leaves postponed
+(tested by the warp together) or tested where reached), "brute"
 (every ray against every triangle; triangles read as gathers whose lanes share one address),
 "brute unroll k" (k triangles written out per loop iteration; default 4), "brute scalar"
 (read as scalars), and brute force with wider programs (block rays, warps). Each
@@ -53,6 +54,8 @@ VARIANTS = {
     "tree scalar": dict(layout="childbox", vector_loads=False),
     "tree 2 steps": dict(layout="childbox", steps_per_iter=2),
     "tree block64 warps2": dict(layout="childbox", block=64, num_warps=2),
+    "tree postponed": dict(layout="childbox", postpone=True),
+    "tree immediate": dict(layout="childbox", postpone=False),
     "brute": dict(layout="brute"),
     "brute unroll 1": dict(layout="brute", unroll=1),
     "brute unroll 8": dict(layout="brute", unroll=8),

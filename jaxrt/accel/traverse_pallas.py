@@ -59,7 +59,8 @@ _ROW_TABLES = {"childbox": (_CB_ROW, 15), "wide": (_WIDE_ROW, 29)}
 
 def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *count_o, any_hit: bool,
             leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str, gate_exact: bool, skip_tri: bool,
-            trail: int, block: int, scalar_loads: bool, unroll: int, vector_loads: bool = False):
+            trail: int, block: int, scalar_loads: bool, unroll: int, vector_loads: bool = False,
+            postpone: bool = False):
 
     def row(n, words):
         # The first `words` words of row n of the layout's node table, one (block,) array each. As
@@ -151,13 +152,42 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         return lax.cond(jnp.max(valid.astype(jnp.int32)) > 0, test,
                         lambda: (jnp.zeros_like(valid), z, (z, z, z + 1.0)))
 
+    def postponed(ray, n, at_leaf, nxt, hit, pend):
+        # Postponed leaves (Aila and Laine 2009, "Understanding the efficiency of ray traversal on
+        # GPUs"): a ray that reaches a leaf notes it and goes on along the tree instead of testing its
+        # triangle at once. The warp runs the triangle test only where some ray must (it holds a noted
+        # leaf and reaches another, or its walk ends), and then every ray with a noted leaf or at a
+        # leaf now tests one. On incoherent rays a warp otherwise runs the test whenever any one of
+        # its 32 rays is at a leaf: in over half its loop iterations on the dragon's bounce rays
+        # (`count_steps`). A noted leaf's triangle is loaded again for its test. Returns (next node,
+        # hit, noted leaf or -1, whether the warp ran the test).
+        waiting = pend >= 0
+        forced = waiting & (at_leaf | (nxt < 0))
+        tests = waiting | at_leaf
+        yes, no = jnp.ones_like(waiting), jnp.zeros_like(waiting)
+
+        def test():
+            v = row(jnp.where(waiting, pend, n), 10)
+            h, t, *bary = tri_test(ray, v[:9], tests, hit[0])
+            return keep(h, t, tuple(bary), lax.bitcast_convert_type(v[9], jnp.int32), hit), h, yes
+
+        hit, h, ran = lax.cond(jnp.max(forced.astype(jnp.int32)) > 0, test, lambda: (hit, no, no))
+        # tested: a ray that had a noted leaf notes the one it is at now (if any); untested: a ray at a
+        # leaf notes it (it had none, or the test would have run)
+        pend = jnp.where(ran, jnp.where(waiting & at_leaf, n, -1), jnp.where(at_leaf, n, pend))
+        if any_hit:
+            nxt, pend = jnp.where(h, -1, nxt), jnp.where(h, -1, pend)
+        return nxt, hit, pend, ran
+
     def step_childbox(ray, node, hit, bits):
         # A node's row holds its children's boxes: one load tests both, and the ray moves straight to
         # the nearer child that is hit (or the farther, or the miss link), so children whose boxes
         # miss are never loaded. The farther child, when the nearer was hit, is reached later by the
         # nearer's miss link without its own box test: its row then tests its children instead.
         # links_r here is the skip table (`pack_skips`): per class and node, the miss link and the
-        # depth of the node it leads to.
+        # depth of the node it leads to. With `postpone` bits is (trail, noted leaf or -1).
+        if postpone:
+            bits, pend = bits
         cls = ray[12]
         active = node >= 0
         n = jnp.maximum(node, 0)
@@ -171,11 +201,12 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         swap = (lax.shift_right_logical(lax.bitcast_convert_type(w[14], jnp.int32), cls) & 1) > 0
         near, far = jnp.where(swap, child_b, child_a), jnp.where(swap, child_a, child_b)
         h_near, h_far = jnp.where(swap, h_b, h_a), jnp.where(swap, h_a, h_b)
-        h, t, bary = test_leaf(ray, w[:9], active & is_leaf, hit)
-        hit = keep(h, t, bary, lax.bitcast_convert_type(w[9], jnp.int32), hit)
+        if not postpone:
+            h, t, bary = test_leaf(ray, w[:9], active & is_leaf, hit)
+            hit = keep(h, t, bary, lax.bitcast_convert_type(w[9], jnp.int32), hit)
         sk = links_r[cls * nn + n]
         miss = lax.shift_right_arithmetic(sk, jnp.int32(_SKIP_SHIFT))
-        nxt_leaf = jnp.where(h, -1, miss) if any_hit else miss
+        nxt_leaf = jnp.where(h, -1, miss) if any_hit and not postpone else miss
         nxt = jnp.where(is_leaf, nxt_leaf, jnp.where(h_near, near, jnp.where(h_far, far, miss)))
         nxt = jnp.where(active, nxt, -1)
         if trail:
@@ -205,7 +236,10 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
             # As many hops as the warp needs (one or two fixed hops without the vote measured no faster).
             nxt, _, _, bits = lax.while_loop(lambda s: jnp.max(s[2].astype(jnp.int32)) > 0, hop,
                                              (nxt, sk & _SKIP_DEPTH, via, bits))
-        return nxt, hit, bits
+        if postpone:
+            nxt, hit, pend, tested = postponed(ray, n, active & is_leaf, nxt, hit, pend)
+            return nxt, hit, (bits, pend), tested
+        return nxt, hit, bits, active & is_leaf
 
     def field(d):
         # the four-wide trail: 3 bits for each depth 1-20, depths 1-10 in the first word, 11-20 in the second
@@ -277,7 +311,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
                 lambda s: jnp.max(s[3].astype(jnp.int32)) > 0, hop,
                 (nxt, lax.shift_right_logical(sk, 2) & _SKIP_DEPTH, sk & 3, via, t0, t1))
             bits = (t0, t1)
-        return nxt, hit, bits
+        return nxt, hit, bits, active & is_leaf
 
     def step_nodes(ray, node, hit, bits):
         # layout "inline": one 12-word row per node, an interior node's box or a leaf's triangle;
@@ -321,7 +355,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         nxt = jnp.where(box_hit, links_r[row], links_r[row + 1])
         if any_hit:
             nxt = jnp.where(any_h, -1, nxt)
-        return jnp.where(active, nxt, -1), hit, bits
+        return jnp.where(active, nxt, -1), hit, bits, leaf_hit
 
     def brute(ray, hit):
         # Every ray against every triangle of the (leaf-order) table, in index order: no tree, no
@@ -375,9 +409,15 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         return t, best, bv / det, bw / det
 
     def steps(ray, node, hit, bits):
+        # returns the state and, of the last step, where the warp ran the triangle test (`count_steps`)
         for _ in range(steps_per_iter):
-            node, hit, bits = step(ray, node, hit, bits)
-        return node, hit, bits
+            node, hit, bits, tested = step(ray, node, hit, bits)
+        return node, hit, bits, tested
+
+    def live(s):
+        # the loop runs while some ray of the program walks the tree or holds a noted leaf (`postpone`)
+        node = jnp.maximum(s[0], s[2][1]) if postpone else s[0]
+        return jnp.max(node) >= 0
 
     # One block of consecutive rays per program, traced until the slowest of them ends. The per-ray
     # constants are computed here (the XLA path's own function, bit for bit) rather than read: an XLA
@@ -394,30 +434,20 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         t_o[...], best_o[...], u_o[...], v_o[...] = finish(brute(ray, hit))
         return
     zi = jnp.zeros(shape, jnp.int32)
-    bits0 = (zi, zi) if layout == "wide" else zi
+    bits0 = (zi, zi - 1 if postpone else zi) if layout == "wide" or postpone else zi
     if not count_o:
-        _, hit, _ = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, lambda s: steps(ray, *s), (zi, hit, bits0))
+        _, hit, _ = lax.while_loop(live, lambda s: steps(ray, *s)[:3], (zi, hit, bits0))
         t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
         return
 
     # Counting (`traverse(..., count_steps=True)`, for measurements): the steps each ray takes, the
-    # loop iterations of its program and those in which some ray is at a leaf (the triangle test
-    # runs); a step's leaf test is read again from the row's code word.
-    width, code_word = _ROW_TABLES[layout]
-
-    def at_leaf(node):
-        n = jnp.maximum(node, 0)
-        code = box_r[n, code_word] if vector_loads else box_r[n * width + code_word]
-        return (node >= 0) & (lax.bitcast_convert_type(code, jnp.int32) > 0)
-
+    # loop iterations of its program and those in which the warp runs the triangle test.
     def counted(s):
         node, hit, bits, n_steps, n_iter, n_leaf = s
-        leafy = jnp.max(at_leaf(node).astype(jnp.int32))
-        nxt, hit, bits = steps(ray, node, hit, bits)
-        return nxt, hit, bits, n_steps + (node >= 0), n_iter + 1, n_leaf + leafy
+        nxt, hit, bits, tested = steps(ray, node, hit, bits)
+        return nxt, hit, bits, n_steps + (node >= 0), n_iter + 1, n_leaf + jnp.max(tested.astype(jnp.int32))
 
-    _, hit, _, n_steps, n_iter, n_leaf = lax.while_loop(lambda s: jnp.max(s[0]) >= 0, counted,
-                                                        (zi, hit, bits0, zi, zi, zi))
+    _, hit, _, n_steps, n_iter, n_leaf = lax.while_loop(live, counted, (zi, hit, bits0, zi, zi, zi))
     t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
     count_o[0][...], count_o[1][...], count_o[2][...] = n_steps, n_iter, n_leaf
 
@@ -597,6 +627,13 @@ BRUTE_FORCE_MAX_TRIANGLES = 0
 VECTOR_LOADS = True
 #: Triangles a brute-force loop iteration tests (written out in the kernel).
 BRUTE_FORCE_UNROLL = 4
+#: Child-box rows: leaves postponed (`traverse`'s postpone) unless a call says otherwise. Off: it halves
+#: the share of loop iterations that run the triangle test (the dragon's bounce rays: 54 -> 31 %,
+#: `benchmarks/brute_force.py --count`) but every kind of ray ran slower on an H200 (dragon bounce 399
+#: against 414 Mrays/s, camera 3624 against 3938; the environment-lit dragon's path-tracing pass 19.87
+#: against 19.59 ms): the kernel waits on its dependent node loads, not on the test's arithmetic, and a
+#: noted leaf's triangle is loaded a second time (BENCHMARKS.md, "Path tracing: postponed leaves").
+POSTPONE_LEAVES = False
 
 
 def default_layout(num_triangles: int, leaf_size: int) -> str:
@@ -611,7 +648,8 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
              tmax: Float[Array, " N"], *, any_hit: bool, leaf_size: int, block: int = 32,
              steps_per_iter: int = 1, num_warps: int = 1, interpret: bool = False, layout: str | None = None,
              gate_exact: bool = True, skip_tri: bool = True, trail: int = TRAIL_DEPTH, scalar_loads: bool = False,
-             unroll: int | None = None, vector_loads: bool | None = None, count_steps: bool = False):
+             unroll: int | None = None, vector_loads: bool | None = None, postpone: bool | None = None,
+             count_steps: bool = False):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `traverse_xla.traverse` (without the step counts).
 
@@ -638,7 +676,9 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
     read each triangle as scalars rather than as a gather whose lanes share one address; unroll
     (brute force): triangles tested per loop iteration (default `BRUTE_FORCE_UNROLL`). vector_loads
     (child-box and wide rows; default `VECTOR_LOADS`): read a row as 4-word vector loads instead of a
-    gather a word. All options give the same results; BENCHMARKS.md has their speeds.
+    gather a word. postpone (child-box rows; default `POSTPONE_LEAVES`): a ray at a leaf notes it and
+    walks on, and a warp tests its rays' noted leaves together, where one of them must (Aila and Laine
+    2009). All options give the same results; BENCHMARKS.md has their speeds.
     count_steps (child-box and wide layouts; with steps_per_iter 1): also return, per ray, the steps it
     took, its program's loop iterations, and those iterations in which some ray of the program was at a
     leaf (three (N,) int32 arrays after v) — a measurement, slower than the plain kernel.
@@ -660,14 +700,18 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
                      gate_exact=gate_exact, skip_tri=skip_tri, trail=trail, scalar_loads=scalar_loads,
                      unroll=BRUTE_FORCE_UNROLL if unroll is None else unroll,
                      vector_loads=(VECTOR_LOADS if vector_loads is None else vector_loads)
-                     and layout in _ROW_TABLES, count_steps=count_steps)
+                     and layout in _ROW_TABLES,
+                     postpone=(POSTPONE_LEAVES if postpone is None else postpone) and layout == "childbox",
+                     count_steps=count_steps)
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
                                              "interpret", "layout", "gate_exact", "skip_tri", "trail",
-                                             "scalar_loads", "unroll", "vector_loads", "count_steps"))
+                                             "scalar_loads", "unroll", "vector_loads", "postpone",
+                                             "count_steps"))
 def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, block, steps_per_iter, num_warps,
-              interpret, layout, gate_exact, skip_tri, trail, scalar_loads, unroll, vector_loads, count_steps):
+              interpret, layout, gate_exact, skip_tri, trail, scalar_loads, unroll, vector_loads, postpone,
+              count_steps):
     nn = arrays["node_box"].shape[0]
     nf = arrays["triangles"].shape[0]
     n = origins.shape[0]
@@ -709,7 +753,8 @@ def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, bl
         kw["compiler_params"] = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
     static = dict(any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf, nn=nn, layout=layout,
                   gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout in _ROW_TABLES else 0, block=block,
-                  scalar_loads=scalar_loads, unroll=unroll if layout == "brute" else 1, vector_loads=vector_loads)
+                  scalar_loads=scalar_loads, unroll=unroll if layout == "brute" else 1, vector_loads=vector_loads,
+                  postpone=postpone)
     name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
     ray_spec = pl.BlockSpec((block,), lambda i: (i,))
     outs = (f32, i32, f32, f32) + ((i32,) * 3 if count_steps else ())

@@ -109,6 +109,16 @@ GPU_COMPACT_MIN_TRIANGLES = 10_000
 # Where a compacted bounce's chunk is skipped (past the live count), whether its gathers and scatters
 # are skipped with it (inside the chunk's conditional) rather than run on nothing but dropped rows.
 COMPACT_IN_COND = True
+# Where a GPU compacts its bounces, whether each bounce traces the rays it makes (the next bounce's
+# closest hits) and finishes at once the paths whose ray escapes (the environment's emission), instead
+# of the next bounce tracing them first: the next bounce's chunks then hold only paths with a surface
+# to shade. A chunk's shading costs its whole size whatever share of it lives (one NVIDIA H200, the
+# environment-lit dragon: ~1 ms a chunk of 1.4M paths), so a path that only escapes costs a full slot;
+# and the emission-only last bounce needs no chunks where the scene has no emissive triangles. The
+# camera rays are traced before the first bounce. Off until measured on a GPU: the same images and
+# gradients as the other layouts (tests/integrators/test_path.py), speed unknown
+# (`bash benchmarks/device_call.sh ahead` measures it).
+GPU_TRACE_AHEAD = False
 _sg = lax.stop_gradient
 
 
@@ -361,15 +371,26 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     def uniforms(keys, k):
         return counter_uniforms(keys, k, _NU)
 
+    def env_emission(L, alive, found, d, tput, specular, pdf_prev):
+        # radiance of the environment reached by rays d that found no surface (MIS-weighted)
+        le = envmap.radiance(env, d)
+        w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_env * _sg(envmap.pdf(env, d))))
+        return L + jnp.where((alive & ~found)[:, None], tput * w[:, None] * le, 0.0)
+
     def work(k, carry, last: bool = False):
-        o, d, alive, tput, specular, pdf_prev, L, first, keys = carry
+        # One bounce of a chunk of paths. With `ahead` (the carry's hits, an `accel.Hit`, not None;
+        # see GPU_TRACE_AHEAD) each path's ray was traced where it was made and the paths whose ray
+        # escaped were finished there; else the bounce traces its paths' rays first.
+        o, d, alive, tput, specular, pdf_prev, L, first, ahead, keys = carry
         B = o.shape[0]  # the paths of one chunk
         # the bounce's random numbers, by key and bounce: on the CPU made once into a buffer
         # (`_stored`: XLA would otherwise remake the Threefry blocks in each consuming loop), on a GPU
         # remade where used (cheap there); neither stores them in the paths' state, which every
         # bounce would read, gather and scatter
         u = _stored(uniforms(keys, k), alive)
-        if on_cpu:
+        if ahead is not None:
+            hit = ahead
+        elif on_cpu:
             # the hit point and geometric normal come with the hit (Embree computes them from the
             # triangle it holds, on both cores; `geometry.intersect_surface`), so the glue gathers no
             # corners: the geometry is under stop_gradient here, so nothing differentiates them
@@ -378,7 +399,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             hit = intersect_active(geo, o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0
-        if first is not None:
+        if first is not None and ahead is None:
             first = jax.tree.map(lambda a, b: jnp.where(k == 0, b, a), first,
                                  dict(prim=prim, u=hit.u, v=hit.v, t=jnp.where(found, hit.t, 0.0), d=d))
         if not on_cpu:
@@ -386,10 +407,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         s = eqx.tree_at(lambda x: x.material, s, jnp.where(found, s.material, 0))
 
         # ---- emission found by the previous ray
-        if env is not None:
-            le = envmap.radiance(env, d)
-            w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_env * _sg(envmap.pdf(env, d))))
-            L = L + jnp.where((alive & ~found)[:, None], tput * w[:, None] * le, 0.0)
+        if env is not None and ahead is None:
+            L = env_emission(L, alive, found, d, tput, specular, pdf_prev)
         if table is not None:
             le = al.emission[s.material]
             cos_l = -dot(d, s.ng)
@@ -401,7 +420,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         if last:
             # vertex max_depth + 1 only collects the emission its ray found: no light sample, no
             # next direction (in the loop they would all be masked off by k < D)
-            return (o, d, jnp.zeros_like(alive), tput, specular, pdf_prev, L, first, keys)
+            return (o, d, jnp.zeros_like(alive), tput, specular, pdf_prev, L, first, ahead, keys)
         cont = found & (k < D)
         ng, ns, _ = oriented(s, d)
         frame = local_frame(ns, s.tangent)
@@ -525,7 +544,20 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         tput = jnp.where(rr, tput / q_rr[:, None], tput)
         good = alive & jnp.all(jnp.isfinite(tput), axis=-1)
         tput = jnp.where(good[:, None], tput, 0.0)
-        return (_sg(new_o), normalize(_sg(new_d)), good, tput, new_spec, _sg(new_pdf), L, first, keys)
+        new_o, new_d, new_pdf = _sg(new_o), normalize(_sg(new_d)), _sg(new_pdf)
+        if ahead is not None:
+            # the next ray traced now; a path whose ray escapes is finished here (the environment's
+            # emission), so the next bounce's chunks hold only paths with a surface to shade
+            good, L, ahead = trace_ahead(new_o, new_d, good, tput, new_spec, new_pdf, L)
+        return (new_o, new_d, good, tput, new_spec, new_pdf, L, first, ahead, keys)
+
+    def trace_ahead(o, d, alive, tput, specular, pdf_prev, L):
+        # (the paths still alive: those whose ray found a surface; the radiance; their hits)
+        hit = intersect_active(geo, o, d, alive)
+        found = alive & (hit.prim >= 0)
+        if env is not None:
+            L = env_emission(L, alive, found, d, tput, specular, pdf_prev)
+        return found, L, hit._replace(prim=jnp.where(found, hit.prim, -1))
 
     def trace(o0, d0, alive0, key_data, chunk):
         # the paths of one batch, from their camera rays to their ends: (radiance, first hits); each
@@ -537,10 +569,19 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
                  if aovs else None)
         # the throughput's dtype follows the material values so float64 tests stay float64
         one = jnp.ones((B, 3), jnp.result_type(float))
-        carry = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)), first, keys)
+        compact = on_cpu or geo.triangle_count >= GPU_COMPACT_MIN_TRIANGLES
+        state = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)))
+        ahead = None
+        if GPU_TRACE_AHEAD and compact and not on_cpu:
+            # the camera rays traced before the first bounce (see GPU_TRACE_AHEAD)
+            found, L0, ahead = trace_ahead(*state)
+            if aovs:
+                first = dict(prim=ahead.prim, u=ahead.u, v=ahead.v, t=jnp.where(found, ahead.t, 0.0), d=d0)
+            state = (o0, d0, found) + state[3:6] + (L0,)
+        carry = state + (first, ahead, keys)
         k0 = 0
         dense_at = CPU_DENSE_AT if on_cpu else None
-        if on_cpu or geo.triangle_count >= GPU_COMPACT_MIN_TRIANGLES:
+        if compact:
             def bounce(fn, c):
                 return _compacted(fn, c, chunk, dense_at)
         else:
@@ -551,7 +592,10 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             # (see GPU_WHOLE_FIRST_BOUNCE)
             carry, k0 = work(0, carry), 1
         carry = lax.fori_loop(k0, D, lambda k, c: bounce(lambda x: work(k, x), c), carry)
-        carry = bounce(lambda x: work(D, x, last=True), carry)
+        if ahead is None or table is not None:
+            # the emission found by the last rays: traced here, or (traced ahead) only the emissive
+            # triangles' (the environment's was added where the rays were traced)
+            carry = bounce(lambda x: work(D, x, last=True), carry)
         return carry[6], carry[7]
 
     xs = (o0, d0, alive0, jax.random.key_data(path_keys))

@@ -191,40 +191,59 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dens
     np.testing.assert_allclose(float(g), float(np.asarray(x)[alive].sum()), rtol=1e-5)
 
 
-@pytest.mark.slow  # ~20 s on 2 cores (two programs with the XLA traversal)
-def test_gpu_bounce_layouts_trace_the_same_paths(monkeypatch):
-    # The GPU's two layouts of a pass, made here by telling the path tracer it is not on the CPU:
-    # every bounce compacted (scenes of at least GPU_COMPACT_MIN_TRIANGLES), and every bounce on the
-    # whole batch (smaller scenes: `_compacted` is not called).
-    # A path's arithmetic and random numbers never depend on its neighbours, so radiance and first
-    # hits agree to the rounding of differently fused programs. The furnace's glossy sphere, 8x8
-    # pixels at 16 spp, depth 4 (paths die at different bounces: the later ones are compacted).
-    sc = _with_material(scene.load("furnace", overrides={"camera.width": 8, "camera.height": 8, "render.spp": 16,
-                                                         "render.max_depth": 4}), "glossy")
+@pytest.mark.slow  # ~60 s on 2 cores (five programs with the XLA traversal, a scene)
+@pytest.mark.parametrize("name", ["furnace", pytest.param("cornell_area", marks=pytest.mark.data)])
+def test_gpu_bounce_layouts_trace_the_same_paths(name, monkeypatch, request):
+    # The GPU's layouts of a pass, made here by telling the path tracer it is not on the CPU: every
+    # bounce compacted (scenes of at least GPU_COMPACT_MIN_TRIANGLES) with each bounce tracing the
+    # rays it makes (GPU_TRACE_AHEAD) or tracing its own first, and every bounce on the whole batch
+    # (smaller scenes: `_compacted` is not called). A path's arithmetic and random numbers never
+    # depend on its neighbours, so radiance, first hits and the gradient agree to the rounding of
+    # differently fused programs. The furnace's glossy sphere in its environment and the Cornell
+    # box with its emissive ceiling, 8x8 pixels at 16 spp, depth 4 (paths die at different bounces).
+    if name == "cornell_area":
+        request.getfixturevalue("data_dir")
+    sc = scene.load(name, overrides={"camera.width": 8, "camera.height": 8, "render.spp": 16, "render.max_depth": 4})
+    if name == "furnace":
+        sc = _with_material(sc, "glossy")
     monkeypatch.setattr(path, "_on_cpu", lambda: False)
     calls = []
     orig = path._compacted
     monkeypatch.setattr(path, "_compacted", lambda fn, carry, *a: calls.append(a) or orig(fn, carry, *a))
+    k = int(sc.materials.model_id[int(sc.geometry.material[0])])
+
+    def scaled(s_, x):  # the parameters of the first triangle's model scaled by x
+        params = list(s_.materials.params)
+        params[k] = jax.tree.map(lambda p: p * x, params[k])
+        return eqx.tree_at(lambda y: y.materials.params, s_, tuple(params))
 
     def run(**knobs):
-        for k, v in knobs.items():
-            monkeypatch.setattr(path, k, v)
+        for name_, v in knobs.items():
+            monkeypatch.setattr(path, name_, v)
         calls.clear()
         out = jax.jit(lambda s: path.samples(s, 2, jitter=True, aovs=True))(sc)
-        return out, list(calls)
+        n = len(calls)
+        g = jax.jit(jax.grad(lambda x: jnp.mean(path.samples(scaled(sc, x), 2, jitter=True))))(jnp.float32(0.9))
+        return out, n, g
 
-    (compacted, c0) = run(GPU_COMPACT_MIN_TRIANGLES=sc.geometry.triangle_count)
-    (whole, c1) = run(GPU_COMPACT_MIN_TRIANGLES=sc.geometry.triangle_count + 1)
+    n_tri = sc.geometry.triangle_count
+    ahead, c0, g0 = run(GPU_COMPACT_MIN_TRIANGLES=n_tri, GPU_TRACE_AHEAD=True)
+    own, c1, g1 = run(GPU_COMPACT_MIN_TRIANGLES=n_tri, GPU_TRACE_AHEAD=False)
+    whole, c2, g2 = run(GPU_COMPACT_MIN_TRIANGLES=n_tri + 1, GPU_TRACE_AHEAD=True)  # (not compacted: no ahead)
     # the skipped chunks' gathers and scatters run on dropped rows instead of inside the conditional
-    (outside, c2) = run(GPU_COMPACT_MIN_TRIANGLES=sc.geometry.triangle_count, COMPACT_IN_COND=False)
-    assert len(c0) == 2 and len(c1) == 0 and len(c2) == 2  # (the loop's body is traced once, then the last bounce)
-    for other in (whole, outside):
-        for a, b in zip(jax.tree.leaves(compacted), jax.tree.leaves(other), strict=True):
+    outside, c3, g3 = run(GPU_COMPACT_MIN_TRIANGLES=n_tri, COMPACT_IN_COND=False, GPU_TRACE_AHEAD=True)
+    # (the loop's body is traced once, then the last bounce: traced ahead, only for emissive triangles)
+    emissive = sc.area_lights is not None and sc.area_lights.count > 0
+    assert (c0, c1, c2, c3) == (1 + emissive, 2, 0, 1 + emissive)
+    for other in (own, whole, outside):
+        for a, b in zip(jax.tree.leaves(ahead), jax.tree.leaves(other), strict=True):
             if np.issubdtype(np.asarray(a).dtype, np.integer):
                 np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
             else:
                 np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-5, atol=1e-6)
-    assert float(jnp.mean(compacted[0])) > 0
+    assert float(jnp.mean(ahead[0])) > 0
+    assert abs(float(g0)) > 1e-3
+    np.testing.assert_allclose([float(g1), float(g2), float(g3)], float(g0), rtol=1e-4)
 
 
 @pytest.mark.slow  # 17-20 s on 2 cores

@@ -8,6 +8,9 @@ bounce runs on the live paths only, compacted into chunks (`_compacted`: the dea
 memory traffic nor traversal lanes), so short paths cost little whatever max_depth is; on a GPU only
 in scenes of at least `GPU_COMPACT_MIN_TRIANGLES` triangles, where traversal outweighs moving the
 paths' state. On the CPU the paths go in batches of a few chunks, one after another (`_batch_sizes`).
+Where `CPU_TRACE_AHEAD` (on) or `GPU_TRACE_AHEAD` (off) holds, a bounce traces the rays it makes
+(the camera rays are traced before the first) and finishes the paths whose ray escapes at once, so
+the next bounce's chunks hold only paths with a surface to shade.
 
 Estimator (pbrt-v4's PathIntegrator, power heuristic with β = 2). At each path vertex:
 
@@ -119,6 +122,11 @@ COMPACT_IN_COND = True
 # gradients as the other layouts (tests/integrators/test_path.py), speed unknown
 # (`bash benchmarks/device_call.sh ahead` measures it).
 GPU_TRACE_AHEAD = False
+# The same on the CPU (every CPU pass compacts; its surfaces come from the traversal, so a bounce carries
+# each hit's surface too). One device of this 2-core VM, `benchmarks/path_ab.py` at 256² (16 spp, depth
+# 4, medians of 5-7 alternating with the pass without it): the environment-lit dragon -14.6 % wall time
+# (-12.4 % CPU time), the Cornell box -1.1 % (its paths seldom escape); compile time unchanged.
+CPU_TRACE_AHEAD = True
 _sg = lax.stop_gradient
 
 
@@ -378,9 +386,10 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         return L + jnp.where((alive & ~found)[:, None], tput * w[:, None] * le, 0.0)
 
     def work(k, carry, last: bool = False):
-        # One bounce of a chunk of paths. With `ahead` (the carry's hits, an `accel.Hit`, not None;
-        # see GPU_TRACE_AHEAD) each path's ray was traced where it was made and the paths whose ray
-        # escaped were finished there; else the bounce traces its paths' rays first.
+        # One bounce of a chunk of paths. With `ahead` (not None: the carry's hits, an `accel.Hit`, and
+        # on the CPU the surfaces there; see GPU_TRACE_AHEAD, CPU_TRACE_AHEAD) each path's ray was
+        # traced where it was made and the paths whose ray escaped were finished there; else the
+        # bounce traces its paths' rays first.
         o, d, alive, tput, specular, pdf_prev, L, first, ahead, keys = carry
         B = o.shape[0]  # the paths of one chunk
         # the bounce's random numbers, by key and bounce: on the CPU made once into a buffer
@@ -389,7 +398,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         # bounce would read, gather and scatter
         u = _stored(uniforms(keys, k), alive)
         if ahead is not None:
-            hit = ahead
+            hit, s = ahead  # (the surface at the hit on the CPU, where the traversal makes it; else None)
         elif on_cpu:
             # the hit point and geometric normal come with the hit (Embree computes them from the
             # triangle it holds, on both cores; `geometry.intersect_surface`), so the glue gathers no
@@ -552,12 +561,16 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         return (new_o, new_d, good, tput, new_spec, new_pdf, L, first, ahead, keys)
 
     def trace_ahead(o, d, alive, tput, specular, pdf_prev, L):
-        # (the paths still alive: those whose ray found a surface; the radiance; their hits)
-        hit = intersect_active(geo, o, d, alive)
+        # (the paths still alive: those whose ray found a surface; the radiance; their hits and, on the
+        # CPU, the surfaces there)
+        if on_cpu:
+            hit, s = intersect_surface_active(geo, o, d, alive)
+        else:
+            hit, s = intersect_active(geo, o, d, alive), None
         found = alive & (hit.prim >= 0)
         if env is not None:
             L = env_emission(L, alive, found, d, tput, specular, pdf_prev)
-        return found, L, hit._replace(prim=jnp.where(found, hit.prim, -1))
+        return found, L, (hit._replace(prim=jnp.where(found, hit.prim, -1)), s)
 
     def trace(o0, d0, alive0, key_data, chunk):
         # the paths of one batch, from their camera rays to their ends: (radiance, first hits); each
@@ -572,11 +585,12 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         compact = on_cpu or geo.triangle_count >= GPU_COMPACT_MIN_TRIANGLES
         state = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)))
         ahead = None
-        if GPU_TRACE_AHEAD and compact and not on_cpu:
+        if CPU_TRACE_AHEAD if on_cpu else (GPU_TRACE_AHEAD and compact):
             # the camera rays traced before the first bounce (see GPU_TRACE_AHEAD)
             found, L0, ahead = trace_ahead(*state)
             if aovs:
-                first = dict(prim=ahead.prim, u=ahead.u, v=ahead.v, t=jnp.where(found, ahead.t, 0.0), d=d0)
+                h = ahead[0]
+                first = dict(prim=h.prim, u=h.u, v=h.v, t=jnp.where(found, h.t, 0.0), d=d0)
             state = (o0, d0, found) + state[3:6] + (L0,)
         carry = state + (first, ahead, keys)
         k0 = 0

@@ -183,8 +183,8 @@ def test_pallas_layout_variants_agree():
     packed = dict(arrays, **dict(zip(("rows", "skips"), bvh_pallas.pack_tables(**arrays))))
     variants = (dict(arr=packed), dict(trail=0), dict(trail=2), dict(vector_loads=False),
                 dict(arr=packed, vector_loads=False), dict(layout="wide"), dict(layout="wide", trail=0),
-                dict(layout="wide", trail=2, vector_loads=False), dict(gate_exact=False), dict(postpone=True), dict(layout="inline"),
-                dict(layout="tables"), dict(skip_tri=False), dict(layout="tables", block=32),
+                dict(layout="wide", trail=2, vector_loads=False), dict(gate_exact=False), dict(postpone=True),
+                dict(layout="inline"), dict(layout="tables"), dict(skip_tri=False), dict(layout="tables", block=32),
                 dict(layout="inline", steps_per_iter=3), dict(layout="brute"), dict(layout="brute", scalar_loads=True),
                 dict(layout="brute", block=32))
     for kw in variants:

@@ -246,6 +246,37 @@ def test_gpu_bounce_layouts_trace_the_same_paths(name, monkeypatch, request):
     np.testing.assert_allclose([float(g1), float(g2), float(g3)], float(g0), rtol=1e-4)
 
 
+@pytest.mark.slow  # ~40 s on 2 cores
+def test_cpu_trace_ahead_traces_the_same_paths(furnace, monkeypatch):
+    # On the CPU (its own route: Embree's surfaces, dense and compacted batches) each bounce tracing
+    # the rays it makes (`path.CPU_TRACE_AHEAD`) against each bounce tracing its rays first: the same
+    # radiance, first hits and gradient to the rounding of differently fused programs.
+    sc = _with_material(furnace, "glossy")
+    monkeypatch.setattr(path, "_on_cpu", lambda: True)
+    monkeypatch.setattr(path, "CPU_CHUNK", 2048)  # (several chunks and batches, some of them dense)
+    k = int(sc.materials.model_id[int(sc.geometry.material[0])])
+
+    def scaled(x):
+        params = list(sc.materials.params)
+        params[k] = jax.tree.map(lambda p: p * x, params[k])
+        return eqx.tree_at(lambda y: y.materials.params, sc, tuple(params))
+
+    out = {}
+    for ahead in (True, False):
+        monkeypatch.setattr(path, "CPU_TRACE_AHEAD", ahead)
+        img = jax.jit(lambda s: path.samples(s, 3, jitter=True, aovs=True))(sc)
+        g = jax.jit(jax.grad(lambda x: jnp.mean(path.samples(scaled(x), 3, jitter=True))))(jnp.float32(0.9))
+        out[ahead] = img, g
+    (a, ga), (b, gb) = out[True], out[False]
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        if np.issubdtype(np.asarray(x).dtype, np.integer):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        else:
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
+    assert float(jnp.mean(a[0])) > 0.5 and abs(float(ga)) > 1e-3
+    np.testing.assert_allclose(float(ga), float(gb), rtol=1e-4)
+
+
 @pytest.mark.slow  # 17-20 s on 2 cores
 def test_unconditional_bounces_equal_skipped_dead_bounces(furnace, monkeypatch):
     # On a GPU every bounce runs (no `lax.cond` skipping a batch whose paths are all dead): dead

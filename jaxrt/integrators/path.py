@@ -123,7 +123,7 @@ COMPACT_IN_COND = True
 # (`bash benchmarks/device_call.sh ahead` measures it).
 GPU_TRACE_AHEAD = False
 # The same on the CPU (every CPU pass compacts; its surfaces come from the traversal, so a bounce carries
-# each hit's surface too). One device of this 2-core VM, `benchmarks/path_ab.py` at 256² (16 spp, depth
+# each hit's surface too). One CPU device of a 2-core VM, `benchmarks/path_ab.py` at 256² (16 spp, depth
 # 4, medians of 5-7 alternating with the pass without it): the environment-lit dragon -14.6 % wall time
 # (-12.4 % CPU time), the Cornell box -1.1 % (its paths seldom escape); compile time unchanged.
 CPU_TRACE_AHEAD = True

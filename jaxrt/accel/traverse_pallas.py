@@ -52,9 +52,8 @@ _SKIP_DEPTH = 31
 _WIDE_ROW = 32  # words per node row of the four-wide tree (see pack_wide)
 _WIDE_SHIFT = 7  # its skip entries: miss link << 7 | depth << 2 | position among its siblings
 _WIDE_TRAIL = 20  # depths of the four-wide tree with trail fields (3 bits each, in two int32 words)
-# The layouts whose node table holds one row per node (packed once per tree by `pack_tables`): words a
-# row, and the word holding the row's code (1: leaf; -(depth + 1): interior).
-_ROW_TABLES = {"childbox": (_CB_ROW, 15), "wide": (_WIDE_ROW, 29)}
+# The layouts whose node table holds one row per node (packed once per tree by `pack_tables`): words a row.
+_ROW_TABLES = {"childbox": _CB_ROW, "wide": _WIDE_ROW}
 
 
 def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *count_o, any_hit: bool,
@@ -69,7 +68,7 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
         # the L1 cache serves each gather instruction as up to 32 separate requests: the kernel is
         # bound by that throughput, and a 16-byte load asks it once for four words.
         if not vector_loads:
-            r = n * _ROW_TABLES[layout][0]
+            r = n * _ROW_TABLES[layout]
             return [box_r[r + k] for k in range(words)]
         from jax.experimental import pallas as pl
 
@@ -725,7 +724,7 @@ def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, bl
     box, leaf, tri = arrays["node_box"], arrays["node_leaf"], arrays["triangles"]
     links = arrays["links"]
     if layout in _ROW_TABLES:
-        if arrays.get("rows") is not None and arrays["rows"].shape[1] == _ROW_TABLES[layout][0]:  # the tree's own
+        if arrays.get("rows") is not None and arrays["rows"].shape[1] == _ROW_TABLES[layout]:  # the tree's own
             box, links = arrays["rows"], arrays["skips"]
         else:
             box, links = pack_tables(box, leaf, links, tri, layout)

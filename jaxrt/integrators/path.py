@@ -385,6 +385,15 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_env * _sg(envmap.pdf(env, d))))
         return L + jnp.where((alive & ~found)[:, None], tput * w[:, None] * le, 0.0)
 
+    def closest_hits(o, d, alive):
+        # (hits, surfaces there or None). On the CPU the hit point and geometric normal come with the
+        # hit (Embree computes them from the triangle it holds, on both cores;
+        # `geometry.intersect_surface`), so the glue gathers no corners: the geometry is under
+        # stop_gradient here, so nothing differentiates them. A GPU pass gathers them (`geo.surface`).
+        if on_cpu:
+            return intersect_surface_active(geo, o, d, alive)
+        return intersect_active(geo, o, d, alive), None
+
     def work(k, carry, last: bool = False):
         # One bounce of a chunk of paths. With `ahead` (not None: the carry's hits, an `accel.Hit`, and
         # on the CPU the surfaces there; see GPU_TRACE_AHEAD, CPU_TRACE_AHEAD) each path's ray was
@@ -397,15 +406,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         # remade where used (cheap there); neither stores them in the paths' state, which every
         # bounce would read, gather and scatter
         u = _stored(uniforms(keys, k), alive)
-        if ahead is not None:
-            hit, s = ahead  # (the surface at the hit on the CPU, where the traversal makes it; else None)
-        elif on_cpu:
-            # the hit point and geometric normal come with the hit (Embree computes them from the
-            # triangle it holds, on both cores; `geometry.intersect_surface`), so the glue gathers no
-            # corners: the geometry is under stop_gradient here, so nothing differentiates them
-            hit, s = intersect_surface_active(geo, o, d, alive)
-        else:
-            hit = intersect_active(geo, o, d, alive)
+        hit, s = ahead if ahead is not None else closest_hits(o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0
         if first is not None and ahead is None:
@@ -563,10 +564,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     def trace_ahead(o, d, alive, tput, specular, pdf_prev, L):
         # (the paths still alive: those whose ray found a surface; the radiance; their hits and, on the
         # CPU, the surfaces there)
-        if on_cpu:
-            hit, s = intersect_surface_active(geo, o, d, alive)
-        else:
-            hit, s = intersect_active(geo, o, d, alive), None
+        hit, s = closest_hits(o, d, alive)
         found = alive & (hit.prim >= 0)
         if env is not None:
             L = env_emission(L, alive, found, d, tput, specular, pdf_prev)

@@ -214,10 +214,11 @@ PY
                   stage pass-parts-dragon 90 python3 benchmarks/pass_parts.py --scene dragon
                   stage profile-image-cornell 60 python3 benchmarks/gpu_profile.py image-cornell --size 512 --repeats 5 --top 12 ;;
         profile-rays) stage profile-rays 60 python3 benchmarks/gpu_profile.py rays-dragon --size 1024 --repeats 10 ;;
-        ahead)    # compacted GPU bounces that trace the rays they make (`path.GPU_TRACE_AHEAD`) against the
-                  # default, on the environment-lit dragon (the Cornell box's pass is not compacted)
+        ahead)    # compacted GPU bounces that trace the rays they make (`path.GPU_TRACE_AHEAD`, the default)
+                  # against each bounce tracing its own rays first, on the environment-lit dragon (the Cornell
+                  # box's pass is not compacted)
                   stage path-ahead 200 python3 benchmarks/path_chunks.py --size 512 --repeats 9 --scenes dragon \
-                      --knobs "" GPU_TRACE_AHEAD=True "" GPU_TRACE_AHEAD=True ;;
+                      --knobs "" GPU_TRACE_AHEAD=False "" GPU_TRACE_AHEAD=False ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

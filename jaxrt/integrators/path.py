@@ -2,15 +2,17 @@
 
 `integrator = "path"`. Every pixel sample is one path; the B = H·W·spp paths advance together
 (wavefront style), one bounce per iteration of a `lax.fori_loop` (a scan: BVH traversal is compiled
-once, not once per bounce, and the loop is reverse-differentiable), then one last ray query that only
-collects the emission found after max_depth vertices (no light sample or next direction there). Each
+once, not once per bounce, and the loop is reverse-differentiable), then, unless the rays are traced
+ahead (below), one last ray query that only collects the emission found after max_depth vertices (no
+light sample or next direction there). Each
 bounce runs on the live paths only, compacted into chunks (`_compacted`: the dead ones cost neither
 memory traffic nor traversal lanes), so short paths cost little whatever max_depth is; on a GPU only
 in scenes of at least `GPU_COMPACT_MIN_TRIANGLES` triangles, where traversal outweighs moving the
 paths' state. On the CPU the paths go in batches of a few chunks, one after another (`_batch_sizes`).
 Where `CPU_TRACE_AHEAD` or `GPU_TRACE_AHEAD` holds (both on), a bounce traces the rays it makes
-(the camera rays are traced before the first) and finishes the paths whose ray escapes at once, so
-the next bounce's chunks hold only paths with a surface to shade.
+(the camera rays are traced before the first), adds the emission they find (environment or emissive
+triangle) and finishes the paths whose ray escapes at once, so the next bounce's chunks hold only
+paths with a surface to shade and no bounce after the last is needed.
 
 Estimator (pbrt-v4's PathIntegrator, power heuristic with β = 2). At each path vertex:
 
@@ -113,11 +115,11 @@ GPU_COMPACT_MIN_TRIANGLES = 10_000
 # are skipped with it (inside the chunk's conditional) rather than run on nothing but dropped rows.
 COMPACT_IN_COND = True
 # Where a GPU compacts its bounces, whether each bounce traces the rays it makes (the next bounce's
-# closest hits) and finishes at once the paths whose ray escapes (the environment's emission), instead
+# closest hits), adds the emission they find and finishes at once the paths whose ray escapes, instead
 # of the next bounce tracing them first: the next bounce's chunks then hold only paths with a surface
 # to shade. A chunk's shading costs its whole size whatever share of it lives (one NVIDIA H200, the
 # environment-lit dragon: ~1 ms a chunk of 1.4M paths), so a path that only escapes costs a full slot;
-# and the emission-only last bounce needs no chunks where the scene has no emissive triangles. The
+# and the emission-only bounce after the last is not needed. The
 # camera rays are traced before the first bounce. One NVIDIA H200, the environment-lit dragon at 512²
 # (16 spp, depth 4, `benchmarks/path_chunks.py`, medians of 9 passes, two alternations in one process):
 # 19.4 -> 16.3 ms a pass, pixels equal, first call 8.9 -> 8.5 s (the last bounce's body goes away).
@@ -125,7 +127,9 @@ GPU_TRACE_AHEAD = True
 # The same on the CPU (every CPU pass compacts; its surfaces come from the traversal, so a bounce carries
 # each hit's surface too). One CPU device of a 2-core VM, `benchmarks/path_ab.py` at 256² (16 spp, depth
 # 4, medians of 5-7 alternating with the pass without it): the environment-lit dragon -14.6 % wall time
-# (-12.4 % CPU time), the Cornell box -1.1 % (its paths seldom escape); compile time unchanged.
+# (-12.4 % CPU time), the Cornell box -1.1 % (its paths seldom escape); compile time unchanged. The
+# emissive triangles' light collected where the rays are traced too (no bounce after the last): the
+# Cornell box a further +3.9, -7.1, -5.7 % wall time in three such A/Bs (medians of 9, 9, 21 passes).
 CPU_TRACE_AHEAD = True
 _sg = lax.stop_gradient
 
@@ -385,6 +389,16 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_env * _sg(envmap.pdf(env, d))))
         return L + jnp.where((alive & ~found)[:, None], tput * w[:, None] * le, 0.0)
 
+    def tri_emission(L, found, prim, t, s, d, tput, specular, pdf_prev):
+        # radiance of the emissive triangles that rays d found (MIS-weighted against the light sample
+        # that could have picked the same point: area pdf to solid angle, t² / cos at the light)
+        le = al.emission[s.material]
+        cos_l = -dot(d, s.ng)
+        t = jnp.where(found, t, 0.0)
+        p_l = p_tri * table.face_pdf[jnp.maximum(prim, 0)] * t * t / jnp.where(cos_l > 0, cos_l, 1.0)
+        w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_l))
+        return L + jnp.where((found & (cos_l > 0))[:, None], tput * w[:, None] * le, 0.0)
+
     def closest_hits(o, d, alive):
         # (hits, surfaces there or None). On the CPU the hit point and geometric normal come with the
         # hit (Embree computes them from the triangle it holds, on both cores;
@@ -419,13 +433,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         # ---- emission found by the previous ray
         if env is not None and ahead is None:
             L = env_emission(L, alive, found, d, tput, specular, pdf_prev)
-        if table is not None:
-            le = al.emission[s.material]
-            cos_l = -dot(d, s.ng)
-            t = jnp.where(found, hit.t, 0.0)
-            p_l = p_tri * table.face_pdf[jnp.maximum(prim, 0)] * t * t / jnp.where(cos_l > 0, cos_l, 1.0)
-            w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_l))
-            L = L + jnp.where((found & (cos_l > 0))[:, None], tput * w[:, None] * le, 0.0)
+        if table is not None and ahead is None:
+            L = tri_emission(L, found, prim, hit.t, s, d, tput, specular, pdf_prev)
 
         if last:
             # vertex max_depth + 1 only collects the emission its ray found: no light sample, no
@@ -562,13 +571,21 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         return (new_o, new_d, good, tput, new_spec, new_pdf, L, first, ahead, keys)
 
     def trace_ahead(o, d, alive, tput, specular, pdf_prev, L):
-        # (the paths still alive: those whose ray found a surface; the radiance; their hits and, on the
-        # CPU, the surfaces there)
+        # (the paths still alive: those whose ray found a surface; the radiance with the emission the
+        # rays found, environment and emissive triangles, so that no bounce after the last is needed;
+        # their hits and, on the CPU, the surfaces there)
         hit, s = closest_hits(o, d, alive)
         found = alive & (hit.prim >= 0)
+        prim = jnp.where(found, hit.prim, -1)
         if env is not None:
             L = env_emission(L, alive, found, d, tput, specular, pdf_prev)
-        return found, L, (hit._replace(prim=jnp.where(found, hit.prim, -1)), s)
+        if table is not None:
+            # (a GPU gathers the surfaces' material and normal here and again where the next bounce
+            # shades them: XLA keeps only what each use reads)
+            se = s if s is not None else geo.surface(prim, hit.u, hit.v)
+            se = eqx.tree_at(lambda x: x.material, se, jnp.where(found, se.material, 0))
+            L = tri_emission(L, found, prim, hit.t, se, d, tput, specular, pdf_prev)
+        return found, L, (hit._replace(prim=prim), s)
 
     def trace(o0, d0, alive0, key_data, chunk):
         # the paths of one batch, from their camera rays to their ends: (radiance, first hits); each
@@ -604,9 +621,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             # (see GPU_WHOLE_FIRST_BOUNCE)
             carry, k0 = work(0, carry), 1
         carry = lax.fori_loop(k0, D, lambda k, c: bounce(lambda x: work(k, x), c), carry)
-        if ahead is None or table is not None:
-            # the emission found by the last rays: traced here, or (traced ahead) only the emissive
-            # triangles' (the environment's was added where the rays were traced)
+        if ahead is None:
+            # the emission found by the last rays (traced ahead, it was added where they were traced)
             carry = bounce(lambda x: work(D, x, last=True), carry)
         return carry[6], carry[7]
 

@@ -90,8 +90,16 @@ def uniform_at(key, index: Int[Array, "..."], size: int) -> Float[Array, "..."]:
     if str(jax.random.key_impl(key)) != "threefry2x32":  # pragma: no cover - a non-default PRNG
         return jax.random.uniform(key, (size,), jnp.float32)[index]
     k1, k2 = jax.random.key_data(key)
-    i = index.astype(jnp.uint32)
-    k1, k2 = (jnp.broadcast_to(k, i.shape) for k in (k1, k2))
+    return _threefry_uniform(k1, k2, index, size)
+
+
+def _threefry_uniform(k1, k2, index, size: int):
+    """`uniform_at` for Threefry key words k1, k2 that broadcast against `index` (one key per
+    element, say), bit for bit."""
+    i = jnp.asarray(index).astype(jnp.uint32)
+    shape = jnp.broadcast_shapes(i.shape, jnp.shape(k1), jnp.shape(k2))
+    i = jnp.broadcast_to(i, shape)
+    k1, k2 = (jnp.broadcast_to(k, shape) for k in (k1, k2))
     if jax.config.jax_threefry_partitionable:
         b1, b2 = _random.threefry2x32(k1, k2, jnp.zeros_like(i), i)
         bits = b1 ^ b2
@@ -138,13 +146,24 @@ def generate_rays(
     jitter = spp > 1 if jitter is None else jitter
     h, w = camera.height, camera.width
     key = jax.random.key(jnp.asarray(seed, jnp.uint32))
+
+    def per_sample(samples, flat, c: int):
+        # the first c of each sample's 4 numbers: element `flat` of jax.random.uniform(k, (h, w, 4))
+        # of the sample's key k (bit for bit, without JAX's rolled loop over every ray of the pass on
+        # the CPU, `jaxrt._random`), made directly as (rows, columns, samples, c): made per sample and
+        # then transposed, XLA:CPU fused each number's Threefry hash into its own transposing loop (a
+        # tenth of a 256² path-tracing pass)
+        keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(samples)
+        flat = flat[:, :, None, :c]
+        if str(jax.random.key_impl(key)) != "threefry2x32":  # pragma: no cover - a non-default PRNG
+            return jnp.moveaxis(jax.vmap(lambda k: uniform_at(k, flat[:, :, 0], h * w * 4))(keys), 0, 2)
+        kd = jax.random.key_data(keys)[None, None, :, None, :]  # (1, 1, spp, 1, 2)
+        return _threefry_uniform(kd[..., 0], kd[..., 1], flat, h * w * 4)
+
     if window is None:
-        def uniforms():
-            keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(jnp.arange(spp))
-            # jax.random.uniform(k, (h, w, 4)) of each sample's key, bit for bit, without JAX's rolled
-            # loop over every ray of the pass on the CPU (`jaxrt._random`)
+        def uniforms(c):
             flat = jnp.arange(h * w * 4, dtype=jnp.uint32).reshape(h, w, 4)
-            return jax.vmap(lambda k: uniform_at(k, flat, h * w * 4))(keys)  # (spp, h, w, 4)
+            return per_sample(jnp.arange(spp), flat, c)  # (h, w, spp, c)
         rows = jnp.arange(h, dtype=jnp.float32)[:, None, None]
         cols = jnp.arange(w, dtype=jnp.float32)[None, :, None]
         shape = (h, w, spp)
@@ -157,9 +176,8 @@ def generate_rays(
         # the flat index of (row, column, channel) in each sample's (h, w, 4) array of uniforms
         flat = (ri[:, None, None] * w + ci[None, :, None]) * 4 + jnp.arange(4)[None, None, :]
 
-        def uniforms():
-            keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(window.sample0 + jnp.arange(window.spp))
-            return jax.vmap(lambda k: uniform_at(k, flat, h * w * 4))(keys)  # (spp, th, tw, 4)
+        def uniforms(c):
+            return per_sample(window.sample0 + jnp.arange(window.spp), flat, c)  # (th, tw, spp, c)
         rows = ri.astype(jnp.float32)[:, None, None]
         cols = ci.astype(jnp.float32)[None, :, None]
         shape = (window.height, window.width, window.spp)
@@ -173,9 +191,8 @@ def generate_rays(
     r, up, f = basis(camera)
 
     def random(u):
-        # (spp, h, w, 4) -> (h, w, spp, 4), or their rows at `order`
-        u = jnp.moveaxis(u, 0, 2)
-        return u if order is None else u.reshape(-1, 4)[order]
+        # (h, w, spp, c), or its rows at `order`
+        return u if order is None else u.reshape(-1, u.shape[-1])[order]
 
     def rays(u):
         sub = u[..., :2] if jitter else jnp.full(shape + (2,), 0.5, jnp.float32)
@@ -184,7 +201,7 @@ def generate_rays(
         x = (2.0 * (cols + sub[..., 0]) / w - 1.0) * tan_half * aspect
         y = (1.0 - 2.0 * (rows + sub[..., 1]) / h) * tan_half
         d = x[..., None] * r + y[..., None] * up + f  # (h, w, spp, 3) or (N, 3), unnormalised: f-component 1
-        if u is None:
+        if u is None or u.shape[-1] < 4:
             # a pinhole: the lens point below with radius 0, the same for every ray, made once
             lens = jnp.float32(0.0) * r + jnp.float32(0.0) * up
         else:
@@ -202,10 +219,14 @@ def generate_rays(
         d = d / jnp.sqrt(dot(d, d))[..., None]
         return o.reshape(-1, 3), d.reshape(-1, 3)
 
-    if jitter:
-        return rays(random(uniforms()))
-    # Pixel centres use no random numbers and a pinhole (aperture 0) neither: its lens point is 0
-    # whatever they are. Skipping them and the per-ray lens (one threefry hash per number, a sqrt,
-    # cos and sin per ray: ~4 % and more of a 512² direct frame on the CPU) leaves every ray bit for
-    # bit the same.
-    return lax.cond(camera.aperture > 0, lambda: rays(random(uniforms())), lambda: rays(None))
+    # Pixel centres use no random numbers and a pinhole (aperture 0) needs no lens point: it is 0
+    # whatever its numbers are. Skipping them and the per-ray lens (one threefry hash per number, a
+    # sqrt, cos and sin per ray: ~4 % and more of a 512² direct frame on the CPU) leaves every ray bit
+    # for bit the same. On a GPU the conditional would wait for the device to read the aperture, and
+    # the numbers cost little there: a jittered pass makes all four.
+    lensed = lambda: rays(random(uniforms(4)))  # noqa: E731
+    if not jitter:
+        return lax.cond(camera.aperture > 0, lensed, lambda: rays(None))
+    if jax.default_backend() != "cpu":
+        return lensed()
+    return lax.cond(camera.aperture > 0, lensed, lambda: rays(random(uniforms(2))))

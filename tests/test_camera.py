@@ -95,3 +95,31 @@ def test_rays_made_in_a_given_order_are_those_rays(aperture, spp):
     owo, dwo = (np.asarray(x) for x in gen(cam, win))
     np.testing.assert_array_max_ulp(owo, ow[wperm], maxulp=4)
     close(dwo, dw[wperm])
+
+
+@pytest.mark.parametrize("aperture", [0.0, 0.3])
+def test_jittered_rays_use_jax_random_uniform_of_each_samples_key(aperture):
+    # Sample s of pixel (r, c) is jittered by elements (r, c, 0:2) of jax.random.uniform(k_s, (h, w, 4))
+    # with k_s = fold_in(key(seed), s), and with a lens its point on the lens disk by (r, c, 2:4). A pinhole
+    # makes only the jitter's numbers (on the CPU), a lens all four: both must be these numbers. Reference:
+    # the same rays made from those uniforms in float64 (pixel point -> image plane -> lens).
+    h, w, spp, seed = 5, 7, 3, 11
+    cam = _cam(aperture, focus=4.0, w=w, h=h)
+    o, d = (np.asarray(x, np.float64).reshape(h, w, spp, 3) for x in generate_rays(cam, spp=spp, seed=seed, jitter=True))
+    key = jax.random.key(seed)
+    u = np.stack([np.asarray(jax.random.uniform(jax.random.fold_in(key, s), (h, w, 4), jnp.float32), np.float64)
+                  for s in range(spp)], axis=2)  # (h, w, spp, 4)
+    pos, at, up = np.array([1.0, 2.0, 3.0]), np.array([0.0, 0.5, -1.0]), np.array([0.0, 1.0, 0.0])
+    f = (at - pos) / np.linalg.norm(at - pos)
+    r = np.cross(f, up); r /= np.linalg.norm(r)
+    v = np.cross(r, f)
+    t = np.tan(np.radians(35.0) / 2)
+    cols, rows = np.arange(w)[None, :, None], np.arange(h)[:, None, None]
+    x = (2 * (cols + u[..., 0]) / w - 1) * t * w / h
+    y = (1 - 2 * (rows + u[..., 1]) / h) * t
+    target = pos + 4.0 * (x[..., None] * r + y[..., None] * v + f)  # the pixel point on the focus plane
+    lr, phi = 0.5 * aperture * np.sqrt(u[..., 2]), 2 * np.pi * u[..., 3]
+    lens = pos + (lr * np.cos(phi))[..., None] * r + (lr * np.sin(phi))[..., None] * v
+    ref_d = (target - lens) / np.linalg.norm(target - lens, axis=-1, keepdims=True)
+    np.testing.assert_allclose(o, lens, atol=2e-6)
+    np.testing.assert_allclose(d, ref_d, atol=2e-6)

@@ -219,6 +219,12 @@ PY
                   # box's pass is not compacted)
                   stage path-ahead 200 python3 benchmarks/path_chunks.py --size 512 --repeats 9 --scenes dragon \
                       --knobs "" GPU_TRACE_AHEAD=False "" GPU_TRACE_AHEAD=False ;;
+        last-rays)  # the last vertex's rays tested against the emitters with an any-hit query (`path.LAST_RAYS_EMITTERS`,
+                  # the default) against their closest hits, on the Cornell box (whole-batch bounces), twice in one
+                  # process; then that pass's kernels
+                  stage path-last-rays 200 python3 benchmarks/path_chunks.py --size 512 --repeats 9 --scenes cornell \
+                      --knobs "" LAST_RAYS_EMITTERS=0 "" LAST_RAYS_EMITTERS=0
+                  stage profile-path-cornell 70 python3 benchmarks/gpu_profile.py path-cornell --size 512 --repeats 5 ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

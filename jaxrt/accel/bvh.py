@@ -381,6 +381,34 @@ def intersect(
     return Hit(t=jnp.where(found, t, jnp.inf), prim=prim, u=jnp.where(found, u, 0.0), v=jnp.where(found, v, 0.0))
 
 
+def intersect_few(
+    triangles: Float[Array, "L 9"],
+    origins: Float[Array, "N 3"],
+    directions: Float[Array, "N 3"],
+    tmin: Float[Array, " N"] | float = 0.0,
+    tmax: Float[Array, " N"] | float = jnp.inf,
+) -> Hit:
+    """Closest hit of each ray with t in [tmin, tmax] among a few triangles (rows [v0, v1, v2]),
+    every ray against every triangle: the trees' watertight test (Woop, Benthin & Wald 2013, with
+    exact edge signs; `traverse_xla.intersect_triangles`), no tree, loop or conditional, so it fuses
+    into the computation around it. prim indexes the rows of `triangles` (-1 on a miss). The work is
+    N·L tests: for a handful of triangles (a scene's emitters, say), not for a mesh."""
+    o = jnp.asarray(origins, jnp.float32)
+    d = jnp.asarray(directions, jnp.float32)
+    n = o.shape[0]
+    lo = jnp.broadcast_to(jnp.asarray(tmin, jnp.float32), (n,))
+    hi = jnp.broadcast_to(jnp.asarray(tmax, jnp.float32), (n,))
+    tri = jnp.asarray(triangles, jnp.float32)[None]
+    ray = traverse_xla.precompute(o, d)
+    hit, t, u, v = traverse_xla.intersect_triangles(ray, tri, lo, hi, jnp.ones((n, tri.shape[1]), bool), exact=True)
+    t = jnp.where(hit, t, jnp.inf)
+    best = jnp.argmin(t, axis=1)
+    pick = lambda x: jnp.take_along_axis(x, best[:, None], axis=1)[:, 0]  # noqa: E731
+    found = pick(hit)
+    return Hit(t=jnp.where(found, pick(t), jnp.inf), prim=jnp.where(found, best.astype(jnp.int32), -1),
+               u=jnp.where(found, pick(u), 0.0), v=jnp.where(found, pick(v), 0.0))
+
+
 def intersect_points(
     tree: BVH,
     origins: Float[Array, "N 3"],

@@ -88,11 +88,14 @@ def _pick(a, k):
     return jnp.where(k == 0, a[..., 0], jnp.where(k == 1, a[..., 1], a[..., 2]))
 
 
-def intersect_triangles(ray, tri, tmin, tmax, valid):
+def intersect_triangles(ray, tri, tmin, tmax, valid, exact: bool | None = None):
     """Watertight test of each ray against L triangles.
 
-    ray: precompute() dict over N rays; tri (N, L, 9) float32 [v0, v1, v2]; tmin, tmax (N,);
-    valid (N, L) bool: which pairs to test (the exact-sign path runs only if a valid pair needs it).
+    ray: precompute() dict over N rays; tri (N, L, 9) float32 [v0, v1, v2] (or (1, L, 9), the same
+    triangles for every ray); tmin, tmax (N,); valid (N, L) bool: which pairs to test. exact: None
+    runs the exact-sign path only if a valid pair needs it (a conditional); True always runs it
+    (4x the edge arithmetic, no conditional: for a few triangles on a GPU, where a conditional waits
+    for the device).
     Returns hit (N, L) bool (tmin <= t <= tmax), t, u, v (N, L) with p = (1-u-v) v0 + u v1 + v v2.
     """
     p = tri.reshape(tri.shape[:-1] + (3, 3)) - ray["o"][:, None, None, :]  # (N, L, 3 verts, 3)
@@ -111,11 +114,14 @@ def intersect_triangles(ray, tri, tmin, tmax, valid):
     prods = [edge_products(*e, zero) for e in edges]
     # Rounded products that tie leave the sign open; that is rare, so the exact path (4x the
     # arithmetic) runs only for batches where some valid ray/triangle pair needs it.
-    need_exact = jnp.any(valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1])
-                                  | (prods[2][0] == prods[2][1])))
-    signs = lax.cond(need_exact,
-                     lambda: [edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)],
-                     lambda: [edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods)])
+    if exact:
+        signs = [edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)]
+    else:
+        need_exact = jnp.any(valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1])
+                                      | (prods[2][0] == prods[2][1])))
+        signs = lax.cond(need_exact,
+                         lambda: [edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)],
+                         lambda: [edge_sign(*e, *p, exact=False) for e, p in zip(edges, prods)])
     su, sv, sw = signs
     # |p1 - p2| carries the magnitude; the sign comes from the exact test (the subtraction may be
     # FMA-contracted or round to zero).

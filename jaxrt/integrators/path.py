@@ -4,7 +4,8 @@
 (wavefront style), one bounce per iteration of a `lax.fori_loop` (a scan: BVH traversal is compiled
 once, not once per bounce, and the loop is reverse-differentiable), then, unless the rays are traced
 ahead (below), one last ray query that only collects the emission found after max_depth vertices (no
-light sample or next direction there). Each
+light sample or next direction there; with a few emissive triangles, an any-hit query to the nearest
+one a ray meets, `LAST_RAYS_EMITTERS`). Each
 bounce runs on the live paths only, compacted into chunks (`_compacted`: the dead ones cost neither
 memory traffic nor traversal lanes), so short paths cost little whatever max_depth is; on a GPU only
 in scenes of at least `GPU_COMPACT_MIN_TRIANGLES` triangles, where traversal outweighs moving the
@@ -131,6 +132,15 @@ GPU_TRACE_AHEAD = True
 # emissive triangles' light collected where the rays are traced too (no bounce after the last): the
 # Cornell box a further +3.9, -7.1, -5.7 % wall time in three such A/Bs (medians of 9, 9, 21 passes).
 CPU_TRACE_AHEAD = True
+# Where the rays made at the last vertex (max_depth) are traced on their own (not ahead: a GPU's
+# whole-batch bounces, as in the Cornell box) they only bring back the emission they reach, so with
+# at most this many emissive triangles they are not traced among all the scene's triangles:
+# each is tested against every emitter (`accel.intersect_few`, fused into the glue), and the nearest
+# emitter hit's visibility, or for a ray that meets none the escape to an environment, is an any-hit
+# query, which ends at the first occluder (`_last_rays`). A closest hit walks on to the nearest
+# surface, and rays that meet no emitter (most, in a room lit by a small lamp) are no query at all
+# where no environment shines. 0 traces them as the other bounces' rays.
+LAST_RAYS_EMITTERS = 16
 _sg = lax.stop_gradient
 
 
@@ -389,11 +399,12 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_env * _sg(envmap.pdf(env, d))))
         return L + jnp.where((alive & ~found)[:, None], tput * w[:, None] * le, 0.0)
 
-    def tri_emission(L, found, prim, t, s, d, tput, specular, pdf_prev):
+    def tri_emission(L, found, prim, t, material, ng, d, tput, specular, pdf_prev):
         # radiance of the emissive triangles that rays d found (MIS-weighted against the light sample
-        # that could have picked the same point: area pdf to solid angle, t² / cos at the light)
-        le = al.emission[s.material]
-        cos_l = -dot(d, s.ng)
+        # that could have picked the same point: area pdf to solid angle, t² / cos at the light;
+        # ng the triangles' winding normals)
+        le = al.emission[material]
+        cos_l = -dot(d, ng)
         t = jnp.where(found, t, 0.0)
         p_l = p_tri * table.face_pdf[jnp.maximum(prim, 0)] * t * t / jnp.where(cos_l > 0, cos_l, 1.0)
         w = jnp.where(specular, 1.0, power_heuristic(pdf_prev, p_l))
@@ -434,7 +445,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         if env is not None and ahead is None:
             L = env_emission(L, alive, found, d, tput, specular, pdf_prev)
         if table is not None and ahead is None:
-            L = tri_emission(L, found, prim, hit.t, s, d, tput, specular, pdf_prev)
+            L = tri_emission(L, found, prim, hit.t, s.material, s.ng, d, tput, specular, pdf_prev)
 
         if last:
             # vertex max_depth + 1 only collects the emission its ray found: no light sample, no
@@ -584,8 +595,37 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             # shades them: XLA keeps only what each use reads)
             se = s if s is not None else geo.surface(prim, hit.u, hit.v)
             se = eqx.tree_at(lambda x: x.material, se, jnp.where(found, se.material, 0))
-            L = tri_emission(L, found, prim, hit.t, se, d, tput, specular, pdf_prev)
+            L = tri_emission(L, found, prim, hit.t, se.material, se.ng, d, tput, specular, pdf_prev)
         return found, L, (hit._replace(prim=prim), s)
+
+    def last_rays(carry):
+        # the emission reached by the rays of vertex max_depth, without their closest hits (see
+        # LAST_RAYS_EMITTERS): the nearest emitter each ray meets, if any, and one any-hit query, up
+        # to that emitter (short by the 2·eps of a shadow ray to a light sample) or, for a ray that
+        # meets none, to infinity where an environment shines (an unoccluded one escapes); the
+        # emitter counts where nothing is nearer, as the closest hit would have found
+        o, d, alive, tput, specular, pdf_prev, L, first, ahead, keys = carry
+        tmax = jnp.where(alive, jnp.inf if env is not None else -1.0, -1.0)
+        met = jnp.zeros_like(alive)
+        if table is not None:
+            v0, v1, v2 = geo.triangles(al.prims)
+            h = accel.intersect_few(jnp.concatenate([v0, v1, v2], axis=-1), o, d, 0.0,
+                                    jnp.where(alive, jnp.inf, -1.0))
+            met = h.prim >= 0
+            j = jnp.maximum(h.prim, 0)
+            t_e = jnp.where(met, h.t, 0.0)
+            eps = offset_scale(o + t_e[:, None] * d)[:, 0]
+            tmax = jnp.where(met, t_e - 2.0 * eps, tmax)
+        occ = geo.occluded(o, d, tmax)
+        if env is not None:
+            L = env_emission(L, alive, met | occ, d, tput, specular, pdf_prev)
+        if table is not None:
+            face = al.prims[j]
+            ng_e = normalize(jnp.cross(v1 - v0, v2 - v0))[j]
+            seen = met & ~occ
+            L = tri_emission(L, seen, jnp.where(seen, face, -1), t_e, geo.face_material(face), ng_e, d, tput,
+                             specular, pdf_prev)
+        return (o, d, jnp.zeros_like(alive), tput, specular, pdf_prev, L, first, ahead, keys)
 
     def trace(o0, d0, alive0, key_data, chunk):
         # the paths of one batch, from their camera rays to their ends: (radiance, first hits); each
@@ -621,9 +661,12 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             # (see GPU_WHOLE_FIRST_BOUNCE)
             carry, k0 = work(0, carry), 1
         carry = lax.fori_loop(k0, D, lambda k, c: bounce(lambda x: work(k, x), c), carry)
-        if ahead is None:
-            # the emission found by the last rays (traced ahead, it was added where they were traced)
-            carry = bounce(lambda x: work(D, x, last=True), carry)
+        if ahead is None and (D == 0 or table is not None or env is not None):
+            # the emission found by the last rays (traced ahead, it was added where they were traced;
+            # with point lights only there is none to find). With max_depth 0 the camera rays' first
+            # hits are recorded there.
+            few = LAST_RAYS_EMITTERS > 0 and (table is None or al.count <= LAST_RAYS_EMITTERS)
+            carry = bounce(last_rays if D > 0 and few else lambda x: work(D, x, last=True), carry)
         return carry[6], carry[7]
 
     xs = (o0, d0, alive0, jax.random.key_data(path_keys))

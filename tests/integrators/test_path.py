@@ -622,7 +622,10 @@ def _plane_points(sc, sub=4):
 
 def test_env_lit_lambert_plane_matches_quadrature(plane_scenes):
     env_lit, _ = plane_scenes
-    L = path.samples_jit(env_lit, 0, jitter=True)
+    _check_env_lit_plane(path.samples_jit(env_lit, 0, jitter=True))
+
+
+def _check_env_lit_plane(L):
     m, se = _pixel_stats(L)
     # L_o = rho/pi ∫_{y>0} L_env(ω) cosθ dω, the same at every point of the plane (nothing occludes)
     n = 1024
@@ -658,7 +661,10 @@ def _rect_ff(px, pz, h, half):
 
 def test_area_light_on_lambert_plane_matches_form_factor(plane_scenes):
     _, area_lit = plane_scenes
-    L = path.samples_jit(area_lit, 0, jitter=True)
+    _check_area_lit_plane(path.samples_jit(area_lit, 0, jitter=True), area_lit)
+
+
+def _check_area_lit_plane(L, area_lit):
     m, se = _pixel_stats(L)
     pts = _plane_points(area_lit)  # (16*4, 16*4, 3)
     ff = _rect_ff(pts[..., 0], pts[..., 2], QUAD_H, QUAD_SIZE / 2)
@@ -669,6 +675,35 @@ def test_area_light_on_lambert_plane_matches_form_factor(plane_scenes):
     assert np.max(np.abs(z)) < K, f"max |z| = {np.max(np.abs(z)):.2f}"
     mean_se = np.sqrt(np.sum(se**2, 0)) / len(se)
     assert np.all(np.abs(m.mean(0) - ref.mean(0)) < K * mean_se + 1e-3 * ref.mean(0))
+
+
+@pytest.mark.slow  # ~15-20 s on 2 cores
+def test_last_rays_to_the_emitters_trace_the_same_paths(plane_scenes, monkeypatch):
+    # The GPU route (made here by telling the path tracer it is not on the CPU; these small scenes
+    # run every bounce on the whole batch) with the rays of the last vertex tested against the
+    # emitters only and an any-hit query (`path.LAST_RAYS_EMITTERS`) against the same rays' closest
+    # hits (0): the same radiance per path, to the rounding of differently fused programs; and the
+    # closed forms of the lit planes (max_depth 1: half of each pixel's light, by MIS weight, comes
+    # through those rays). Each scene holds an emissive quad and an environment: the quad under the
+    # plane beneath a sky whose light the rays must escape to, and above the plane under a black sky.
+    env_lit, area_lit = plane_scenes
+    monkeypatch.setattr(path, "_on_cpu", lambda: False)
+    calls = []
+    orig = path.accel.intersect_few
+    monkeypatch.setattr(path.accel, "intersect_few", lambda *a, **k: calls.append(1) or orig(*a, **k))
+    # and the quad above the plane under the sky: rays that meet the quad do not escape to the sky
+    both = eqx.tree_at(lambda s: s.environment, area_lit, env_lit.environment)
+    for sc, check in ((env_lit, _check_env_lit_plane), (area_lit, lambda L: _check_area_lit_plane(L, area_lit)),
+                      (both, None)):
+        out = {}
+        for n in (16, 0):
+            monkeypatch.setattr(path, "LAST_RAYS_EMITTERS", n)
+            calls.clear()
+            out[n] = np.asarray(jax.jit(lambda s: path.samples(s, 0, jitter=True))(sc))
+            assert len(calls) == (n > 0)
+        np.testing.assert_allclose(out[16], out[0], rtol=1e-5, atol=1e-6)
+        if check is not None:
+            check(out[16])
 
 
 # --------------------------------------------------------------------------- thin lens

@@ -401,12 +401,18 @@ def intersect_few(
     tri = jnp.asarray(triangles, jnp.float32)[None]
     ray = traverse_xla.precompute(o, d)
     hit, t, u, v = traverse_xla.intersect_triangles(ray, tri, lo, hi, jnp.ones((n, tri.shape[1]), bool), exact=True)
-    t = jnp.where(hit, t, jnp.inf)
-    best = jnp.argmin(t, axis=1)
-    pick = lambda x: jnp.take_along_axis(x, best[:, None], axis=1)[:, 0]  # noqa: E731
-    found = pick(hit)
-    return Hit(t=jnp.where(found, pick(t), jnp.inf), prim=jnp.where(found, best.astype(jnp.int32), -1),
-               u=jnp.where(found, pick(u), 0.0), v=jnp.where(found, pick(v), 0.0))
+    # the nearest by a running selection, triangle after triangle (elementwise: on a GPU a reduction
+    # over a short row axis is a kernel of its own)
+    best_t, best, best_u, best_v = jnp.full((n,), jnp.inf), jnp.full((n,), -1, jnp.int32), jnp.zeros(n), jnp.zeros(n)
+    for j in range(tri.shape[1]):
+        closer = hit[:, j] & (t[:, j] < best_t)
+        best_t = jnp.where(closer, t[:, j], best_t)
+        best = jnp.where(closer, j, best)
+        best_u, best_v = jnp.where(closer, u[:, j], best_u), jnp.where(closer, v[:, j], best_v)
+    # t of the chosen triangle in double-float, as the trees' hits (grazing rays lose float32's t)
+    rows = tri[0][jnp.maximum(best, 0)]
+    best_t = jnp.where(best >= 0, jnp.clip(traverse_xla.refine_t(rows, o, d, best_t), lo, hi), jnp.inf)
+    return Hit(t=best_t, prim=best, u=best_u, v=best_v)
 
 
 def intersect_points(

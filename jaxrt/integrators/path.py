@@ -141,6 +141,10 @@ CPU_TRACE_AHEAD = True
 # surface, and rays that meet no emitter (most, in a room lit by a small lamp) are no query at all
 # where no environment shines. 0 traces them as the other bounces' rays.
 LAST_RAYS_EMITTERS = 16
+# Whether a GPU traces the shadow rays of next-event estimation (and the last rays to the emitter they
+# meet) from their far end, at the light (`occluded(from_end=True)`): rays towards one light then start
+# together, and occluders near the light are found first. (The CPU's Embree traces them forwards.)
+SHADOW_FROM_END = False
 _sg = lax.stop_gradient
 
 
@@ -520,7 +524,8 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             rays_t.append(jnp.where(lit_c, dist_c - 2.0 * eps[:, 0], -1.0))
         if rays_o:
             tmax = jnp.concatenate(rays_t)
-            occ = geo.occluded(jnp.concatenate(rays_o), jnp.concatenate(rays_d), tmax)
+            occ = geo.occluded(jnp.concatenate(rays_o), jnp.concatenate(rays_d), tmax,
+                               from_end=SHADOW_FROM_END and not on_cpu)
             vis = (tmax > 0) & ~occ
             direct = jnp.zeros((B, 3))
             if nl > 0:
@@ -616,7 +621,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             t_e = jnp.where(met, h.t, 0.0)
             eps = offset_scale(o + t_e[:, None] * d)[:, 0]
             tmax = jnp.where(met, t_e - 2.0 * eps, tmax)
-        occ = geo.occluded(o, d, tmax)
+        occ = geo.occluded(o, d, tmax, from_end=SHADOW_FROM_END and not on_cpu)
         if env is not None:
             L = env_emission(L, alive, met | occ, d, tput, specular, pdf_prev)
         if table is not None:

@@ -229,6 +229,9 @@ PY
                   # against forwards (the default), both path scenes, twice in one process
                   stage path-from-end 300 python3 benchmarks/path_chunks.py --size 512 --repeats 9 \
                       --knobs "" SHADOW_FROM_END=True "" SHADOW_FROM_END=True ;;
+        stored)   # a GPU bounce's multi-use values kept in memory (`path.GPU_STORED`) against remade per fusion
+                  stage path-stored 300 python3 benchmarks/path_chunks.py --size 512 --repeats 9 \
+                      --knobs "" GPU_STORED=uniforms GPU_STORED=all "" GPU_STORED=uniforms GPU_STORED=all ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

@@ -145,6 +145,9 @@ LAST_RAYS_EMITTERS = 16
 # meet) from their far end, at the light (`occluded(from_end=True)`): rays towards one light then start
 # together, and occluders near the light are found first. (The CPU's Embree traces them forwards.)
 SHADOW_FROM_END = False
+# Which of a GPU bounce's values with several consumers are made once and kept in memory rather than
+# remade in each consuming fusion (`_stored`): "" none, "uniforms" the random numbers, "all".
+GPU_STORED = ""
 _sg = lax.stop_gradient
 
 
@@ -187,7 +190,7 @@ def _path_keys(kpath, window: camera.Window, spp: int, width: int):
     return jax.random.wrap_key_data(data, impl=jax.random.key_impl(kpath))
 
 
-def _stored(tree, alive):
+def _stored(tree, alive, what: str = ""):
     """`tree`, computed once and kept in memory, on the CPU. XLA fuses an elementwise producer into
     each of its consumers and recomputes it there: in the environment-lit dragon's bounce
     (`benchmarks/path.py`) each sampled direction's sines and cosines were made three times (the
@@ -195,9 +198,10 @@ def _stored(tree, alive):
     operations in all, 1.4x with the stores). An optimisation barrier does not stop that on the CPU
     (XLA:CPU removes barriers before fusing); a conditional's operands and results are buffers. Its
     predicate (some path of the batch alive) always holds where this runs, which the compiler cannot
-    know. On GPUs recomputing is cheap and a conditional costs a wait for the device: no-op there."""
+    know. On GPUs recomputing is cheap and a conditional costs a wait for the device: no-op there,
+    unless GPU_STORED names it (an optimization barrier, which XLA:GPU keeps)."""
     if jax.default_backend() != "cpu":
-        return tree
+        return lax.optimization_barrier(tree) if GPU_STORED == "all" or GPU_STORED == what else tree
     return lax.cond(jnp.any(alive), lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
 
 
@@ -434,7 +438,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         # (`_stored`: XLA would otherwise remake the Threefry blocks in each consuming loop), on a GPU
         # remade where used (cheap there); neither stores them in the paths' state, which every
         # bounce would read, gather and scatter
-        u = _stored(uniforms(keys, k), alive)
+        u = _stored(uniforms(keys, k), alive, "uniforms")
         hit, s = ahead if ahead is not None else closest_hits(o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0

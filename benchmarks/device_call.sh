@@ -225,13 +225,6 @@ PY
                   stage path-last-rays 200 python3 benchmarks/path_chunks.py --size 512 --repeats 9 --scenes cornell \
                       --knobs "" LAST_RAYS_EMITTERS=0 "" LAST_RAYS_EMITTERS=0
                   stage profile-path-cornell 70 python3 benchmarks/gpu_profile.py path-cornell --size 512 --repeats 5 ;;
-        from-end)  # NEE's shadow rays (and the last rays to an emitter) traced from the light end (`path.SHADOW_FROM_END`)
-                  # against forwards (the default), both path scenes, twice in one process
-                  stage path-from-end 300 python3 benchmarks/path_chunks.py --size 512 --repeats 9 \
-                      --knobs "" SHADOW_FROM_END=True "" SHADOW_FROM_END=True ;;
-        stored)   # a GPU bounce's multi-use values kept in memory (`path.GPU_STORED`) against remade per fusion
-                  stage path-stored 300 python3 benchmarks/path_chunks.py --size 512 --repeats 9 \
-                      --knobs "" GPU_STORED=uniforms GPU_STORED=all "" GPU_STORED=uniforms GPU_STORED=all ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

@@ -141,13 +141,6 @@ CPU_TRACE_AHEAD = True
 # surface, and rays that meet no emitter (most, in a room lit by a small lamp) are no query at all
 # where no environment shines. 0 traces them as the other bounces' rays.
 LAST_RAYS_EMITTERS = 16
-# Whether a GPU traces the shadow rays of next-event estimation (and the last rays to the emitter they
-# meet) from their far end, at the light (`occluded(from_end=True)`): rays towards one light then start
-# together, and occluders near the light are found first. (The CPU's Embree traces them forwards.)
-SHADOW_FROM_END = False
-# Which of a GPU bounce's values with several consumers are made once and kept in memory rather than
-# remade in each consuming fusion (`_stored`): "" none, "uniforms" the random numbers, "all".
-GPU_STORED = ""
 _sg = lax.stop_gradient
 
 
@@ -190,7 +183,7 @@ def _path_keys(kpath, window: camera.Window, spp: int, width: int):
     return jax.random.wrap_key_data(data, impl=jax.random.key_impl(kpath))
 
 
-def _stored(tree, alive, what: str = ""):
+def _stored(tree, alive):
     """`tree`, computed once and kept in memory, on the CPU. XLA fuses an elementwise producer into
     each of its consumers and recomputes it there: in the environment-lit dragon's bounce
     (`benchmarks/path.py`) each sampled direction's sines and cosines were made three times (the
@@ -198,10 +191,12 @@ def _stored(tree, alive, what: str = ""):
     operations in all, 1.4x with the stores). An optimisation barrier does not stop that on the CPU
     (XLA:CPU removes barriers before fusing); a conditional's operands and results are buffers. Its
     predicate (some path of the batch alive) always holds where this runs, which the compiler cannot
-    know. On GPUs recomputing is cheap and a conditional costs a wait for the device: no-op there,
-    unless GPU_STORED names it (an optimization barrier, which XLA:GPU keeps)."""
+    know. On GPUs recomputing is cheap and a conditional costs a wait for the device: no-op there.
+    (Kept in memory behind an optimization barrier on an H200, the random numbers made the Cornell
+    box's pass 5 % slower and the environment-lit dragon's 2-4 %; all of these values 11-13 % and
+    3-6 %: BENCHMARKS.md, "Path tracing: the last rays go to the emitters".)"""
     if jax.default_backend() != "cpu":
-        return lax.optimization_barrier(tree) if GPU_STORED == "all" or GPU_STORED == what else tree
+        return tree
     return lax.cond(jnp.any(alive), lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
 
 
@@ -438,7 +433,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         # (`_stored`: XLA would otherwise remake the Threefry blocks in each consuming loop), on a GPU
         # remade where used (cheap there); neither stores them in the paths' state, which every
         # bounce would read, gather and scatter
-        u = _stored(uniforms(keys, k), alive, "uniforms")
+        u = _stored(uniforms(keys, k), alive)
         hit, s = ahead if ahead is not None else closest_hits(o, d, alive)
         prim = jnp.where(alive, hit.prim, -1)
         found = prim >= 0
@@ -528,8 +523,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             rays_t.append(jnp.where(lit_c, dist_c - 2.0 * eps[:, 0], -1.0))
         if rays_o:
             tmax = jnp.concatenate(rays_t)
-            occ = geo.occluded(jnp.concatenate(rays_o), jnp.concatenate(rays_d), tmax,
-                               from_end=SHADOW_FROM_END and not on_cpu)
+            occ = geo.occluded(jnp.concatenate(rays_o), jnp.concatenate(rays_d), tmax)
             vis = (tmax > 0) & ~occ
             direct = jnp.zeros((B, 3))
             if nl > 0:
@@ -625,7 +619,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             t_e = jnp.where(met, h.t, 0.0)
             eps = offset_scale(o + t_e[:, None] * d)[:, 0]
             tmax = jnp.where(met, t_e - 2.0 * eps, tmax)
-        occ = geo.occluded(o, d, tmax, from_end=SHADOW_FROM_END and not on_cpu)
+        occ = geo.occluded(o, d, tmax)
         if env is not None:
             L = env_emission(L, alive, met | occ, d, tput, specular, pdf_prev)
         if table is not None:

@@ -225,6 +225,14 @@ PY
                   stage path-last-rays 200 python3 benchmarks/path_chunks.py --size 512 --repeats 9 --scenes cornell \
                       --knobs "" LAST_RAYS_EMITTERS=0 "" LAST_RAYS_EMITTERS=0
                   stage profile-path-cornell 70 python3 benchmarks/gpu_profile.py path-cornell --size 512 --repeats 5 ;;
+        last-rays-compile)  # the Cornell box's first call (tracing + compilation, no persistent cache) in fresh processes,
+                  # the last rays to the emitters (default) and to their closest hits, alternating, three of each
+                  for i in 1 2 3; do
+                      for k in "" LAST_RAYS_EMITTERS=0; do
+                          JAXRT_CACHE=off stage "path-first-${k:-default}" 90 python3 benchmarks/path_chunks.py --size 512 \
+                              --repeats 3 --scenes cornell --no-off --knobs "$k"
+                      done
+                  done ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

@@ -233,6 +233,11 @@ PY
                               --repeats 3 --scenes cornell --no-off --knobs "$k"
                       done
                   done ;;
+        pack)     # the whole-batch GPU bounces' ray queries packed (`path.GPU_PACK_RAYS`) and the last rays' emitter
+                  # test without exact edge signs (`path.LAST_RAYS_EXACT`), on the Cornell box, twice in one process
+                  stage path-pack 200 python3 benchmarks/path_chunks.py --size 512 --repeats 9 --scenes cornell \
+                      --knobs "" LAST_RAYS_EXACT=False GPU_PACK_RAYS=True GPU_PACK_RAYS=True,LAST_RAYS_EXACT=False \
+                      "" LAST_RAYS_EXACT=False GPU_PACK_RAYS=True GPU_PACK_RAYS=True,LAST_RAYS_EXACT=False ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

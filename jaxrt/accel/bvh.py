@@ -387,12 +387,19 @@ def intersect_few(
     directions: Float[Array, "N 3"],
     tmin: Float[Array, " N"] | float = 0.0,
     tmax: Float[Array, " N"] | float = jnp.inf,
+    *,
+    exact: bool = True,
 ) -> Hit:
     """Closest hit of each ray with t in [tmin, tmax] among a few triangles (rows [v0, v1, v2]),
     every ray against every triangle: the trees' watertight test (Woop, Benthin & Wald 2013, with
     exact edge signs; `traverse_xla.intersect_triangles`), no tree, loop or conditional, so it fuses
     into the computation around it. prim indexes the rows of `triangles` (-1 on a miss). The work is
-    N·L tests: for a handful of triangles (a scene's emitters, say), not for a mesh."""
+    N·L tests: for a handful of triangles (a scene's emitters, say), not for a mesh.
+
+    exact=False: edge signs from the rounded products alone, where a tie (a ray within rounding of an
+    edge or vertex) counts as inside, so shared edges still lose no ray but such a ray may also hit a
+    triangle it passes by an ulp; and t as float32 computes it (not refined). About a third of the
+    arithmetic, for callers to whom an ulp at an edge and t's last digits do not matter."""
     o = jnp.asarray(origins, jnp.float32)
     d = jnp.asarray(directions, jnp.float32)
     n = o.shape[0]
@@ -400,7 +407,7 @@ def intersect_few(
     hi = jnp.broadcast_to(jnp.asarray(tmax, jnp.float32), (n,))
     tri = jnp.asarray(triangles, jnp.float32)[None]
     ray = traverse_xla.precompute(o, d)
-    hit, t, u, v = traverse_xla.intersect_triangles(ray, tri, lo, hi, jnp.ones((n, tri.shape[1]), bool), exact=True)
+    hit, t, u, v = traverse_xla.intersect_triangles(ray, tri, lo, hi, jnp.ones((n, tri.shape[1]), bool), exact=exact)
     # the nearest by a running selection, triangle after triangle (elementwise: on a GPU a reduction
     # over a short row axis is a kernel of its own)
     best_t, best, best_u, best_v = jnp.full((n,), jnp.inf), jnp.full((n,), -1, jnp.int32), jnp.zeros(n), jnp.zeros(n)
@@ -409,9 +416,10 @@ def intersect_few(
         best_t = jnp.where(closer, t[:, j], best_t)
         best = jnp.where(closer, j, best)
         best_u, best_v = jnp.where(closer, u[:, j], best_u), jnp.where(closer, v[:, j], best_v)
-    # t of the chosen triangle in double-float, as the trees' hits (grazing rays lose float32's t)
-    rows = tri[0][jnp.maximum(best, 0)]
-    best_t = jnp.where(best >= 0, jnp.clip(traverse_xla.refine_t(rows, o, d, best_t), lo, hi), jnp.inf)
+    if exact:
+        # t of the chosen triangle in double-float, as the trees' hits (grazing rays lose float32's t)
+        rows = tri[0][jnp.maximum(best, 0)]
+        best_t = jnp.where(best >= 0, jnp.clip(traverse_xla.refine_t(rows, o, d, best_t), lo, hi), jnp.inf)
     return Hit(t=best_t, prim=best, u=best_u, v=best_v)
 
 

@@ -95,7 +95,7 @@ def intersect_triangles(ray, tri, tmin, tmax, valid, exact: bool | None = None):
     triangles for every ray); tmin, tmax (N,); valid (N, L) bool: which pairs to test. exact: None
     runs the exact-sign path only if a valid pair needs it (a conditional); True always runs it
     (4x the edge arithmetic, no conditional: for a few triangles on a GPU, where a conditional waits
-    for the device).
+    for the device); False never (a tie counts as on the edge: inside).
     Returns hit (N, L) bool (tmin <= t <= tmax), t, u, v (N, L) with p = (1-u-v) v0 + u v1 + v v2.
     """
     p = tri.reshape(tri.shape[:-1] + (3, 3)) - ray["o"][:, None, None, :]  # (N, L, 3 verts, 3)
@@ -114,8 +114,8 @@ def intersect_triangles(ray, tri, tmin, tmax, valid, exact: bool | None = None):
     prods = [edge_products(*e, zero) for e in edges]
     # Rounded products that tie leave the sign open; that is rare, so the exact path (4x the
     # arithmetic) runs only for batches where some valid ray/triangle pair needs it.
-    if exact:
-        signs = [edge_sign(*e, *p, exact=True) for e, p in zip(edges, prods)]
+    if exact is not None:
+        signs = [edge_sign(*e, *p, exact=exact) for e, p in zip(edges, prods)]
     else:
         need_exact = jnp.any(valid & ((prods[0][0] == prods[0][1]) | (prods[1][0] == prods[1][1])
                                       | (prods[2][0] == prods[2][1])))

@@ -72,7 +72,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 import brdfs
 from jaxrt import _random, accel, camera, envmap
@@ -141,6 +141,14 @@ CPU_TRACE_AHEAD = True
 # surface, and rays that meet no emitter (most, in a room lit by a small lamp) are no query at all
 # where no environment shines. 0 traces them as the other bounces' rays.
 LAST_RAYS_EMITTERS = 16
+LAST_RAYS_EXACT = True
+# Whether a GPU's whole-batch bounces (scenes under GPU_COMPACT_MIN_TRIANGLES) pack each ray query's
+# live rays at the front of the batch before the traversal kernel (`_packed`): a dead path's slot or
+# an unlit light sample's leaves the kernel at its tree's root, but a warp costs as long as its
+# slowest lane, and in the Cornell box's later bounces a third to a half of the slots are dead,
+# scattered over nearly every warp. Packing costs a prefix sum and the rays' gathers; the paths'
+# state stays where it is (the bounce's shading runs on the whole batch).
+GPU_PACK_RAYS = False
 _sg = lax.stop_gradient
 
 
@@ -198,6 +206,22 @@ def _stored(tree, alive):
     if jax.default_backend() != "cpu":
         return tree
     return lax.cond(jnp.any(alive), lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
+
+
+def _packed(active: Bool[Array, " B"], query, *rays):
+    """query(*rays, live) on the rays where `active` only, packed in order at the front of the batch
+    (a prefix sum: neighbouring rays stay neighbours), then each result leaf brought back to its ray's
+    slot (a gather; where not active it is the first packed ray's, for the caller to mask). `live`
+    marks the packed slots that hold a ray; the others hold copies of ray 0 to be given an empty
+    interval."""
+    n = active.shape[0]
+    pos = jnp.cumsum(active, dtype=jnp.int32) - 1
+    rows = jnp.zeros(n, jnp.int32).at[jnp.where(active, pos, n)].set(jnp.arange(n, dtype=jnp.int32), mode="drop",
+                                                                       unique_indices=True)
+    live = jnp.arange(n, dtype=jnp.int32) <= pos[-1]
+    out = query(*(x[rows] for x in rays), live)
+    back = jnp.maximum(pos, 0)
+    return jax.tree.map(lambda x: x[back], out)
 
 
 def _where_present(present, fn, *args):
@@ -380,6 +404,9 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     nl = scene.lights.count
     models = _bsdf_models(mats)
     on_cpu = _on_cpu()
+    # (each bounce on the whole batch: see GPU_COMPACT_MIN_TRIANGLES, GPU_PACK_RAYS)
+    compact = on_cpu or geo.triangle_count >= GPU_COMPACT_MIN_TRIANGLES
+    pack = GPU_PACK_RAYS and not compact
 
     key = jax.random.fold_in(jax.random.key(jnp.asarray(st.seed, jnp.uint32)), jnp.asarray(pass_index, jnp.uint32))
     kcam, kpath = jax.random.split(key)
@@ -420,7 +447,18 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         # stop_gradient here, so nothing differentiates them. A GPU pass gathers them (`geo.surface`).
         if on_cpu:
             return intersect_surface_active(geo, o, d, alive)
-        return intersect_active(geo, o, d, alive), None
+        if not pack:
+            return intersect_active(geo, o, d, alive), None
+        h = _packed(alive, lambda o, d, live: geo.intersect(o, d, 0.0, jnp.where(live, jnp.inf, -1.0)), o, d)
+        return accel.Hit(t=jnp.where(alive, h.t, jnp.inf), prim=jnp.where(alive, h.prim, -1),
+                         u=jnp.where(alive, h.u, 0.0), v=jnp.where(alive, h.v, 0.0)), None
+
+    def occluded(o, d, tmax):
+        # any hits with t in [0, tmax], rays with tmax <= 0 not traced (false)
+        if not pack:
+            return geo.occluded(o, d, tmax)
+        act = tmax > 0
+        return act & _packed(act, lambda o, d, t, live: geo.occluded(o, d, jnp.where(live, t, -1.0)), o, d, tmax)
 
     def work(k, carry, last: bool = False):
         # One bounce of a chunk of paths. With `ahead` (not None: the carry's hits, an `accel.Hit`, and
@@ -523,7 +561,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             rays_t.append(jnp.where(lit_c, dist_c - 2.0 * eps[:, 0], -1.0))
         if rays_o:
             tmax = jnp.concatenate(rays_t)
-            occ = geo.occluded(jnp.concatenate(rays_o), jnp.concatenate(rays_d), tmax)
+            occ = occluded(jnp.concatenate(rays_o), jnp.concatenate(rays_d), tmax)
             vis = (tmax > 0) & ~occ
             direct = jnp.zeros((B, 3))
             if nl > 0:
@@ -613,13 +651,13 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         if table is not None:
             v0, v1, v2 = geo.triangles(al.prims)
             h = accel.intersect_few(jnp.concatenate([v0, v1, v2], axis=-1), o, d, 0.0,
-                                    jnp.where(alive, jnp.inf, -1.0))
+                                    jnp.where(alive, jnp.inf, -1.0), exact=LAST_RAYS_EXACT)
             met = h.prim >= 0
             j = jnp.maximum(h.prim, 0)
             t_e = jnp.where(met, h.t, 0.0)
             eps = offset_scale(o + t_e[:, None] * d)[:, 0]
             tmax = jnp.where(met, t_e - 2.0 * eps, tmax)
-        occ = geo.occluded(o, d, tmax)
+        occ = occluded(o, d, tmax)
         if env is not None:
             L = env_emission(L, alive, met | occ, d, tput, specular, pdf_prev)
         if table is not None:
@@ -640,7 +678,6 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
                  if aovs else None)
         # the throughput's dtype follows the material values so float64 tests stay float64
         one = jnp.ones((B, 3), jnp.result_type(float))
-        compact = on_cpu or geo.triangle_count >= GPU_COMPACT_MIN_TRIANGLES
         state = (o0, d0, alive0, one, jnp.ones(B, bool), jnp.zeros(B), jnp.zeros((B, 3)))
         ahead = None
         if CPU_TRACE_AHEAD if on_cpu else (GPU_TRACE_AHEAD and compact):

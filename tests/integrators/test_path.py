@@ -191,7 +191,7 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dens
     np.testing.assert_allclose(float(g), float(np.asarray(x)[alive].sum()), rtol=1e-5)
 
 
-@pytest.mark.slow  # ~60 s on 2 cores (five programs with the XLA traversal, a scene)
+@pytest.mark.slow  # ~75 s on 2 cores (six programs with the XLA traversal, a scene)
 @pytest.mark.parametrize("name", ["furnace", pytest.param("cornell_area", marks=pytest.mark.data)])
 def test_gpu_bounce_layouts_trace_the_same_paths(name, monkeypatch, request):
     # The GPU's layouts of a pass, made here by telling the path tracer it is not on the CPU: every
@@ -232,10 +232,12 @@ def test_gpu_bounce_layouts_trace_the_same_paths(name, monkeypatch, request):
     whole, c2, g2 = run(GPU_COMPACT_MIN_TRIANGLES=n_tri + 1, GPU_TRACE_AHEAD=True)  # (not compacted: no ahead)
     # the skipped chunks' gathers and scatters run on dropped rows instead of inside the conditional
     outside, c3, g3 = run(GPU_COMPACT_MIN_TRIANGLES=n_tri, COMPACT_IN_COND=False, GPU_TRACE_AHEAD=True)
+    # every bounce on the whole batch, each ray query's live rays packed at the front (GPU_PACK_RAYS)
+    packed, c4, g4 = run(GPU_COMPACT_MIN_TRIANGLES=n_tri + 1, GPU_PACK_RAYS=True)
     # (the loop's body is traced once, then, where each bounce traces its own rays, the last bounce
     # that collects the emission its rays find: traced ahead, the emission is added where they are traced)
-    assert (c0, c1, c2, c3) == (1, 2, 0, 1)
-    for other in (own, whole, outside):
+    assert (c0, c1, c2, c3, c4) == (1, 2, 0, 1, 0)
+    for other in (own, whole, outside, packed):
         for a, b in zip(jax.tree.leaves(ahead), jax.tree.leaves(other), strict=True):
             if np.issubdtype(np.asarray(a).dtype, np.integer):
                 np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -243,7 +245,7 @@ def test_gpu_bounce_layouts_trace_the_same_paths(name, monkeypatch, request):
                 np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-5, atol=1e-6)
     assert float(jnp.mean(ahead[0])) > 0
     assert abs(float(g0)) > 1e-3
-    np.testing.assert_allclose([float(g1), float(g2), float(g3)], float(g0), rtol=1e-4)
+    np.testing.assert_allclose([float(g1), float(g2), float(g3), float(g4)], float(g0), rtol=1e-4)
 
 
 @pytest.mark.slow  # ~40 s on 2 cores

@@ -238,6 +238,18 @@ PY
                   stage path-pack 200 python3 benchmarks/path_chunks.py --size 512 --repeats 9 --scenes cornell \
                       --knobs "" LAST_RAYS_EXACT=False GPU_PACK_RAYS=True GPU_PACK_RAYS=True,LAST_RAYS_EXACT=False \
                       "" LAST_RAYS_EXACT=False GPU_PACK_RAYS=True GPU_PACK_RAYS=True,LAST_RAYS_EXACT=False ;;
+        last-rays-compile2)  # the Cornell box's first call in fresh processes (no persistent cache): the last rays to the
+                  # emitters with exact edge signs (default) and without, and to their closest hits; alternating, three of each
+                  for i in 1 2 3; do
+                      for k in "" LAST_RAYS_EXACT=False LAST_RAYS_EMITTERS=0; do
+                          JAXRT_CACHE=off stage "path-first-${k:-default}" 90 python3 benchmarks/path_chunks.py --size 512 \
+                              --repeats 3 --scenes cornell --no-off --knobs "$k"
+                      done
+                  done ;;
+        profile-pack)  # the Cornell box's kernels with the ray queries packed (`path.GPU_PACK_RAYS`)
+                  stage profile-pack 70 python3 -c "import sys; sys.path.insert(0, 'benchmarks'); sys.argv = ['gpu_profile.py', \
+                      'path-cornell', '--size', '512', '--repeats', '5', '--top', '40']; from jaxrt.integrators import path as P; \
+                      P.GPU_PACK_RAYS = True; import gpu_profile; sys.exit(gpu_profile.main())" ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

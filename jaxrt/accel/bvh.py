@@ -230,7 +230,7 @@ def _points(tree, found, best, u, v):
 
 
 def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_iter, count_steps=False, impl=None,
-         refine=False, points=False):
+         refine=False, points=False, order=None):
     origins = lax.stop_gradient(jnp.asarray(origins, jnp.float32))
     directions = lax.stop_gradient(jnp.asarray(directions, jnp.float32))
     if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
@@ -271,7 +271,7 @@ def _run(tree, origins, directions, tmin, tmax, *, any_hit, lanes, steps_per_ite
         # The interpreter runs program instances one after another: few, wide blocks are fastest.
         kw = dict(block=1024) if interpret else {}
         out = traverse_pallas.traverse(arrays, o, d, lo, hi, any_hit=any_hit, leaf_size=tree.leaf_size,
-                                  interpret=interpret, **kw)
+                                  interpret=interpret, order=order, **kw)
         return refined((*out, jnp.zeros(n, jnp.int32)), o, d)
 
     def native(o, d, lo, hi):
@@ -355,6 +355,7 @@ def intersect(
     lanes: int | None = None,
     steps_per_iter: int | None = None,
     impl: str | None = None,
+    order: Int[Array, " N"] | None = None,
 ) -> Hit:
     """Closest hit of each ray with t in [tmin, tmax] (see the module docstring).
 
@@ -371,11 +372,13 @@ def intersect(
     env var JAXRT_TRAVERSAL sets it when the argument is None. Where the C++ kernel cannot be
     compiled, "auto", "embree" and "cpu" warn once and use the XLA loop.
     All give the same hits up to ties between triangles at the same distance to within an ulp.
+    order: a hint, a permutation of the rays in which the GPU kernel takes them (the live rays of a
+    batch first, say: `traverse_pallas.traverse`); the other back ends ignore it.
     """
     # t comes refined (each traversal's t of the chosen triangle in double(-float) precision) and is
     # clamped to the valid interval.
     found, t, best, u, v, _ = _run(tree, origins, directions, tmin, tmax, any_hit=False, lanes=lanes,
-                                   steps_per_iter=steps_per_iter, impl=impl, refine=True)
+                                   steps_per_iter=steps_per_iter, impl=impl, refine=True, order=order)
     prim = jnp.where(found, tree.prim_ids[jnp.maximum(best, 0)], -1)
     t = jnp.clip(t, jnp.asarray(tmin, jnp.float32), jnp.asarray(tmax, jnp.float32))
     return Hit(t=jnp.where(found, t, jnp.inf), prim=prim, u=jnp.where(found, u, 0.0), v=jnp.where(found, v, 0.0))
@@ -493,6 +496,7 @@ def occluded(
     steps_per_iter: int | None = None,
     impl: str | None = None,
     from_end: bool = False,
+    order: Int[Array, " N"] | None = None,
 ) -> Bool[Array, " N"]:
     """True where any triangle is hit with t in [tmin, tmax] (any-hit, stops at the first hit).
 
@@ -502,6 +506,7 @@ def occluded(
     o + tmax*d along -d over [0, tmax - tmin] (the same segment; its far end rounded to float32):
     shadow rays towards one light then share their origin, which a GPU warp traverses more
     coherently, and find occluders nearer the light first. Rays with infinite tmax go forwards.
+    order: as for `intersect`.
     """
     if from_end:
         o = jnp.asarray(origins, jnp.float32)
@@ -513,7 +518,7 @@ def occluded(
         directions = jnp.where(fin[:, None], -d, d)
         tmin, tmax = jnp.where(fin, 0.0, lo), jnp.where(fin, hi - lo, hi)
     found, *_ = _run(tree, origins, directions, tmin, tmax, any_hit=True, lanes=lanes,
-                     steps_per_iter=steps_per_iter, impl=impl)
+                     steps_per_iter=steps_per_iter, impl=impl, order=order)
     return found
 
 

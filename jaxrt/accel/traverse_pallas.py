@@ -56,10 +56,12 @@ _WIDE_TRAIL = 20  # depths of the four-wide tree with trail fields (3 bits each,
 _ROW_TABLES = {"childbox": _CB_ROW, "wide": _WIDE_ROW}
 
 
-def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *count_o, any_hit: bool,
-            leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str, gate_exact: bool, skip_tri: bool,
-            trail: int, block: int, scalar_loads: bool, unroll: int, vector_loads: bool = False,
-            postpone: bool = False):
+def _kernel(*refs, any_hit: bool, leaf_size: int, steps_per_iter: int, nf: int, nn: int, layout: str,
+            gate_exact: bool, skip_tri: bool, trail: int, block: int, scalar_loads: bool, unroll: int,
+            vector_loads: bool = False, postpone: bool = False, ordered: bool = False):
+    # (with `ordered`, the first input is the order in which the rays are traced: see `traverse`)
+    order_r, refs = (refs[0], refs[1:]) if ordered else (None, refs)
+    o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o, u_o, v_o, *count_o = refs
 
     def row(n, words):
         # The first `words` words of row n of the layout's node table, one (block,) array each. As
@@ -423,20 +425,35 @@ def _kernel(o_r, d_r, tmin_r, tmax_r, box_r, leaf_r, links_r, tri_r, t_o, best_o
     # pass writing 14 columns cost as much as a fifth of a shadow launch.
     from jax.experimental import pallas as pl  # see `traverse`: imported where a kernel is built
 
-    i3 = (pl.program_id(0) * block + jnp.arange(block, dtype=jnp.int32)) * 3
+    if ordered:
+        # this program's rays are order[its block]: read where they are, written back there
+        r = order_r[...]
+        lo, hi = tmin_r[r], tmax_r[r]
+    else:
+        r = pl.program_id(0) * block + jnp.arange(block, dtype=jnp.int32)
+        lo, hi = tmin_r[...], tmax_r[...]
+    i3 = r * 3
     inv, shear, kx, ky, kz, cls = ray_constants(*(d_r[i3 + k] for k in range(3)))
-    ray = (*(o_r[i3 + k] for k in range(3)), *inv, *shear, kx, ky, kz, cls, tmin_r[...])
+    ray = (*(o_r[i3 + k] for k in range(3)), *inv, *shear, kx, ky, kz, cls, lo)
     shape = ray[0].shape
     z = jnp.zeros(shape, jnp.float32)
-    hit = (tmax_r[...], jnp.full(shape, -1, jnp.int32), z, z, z + 1.0)
+    hit = (hi, jnp.full(shape, -1, jnp.int32), z, z, z + 1.0)
+
+    def put(out):
+        for ref, x in zip((t_o, best_o, u_o, v_o), out):
+            if ordered:
+                ref[r] = x
+            else:
+                ref[...] = x
+
     if layout == "brute":
-        t_o[...], best_o[...], u_o[...], v_o[...] = finish(brute(ray, hit))
+        put(finish(brute(ray, hit)))
         return
     zi = jnp.zeros(shape, jnp.int32)
     bits0 = (zi, zi - 1 if postpone else zi) if layout == "wide" or postpone else zi
     if not count_o:
         _, hit, _ = lax.while_loop(live, lambda s: steps(ray, *s)[:3], (zi, hit, bits0))
-        t_o[...], best_o[...], u_o[...], v_o[...] = finish(hit)
+        put(finish(hit))
         return
 
     # Counting (`traverse(..., count_steps=True)`, for measurements): the steps each ray takes, the
@@ -648,9 +665,15 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
              steps_per_iter: int = 1, num_warps: int = 1, interpret: bool = False, layout: str | None = None,
              gate_exact: bool = True, skip_tri: bool = True, trail: int = TRAIL_DEPTH, scalar_loads: bool = False,
              unroll: int | None = None, vector_loads: bool | None = None, postpone: bool | None = None,
-             count_steps: bool = False):
+             count_steps: bool = False, order: Int[Array, " N"] | None = None):
     """Trace N rays; returns (found, t, tri_index_in_leaf_order, u, v), each (N,), as
     `traverse_xla.traverse` (without the step counts).
+
+    order: None, or a permutation of the N rays in which the kernel takes them (a program's block of
+    rays is order[block]; each reads its ray and writes its results where the ray is): the results
+    are the same. For a batch whose live rays are scattered among rays with an empty interval, the
+    live ones first keeps them together in full warps (a warp costs as long as its slowest lane), with
+    no copy of the rays or their results.
 
     arrays: node_box (nn,6), node_leaf (nn,2), links (6nn,2), triangles (F,9), optionally rows
     (nn,16) and skips (6nn,) (see bvh.BVH); origins, directions (N,3) float32; tmin, tmax (N,) float32.
@@ -691,6 +714,8 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
         raise ValueError(f"traverse_pallas: trail must be in [0, {TRAIL_DEPTH}], got {trail}")
     if layout in ("childbox", "wide", "inline") and leaf_size != 1:
         raise ValueError(f"traverse_pallas: layout {layout!r} needs leaf_size 1")
+    if count_steps and order is not None:
+        raise ValueError("traverse_pallas: count_steps takes no order")
     if count_steps and (layout not in _ROW_TABLES or steps_per_iter != 1):
         raise ValueError(f"traverse_pallas: count_steps needs layout 'childbox' or 'wide' and steps_per_iter 1, "
                          f"got {layout!r} and {steps_per_iter}")
@@ -701,7 +726,7 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
                      vector_loads=(VECTOR_LOADS if vector_loads is None else vector_loads)
                      and layout in _ROW_TABLES,
                      postpone=(POSTPONE_LEAVES if postpone is None else postpone) and layout == "childbox",
-                     count_steps=count_steps)
+                     count_steps=count_steps, order=order)
 
 
 @functools.partial(jax.jit, static_argnames=("any_hit", "leaf_size", "block", "steps_per_iter", "num_warps",
@@ -710,7 +735,7 @@ def traverse(arrays: dict, origins: Float[Array, "N 3"], directions: Float[Array
                                              "count_steps"))
 def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, block, steps_per_iter, num_warps,
               interpret, layout, gate_exact, skip_tri, trail, scalar_loads, unroll, vector_loads, postpone,
-              count_steps):
+              count_steps, order=None):
     nn = arrays["node_box"].shape[0]
     nf = arrays["triangles"].shape[0]
     n = origins.shape[0]
@@ -753,17 +778,26 @@ def _traverse(arrays, origins, directions, tmin, tmax, *, any_hit, leaf_size, bl
     static = dict(any_hit=any_hit, leaf_size=leaf_size, steps_per_iter=steps_per_iter, nf=nf, nn=nn, layout=layout,
                   gate_exact=gate_exact, skip_tri=skip_tri, trail=trail if layout in _ROW_TABLES else 0, block=block,
                   scalar_loads=scalar_loads, unroll=unroll if layout == "brute" else 1, vector_loads=vector_loads,
-                  postpone=postpone)
+                  postpone=postpone, ordered=order is not None)
     name = "bvh_any_hit" if any_hit else "bvh_closest_hit"
     ray_spec = pl.BlockSpec((block,), lambda i: (i,))
     outs = (f32, i32, f32, f32) + ((i32,) * 3 if count_steps else ())
+    if order is None:
+        lead, in_specs, out_spec = [], [whole(per_ray[0]), whole(per_ray[1]), ray_spec, ray_spec], ray_spec
+    else:
+        # a program reads its block of the order and then any ray's data (the padding rays keep
+        # their places at the end)
+        lead = [jnp.concatenate([order.astype(jnp.int32), jnp.arange(n, n_pad, dtype=jnp.int32)])]
+        in_specs = [ray_spec] + [whole(x) for x in per_ray]
+        out_spec = pl.BlockSpec((n_pad,), lambda i: (0,))
+        name += "_ordered"
     t, best, u, v, *counts = pl.pallas_call(
         functools.partial(_kernel, **static),
         out_shape=outs,
         grid=(n_pad // block,),
-        in_specs=[whole(per_ray[0]), whole(per_ray[1]), ray_spec, ray_spec] + [whole(tb) for tb in tables],
-        out_specs=(ray_spec,) * len(outs),
+        in_specs=in_specs + [whole(tb) for tb in tables],
+        out_specs=(out_spec,) * len(outs),
         interpret=interpret, name=name, **kw,
-    )(*per_ray, *tables)
+    )(*lead, *per_ray, *tables)
     t, best, u, v = t[:n], best[:n], u[:n], v[:n]
     return (best >= 0, t, best, u, v, *(c[:n] for c in counts))

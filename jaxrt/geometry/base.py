@@ -34,14 +34,18 @@ class AbstractGeometry(eqx.Module):
 
     @abc.abstractmethod
     def intersect(self, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"],
-                  tmin: Float[Array, " N"] | float = 0.0, tmax: Float[Array, " N"] | float = float("inf")) -> Hit:
-        """Closest hit with t in [tmin, tmax] (see `jaxrt.accel.intersect`)."""
+                  tmin: Float[Array, " N"] | float = 0.0, tmax: Float[Array, " N"] | float = float("inf"), *,
+                  order: Int[Array, " N"] | None = None) -> Hit:
+        """Closest hit with t in [tmin, tmax] (see `jaxrt.accel.intersect`). order: a hint, a permutation
+        of the rays in which a GPU kernel may take them (live rays first, say); the results are the same."""
 
     @abc.abstractmethod
     def occluded(self, origins: Float[Array, "N 3"], directions: Float[Array, "N 3"],
-                 tmax: Float[Array, " N"] | float, *, from_end: bool = False) -> Bool[Array, " N"]:
+                 tmax: Float[Array, " N"] | float, *, from_end: bool = False,
+                 order: Int[Array, " N"] | None = None) -> Bool[Array, " N"]:
         """Any hit with t in [0, tmax] (shadow rays). from_end: a hint that the rays may be traced
-        from their far ends (coherent shadow rays from a light); implementations may ignore it."""
+        from their far ends (coherent shadow rays from a light); order: as for `intersect`;
+        implementations may ignore both."""
 
     @abc.abstractmethod
     def surface(self, prim: Int[Array, " B"], u: Float[Array, " B"], v: Float[Array, " B"]) -> Surface:

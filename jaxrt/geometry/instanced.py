@@ -69,11 +69,12 @@ class InstancedGeometry(AbstractGeometry):
     object_names: tuple[str, ...] = eqx.field(static=True)
     num_faces: int = eqx.field(static=True)  # virtual face ids: every instance's copy counted
 
-    def intersect(self, origins, directions, tmin=0.0, tmax=jnp.inf):
+    def intersect(self, origins, directions, tmin=0.0, tmax=jnp.inf, *, order=None):
+        # (order is a hint the two-level traversal does not take)
         return two_level.intersect(self.tree, origins, directions, tmin=tmin, tmax=tmax)
 
-    def occluded(self, origins, directions, tmax, *, from_end=False):
-        # the two-level traversal always traces forwards (from_end is a hint)
+    def occluded(self, origins, directions, tmax, *, from_end=False, order=None):
+        # the two-level traversal always traces forwards (from_end and order are hints)
         return two_level.occluded(self.tree, origins, directions, tmax)
 
     def _face(self, prim):

@@ -30,12 +30,12 @@ class TriangleGeometry(AbstractGeometry):
     object_names: tuple[str, ...] = eqx.field(static=True)
     uvs: Float[Array, "V 2"] | None = None
 
-    def intersect(self, origins, directions, tmin=0.0, tmax=jnp.inf):
-        return accel.intersect(self.tree, origins, directions, tmin=tmin, tmax=tmax)
+    def intersect(self, origins, directions, tmin=0.0, tmax=jnp.inf, *, order=None):
+        return accel.intersect(self.tree, origins, directions, tmin=tmin, tmax=tmax, order=order)
 
-    def occluded(self, origins, directions, tmax, *, from_end=False):
+    def occluded(self, origins, directions, tmax, *, from_end=False, order=None):
         # from the light: coherent origins (see `jaxrt.accel.occluded`)
-        return accel.occluded(self.tree, origins, directions, tmax, from_end=from_end)
+        return accel.occluded(self.tree, origins, directions, tmax, from_end=from_end, order=order)
 
     def intersect_surface(self, origins, directions, tmin=0.0, tmax=jnp.inf):
         # the hit point and geometric normal come with the hit (`accel.intersect_points`: Embree

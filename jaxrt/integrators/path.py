@@ -142,12 +142,12 @@ CPU_TRACE_AHEAD = True
 # where no environment shines. 0 traces them as the other bounces' rays.
 LAST_RAYS_EMITTERS = 16
 LAST_RAYS_EXACT = True
-# Whether a GPU's whole-batch bounces (scenes under GPU_COMPACT_MIN_TRIANGLES) pack each ray query's
-# live rays at the front of the batch before the traversal kernel (`_packed`): a dead path's slot or
-# an unlit light sample's leaves the kernel at its tree's root, but a warp costs as long as its
+# Whether a GPU's whole-batch bounces (scenes under GPU_COMPACT_MIN_TRIANGLES) have the traversal
+# kernel take each ray query's live rays first (`_live_first`, the queries' `order`): a dead path's
+# slot or an unlit light sample's leaves the kernel at its tree's root, but a warp costs as long as its
 # slowest lane, and in the Cornell box's later bounces a third to a half of the slots are dead,
-# scattered over nearly every warp. Packing costs a prefix sum and the rays' gathers; the paths'
-# state stays where it is (the bounce's shading runs on the whole batch).
+# scattered over nearly every warp. It costs a prefix sum and a scatter of indices a query; the rays,
+# their results and the paths' state stay where they are.
 GPU_PACK_RAYS = False
 _sg = lax.stop_gradient
 
@@ -208,20 +208,14 @@ def _stored(tree, alive):
     return lax.cond(jnp.any(alive), lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
 
 
-def _packed(active: Bool[Array, " B"], query, *rays):
-    """query(*rays, live) on the rays where `active` only, packed in order at the front of the batch
-    (a prefix sum: neighbouring rays stay neighbours), then each result leaf brought back to its ray's
-    slot (a gather; where not active it is the first packed ray's, for the caller to mask). `live`
-    marks the packed slots that hold a ray; the others hold copies of ray 0 to be given an empty
-    interval."""
+def _live_first(active: Bool[Array, " B"]) -> Int[Array, " B"]:
+    """The permutation of a batch's rays that puts the `active` ones first and the others after them,
+    each group in its order (a stable partition by one prefix sum), for a ray query's `order`."""
     n = active.shape[0]
-    pos = jnp.cumsum(active, dtype=jnp.int32) - 1
-    rows = jnp.zeros(n, jnp.int32).at[jnp.where(active, pos, n)].set(jnp.arange(n, dtype=jnp.int32), mode="drop",
-                                                                       unique_indices=True)
-    live = jnp.arange(n, dtype=jnp.int32) <= pos[-1]
-    out = query(*(x[rows] for x in rays), live)
-    back = jnp.maximum(pos, 0)
-    return jax.tree.map(lambda x: x[back], out)
+    i = jnp.arange(n, dtype=jnp.int32)
+    before = jnp.cumsum(active, dtype=jnp.int32) - active  # active rays before each ray
+    slot = jnp.where(active, before, before[-1] + active[-1] + i - before)
+    return jnp.zeros(n, jnp.int32).at[slot].set(i, unique_indices=True)
 
 
 def _where_present(present, fn, *args):
@@ -449,16 +443,11 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
             return intersect_surface_active(geo, o, d, alive)
         if not pack:
             return intersect_active(geo, o, d, alive), None
-        h = _packed(alive, lambda o, d, live: geo.intersect(o, d, 0.0, jnp.where(live, jnp.inf, -1.0)), o, d)
-        return accel.Hit(t=jnp.where(alive, h.t, jnp.inf), prim=jnp.where(alive, h.prim, -1),
-                         u=jnp.where(alive, h.u, 0.0), v=jnp.where(alive, h.v, 0.0)), None
+        return geo.intersect(o, d, 0.0, jnp.where(alive, jnp.inf, -1.0), order=_live_first(alive)), None
 
     def occluded(o, d, tmax):
-        # any hits with t in [0, tmax], rays with tmax <= 0 not traced (false)
-        if not pack:
-            return geo.occluded(o, d, tmax)
-        act = tmax > 0
-        return act & _packed(act, lambda o, d, t, live: geo.occluded(o, d, jnp.where(live, t, -1.0)), o, d, tmax)
+        # any hits with t in [0, tmax] (rays with tmax <= 0 find none)
+        return geo.occluded(o, d, tmax, order=_live_first(tmax > 0) if pack else None)
 
     def work(k, carry, last: bool = False):
         # One bounce of a chunk of paths. With `ahead` (not None: the carry's hits, an `accel.Hit`, and

@@ -162,7 +162,7 @@ def plane_distance(tri9, o, d):
 @pytest.mark.slow  # (the Pallas interpreter on a CPU: ~140 s; the default suite keeps test_pallas_matches_xla_and_brute_force)
 def test_pallas_layout_variants_agree():
     """The kernel's speed options (node-row layouts, exact signs always on, the triangle test in every
-    warp) give the default's hits, on rays aimed at vertices and edges (where the exact signs
+    warp, the order rays are taken in) give the default's hits, on rays aimed at vertices and edges (where the exact signs
     matter), with and without the tree's packed rows."""
     from jaxrt.accel import traverse_pallas as bvh_pallas
 
@@ -176,6 +176,7 @@ def test_pallas_layout_variants_agree():
     d = (tgt - o).astype(np.float32)
     lo, hi = np.zeros(len(o), np.float32), np.full(len(o), np.inf, np.float32)
     hi[::5] = 0.3  # some rays end before the mesh
+    perm = rng.permutation(len(o)).astype(np.int32)
     run = lambda arr=arrays, any_hit=False, block=64, **kw: [np.asarray(x) for x in bvh_pallas.traverse(  # noqa: E731
         arr, o, d, lo, hi, any_hit=any_hit, leaf_size=1, block=block, interpret=True, **kw)]
     found, t, tri, u, v_ = run()
@@ -186,7 +187,9 @@ def test_pallas_layout_variants_agree():
                 dict(layout="wide", trail=2, vector_loads=False), dict(gate_exact=False), dict(postpone=True),
                 dict(layout="inline"), dict(layout="tables"), dict(skip_tri=False), dict(layout="tables", block=32),
                 dict(layout="inline", steps_per_iter=3), dict(layout="brute"), dict(layout="brute", scalar_loads=True),
-                dict(layout="brute", block=32))
+                dict(layout="brute", block=32),
+                # rays taken in another order (`order`: each read and written where it is)
+                dict(order=perm), dict(arr=packed, order=perm), dict(layout="brute", order=perm))
     for kw in variants:
         r = run(**kw)
         assert np.array_equal(r[0], found), kw

@@ -191,6 +191,15 @@ def test_compacted_bounce_runs_live_paths_in_order_and_differentiates(live, dens
     np.testing.assert_allclose(float(g), float(np.asarray(x)[alive].sum()), rtol=1e-5)
 
 
+def test_live_first_is_a_stable_partition():
+    rng = np.random.default_rng(4)
+    for p in (0.0, 0.3, 1.0):
+        active = rng.random(257) < p
+        active[-1] = p > 0.5  # (the last ray's own slot is where the two groups meet)
+        order = np.asarray(path._live_first(jnp.asarray(active)))
+        np.testing.assert_array_equal(order, np.concatenate([np.flatnonzero(active), np.flatnonzero(~active)]))
+
+
 @pytest.mark.slow  # ~75 s on 2 cores (six programs with the XLA traversal, a scene)
 @pytest.mark.parametrize("name", ["furnace", pytest.param("cornell_area", marks=pytest.mark.data)])
 def test_gpu_bounce_layouts_trace_the_same_paths(name, monkeypatch, request):

@@ -250,6 +250,16 @@ PY
                   stage profile-pack 70 python3 -c "import sys; sys.path.insert(0, 'benchmarks'); sys.argv = ['gpu_profile.py', \
                       'path-cornell', '--size', '512', '--repeats', '5', '--top', '40']; from jaxrt.integrators import path as P; \
                       P.GPU_PACK_RAYS = True; import gpu_profile; sys.exit(gpu_profile.main())" ;;
+        pack-compile)  # the Cornell box's first call in fresh processes (no persistent cache): the defaults against the
+                  # session's start (last rays to their closest hits, no ray order); then the pass of each in one process
+                  for i in 1 2 3; do
+                      for k in "" LAST_RAYS_EMITTERS=0,GPU_PACK_RAYS=False; do
+                          JAXRT_CACHE=off stage "path-first-${k:-default}" 90 python3 benchmarks/path_chunks.py --size 512 \
+                              --repeats 3 --scenes cornell --no-off --knobs "$k"
+                      done
+                  done
+                  stage path-pack-ab 120 python3 benchmarks/path_chunks.py --size 512 --repeats 9 --scenes cornell \
+                      --knobs "" LAST_RAYS_EMITTERS=0,GPU_PACK_RAYS=False "" LAST_RAYS_EMITTERS=0,GPU_PACK_RAYS=False ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

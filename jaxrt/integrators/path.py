@@ -145,8 +145,9 @@ CPU_TRACE_AHEAD = True
 LAST_RAYS_EMITTERS = 16
 # Whether that emitter test takes exact edge signs and a double-float t (`accel.intersect_few`): a ray
 # within rounding of an emitter's edge counts as hitting it either way, and the emission's MIS weight
-# needs no more than float32's t. Without, the pass's first compilation is shorter (the exact test
-# added ~0.4 s of ~8 on the H200) and the pass no slower.
+# needs no more than float32's t. The exact test lengthened the pass's first compilation on an H200
+# (fresh processes, medians of 3: 8.36 against 8.00 s with closest hits, then 8.97 against 8.43); this
+# one does not (7.42 against 8.43), and the pass is no slower.
 LAST_RAYS_EXACT = False
 # Whether a GPU's whole-batch bounces (scenes under GPU_COMPACT_MIN_TRIANGLES) have the traversal
 # kernel take each ray query's live rays first (`_live_first`, the queries' `order`): a dead path's

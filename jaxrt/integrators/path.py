@@ -223,6 +223,8 @@ def _live_first(active: Bool[Array, " B"]) -> Int[Array, " B"]:
     each group in its order (a stable partition by one prefix sum), for a ray query's `order`."""
     n = active.shape[0]
     i = jnp.arange(n, dtype=jnp.int32)
+    if n == 0:
+        return i
     before = jnp.cumsum(active, dtype=jnp.int32) - active  # active rays before each ray
     slot = jnp.where(active, before, before[-1] + active[-1] + i - before)
     return jnp.zeros(n, jnp.int32).at[slot].set(i, unique_indices=True)

@@ -260,9 +260,6 @@ PY
                   done
                   stage path-pack-ab 120 python3 benchmarks/path_chunks.py --size 512 --repeats 9 --scenes cornell \
                       --knobs "" LAST_RAYS_EMITTERS=0,GPU_PACK_RAYS=False "" LAST_RAYS_EMITTERS=0,GPU_PACK_RAYS=False ;;
-        pack-all)  # the live rays first in the compacted bounces' queries too (`path.GPU_PACK_RAYS="all"`), the dragon
-                  stage path-pack-all 200 python3 benchmarks/path_chunks.py --size 512 --repeats 9 --scenes dragon \
-                      --knobs "" GPU_PACK_RAYS=all "" GPU_PACK_RAYS=all ;;
         *)        echo "unknown stage $s" | tee -a "$LOG" ;;
     esac
 done

@@ -158,7 +158,8 @@ LAST_RAYS_EXACT = False
 # 16 spp, depth 4: closest hits 2.78 -> 2.42 ms a pass, any hits 2.02 -> 1.43 ms, the orders 0.3-0.4 ms;
 # the pass 11.61 / 11.44 -> 11.27 / 11.28 ms (`path_chunks.py`, alternating, pixels equal). Gathering
 # the live rays into a packed batch instead (and the results back) cost more than it saved (+0.35 ms).
-# "all": the compacted bounces' queries too (their chunks' dead tails, unlit light samples).
+# In the compacted bounces too (the environment-lit dragon: its chunks' dead tails, unlit light
+# samples) the pass was slower, 16.86 / 16.73 against 15.99 / 16.10 ms, and its first call took 66 s.
 GPU_PACK_RAYS = True
 _sg = lax.stop_gradient
 
@@ -413,7 +414,7 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
     on_cpu = _on_cpu()
     # (each bounce on the whole batch: see GPU_COMPACT_MIN_TRIANGLES, GPU_PACK_RAYS)
     compact = on_cpu or geo.triangle_count >= GPU_COMPACT_MIN_TRIANGLES
-    pack = not on_cpu and (GPU_PACK_RAYS == "all" or (bool(GPU_PACK_RAYS) and not compact))
+    pack = GPU_PACK_RAYS and not compact
 
     key = jax.random.fold_in(jax.random.key(jnp.asarray(st.seed, jnp.uint32)), jnp.asarray(pass_index, jnp.uint32))
     kcam, kpath = jax.random.split(key)

@@ -137,11 +137,11 @@ CPU_TRACE_AHEAD = True
 # at most this many emissive triangles they are not traced among all the scene's triangles:
 # each is tested against every emitter (`accel.intersect_few`, fused into the glue), and the nearest
 # emitter hit's visibility, or for a ray that meets none the escape to an environment, is an any-hit
-# query, which ends at the first occluder (`_last_rays`). A closest hit walks on to the nearest
+# query, which ends at the first occluder (`last_rays` in `samples`). A closest hit walks on to the nearest
 # surface, and rays that meet no emitter (most, in a room lit by a small lamp) are no query at all
 # where no environment shines. 0 traces them as the other bounces' rays. One NVIDIA H200, the Cornell
 # box at 512², 16 spp, depth 4 (`benchmarks/path_chunks.py`, medians of 9, alternating in one
-# process): 11.31 / 11.36 ms a pass against 11.70 / 11.63 with their closest hits, pixels equal.
+# process): 11.31 / 11.36 ms a pass against 11.70 / 11.63 with their closest hits, pixels within 1.2e-7.
 LAST_RAYS_EMITTERS = 16
 # Whether that emitter test takes exact edge signs and a double-float t (`accel.intersect_few`): a ray
 # within rounding of an emitter's edge counts as hitting it either way, and the emission's MIS weight

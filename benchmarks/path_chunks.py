@@ -166,6 +166,7 @@ def main(argv=None) -> int:
     for name in args.scenes:
         sc = bench.load(name, args.size, args.spp, args.depth, exr, args.mesh)
         base = ref = None
+        of = "the first" if args.no_off else "off"
         if not args.no_off:
             base, ref = run_variant(sc, None, args.repeats)
             print(f"{name:8s} off      first {base['first_s']:6.2f} s  pass {base['pass_s'] * 1e3:8.2f} ms  "
@@ -182,9 +183,7 @@ def main(argv=None) -> int:
                 print(f"{name:8s} {label} failed: {type(e).__name__}: {str(e)[:300]}")
                 continue
             if ref is None:
-                base, ref, of = r, img, "the first"
-            else:
-                of = "off" if not args.no_off else "the first"
+                base, ref = r, img
             d = np.abs(img - ref)
             same = "equal" if not d.any() else f"max |diff| {d.max():.2e} on {np.mean(d > 0):.1e} of values"
             print(f"{name:8s} {label} first {r['first_s']:6.2f} s  "

@@ -27,11 +27,26 @@ def on_cpu() -> bool:
     return jax.default_backend() == "cpu"
 
 
+def live_first(active: Bool[Array, " B"]) -> Int[Array, " B"]:
+    """The permutation of a batch's ray slots that puts the `active` ones first and the others after
+    them, each group in its order (a stable partition by one prefix sum): a ray query's `order`, so that
+    a GPU kernel's warps hold live rays together (a warp runs as long as its slowest lane)."""
+    n = active.shape[0]
+    i = jnp.arange(n, dtype=jnp.int32)
+    if n == 0:
+        return i
+    before = jnp.cumsum(active, dtype=jnp.int32) - active  # active slots before each slot
+    slot = jnp.where(active, before, before[-1] + active[-1] + i - before)
+    return jnp.zeros(n, jnp.int32).at[slot].set(i, unique_indices=True)
+
+
 def intersect_active(geometry, origins: Float[Array, "B 3"], directions: Float[Array, "B 3"],
-                     active: Bool[Array, " B"]) -> Hit:
+                     active: Bool[Array, " B"], *, ordered: bool = False) -> Hit:
     """Closest hits of a batch of ray slots of which only `active` ones exist: inactive slots get an
-    empty interval, so traversal rejects them at the root."""
-    return geometry.intersect(origins, directions, 0.0, jnp.where(active, jnp.inf, -1.0))
+    empty interval, so traversal rejects them at the root. ordered: the kernel takes the active slots
+    first (`live_first`; the same hits)."""
+    return geometry.intersect(origins, directions, 0.0, jnp.where(active, jnp.inf, -1.0),
+                              order=live_first(active) if ordered else None)
 
 
 def intersect_surface_active(geometry, origins: Float[Array, "B 3"], directions: Float[Array, "B 3"],

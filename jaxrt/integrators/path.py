@@ -72,13 +72,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Float, Int
 
 import brdfs
 from jaxrt import _random, accel, camera, envmap
 from jaxrt import lights as _lights
 from jaxrt.integrators.common import (counter_uniforms, emitter_table, intersect_active, intersect_surface_active,
-                                      power_heuristic, sample_area_light)
+                                      live_first, power_heuristic, sample_area_light)
 from jaxrt.integrators.common import on_cpu as _on_cpu  # a name of this module's: tests patch it
 from jaxrt.shading.aovs import build_aovs
 from jaxrt.shading.material import at_hits, hit_params, glass_split, is_glass
@@ -150,7 +150,7 @@ LAST_RAYS_EMITTERS = 16
 # one does not (7.42 against 8.43), and the pass is no slower.
 LAST_RAYS_EXACT = False
 # Whether a GPU's whole-batch bounces (scenes under GPU_COMPACT_MIN_TRIANGLES) have the traversal
-# kernel take each ray query's live rays first (`_live_first`, the queries' `order`): a dead path's
+# kernel take each ray query's live rays first (`common.live_first`, the queries' `order`): a dead path's
 # slot or an unlit light sample's leaves the kernel at its tree's root, but a warp costs as long as its
 # slowest lane, and in the Cornell box's later bounces a third to a half of the slots are dead,
 # scattered over nearly every warp. It costs a prefix sum and a scatter of indices a query; the rays,
@@ -218,18 +218,6 @@ def _stored(tree, alive):
     if jax.default_backend() != "cpu":
         return tree
     return lax.cond(jnp.any(alive), lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
-
-
-def _live_first(active: Bool[Array, " B"]) -> Int[Array, " B"]:
-    """The permutation of a batch's rays that puts the `active` ones first and the others after them,
-    each group in its order (a stable partition by one prefix sum), for a ray query's `order`."""
-    n = active.shape[0]
-    i = jnp.arange(n, dtype=jnp.int32)
-    if n == 0:
-        return i
-    before = jnp.cumsum(active, dtype=jnp.int32) - active  # active rays before each ray
-    slot = jnp.where(active, before, before[-1] + active[-1] + i - before)
-    return jnp.zeros(n, jnp.int32).at[slot].set(i, unique_indices=True)
 
 
 def _where_present(present, fn, *args):
@@ -455,13 +443,11 @@ def samples(scene, pass_index: Int[Array, ""] | int = 0, *, jitter: bool | None 
         # stop_gradient here, so nothing differentiates them. A GPU pass gathers them (`geo.surface`).
         if on_cpu:
             return intersect_surface_active(geo, o, d, alive)
-        if not pack:
-            return intersect_active(geo, o, d, alive), None
-        return geo.intersect(o, d, 0.0, jnp.where(alive, jnp.inf, -1.0), order=_live_first(alive)), None
+        return intersect_active(geo, o, d, alive, ordered=pack), None
 
     def occluded(o, d, tmax):
         # any hits with t in [0, tmax] (rays with tmax <= 0 find none)
-        return geo.occluded(o, d, tmax, order=_live_first(tmax > 0) if pack else None)
+        return geo.occluded(o, d, tmax, order=live_first(tmax > 0) if pack else None)
 
     def work(k, carry, last: bool = False):
         # One bounce of a chunk of paths. With `ahead` (not None: the carry's hits, an `accel.Hit`, and

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from jaxrt import accel, envmap, scene
-from jaxrt.integrators import path
+from jaxrt.integrators import common, path
 from jaxrt.errors import InputError
 from jaxrt.shading import direct
 
@@ -196,7 +196,7 @@ def test_live_first_is_a_stable_partition():
     for p in (0.0, 0.3, 1.0):
         active = rng.random(257) < p
         active[-1] = p > 0.5  # (the last ray's own slot is where the two groups meet)
-        order = np.asarray(path._live_first(jnp.asarray(active)))
+        order = np.asarray(common.live_first(jnp.asarray(active)))
         np.testing.assert_array_equal(order, np.concatenate([np.flatnonzero(active), np.flatnonzero(~active)]))
 
 
